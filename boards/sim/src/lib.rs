@@ -1,0 +1,1 @@
+//! Forja's host simulator board.

@@ -1,0 +1,2 @@
+//! Forja's plugin drivers over embedded-hal and embedded-io.
+#![no_std]

@@ -1,0 +1,3 @@
+//! The forja command-line client.
+
+fn main() {}

@@ -1,0 +1,2 @@
+//! Forja's board-agnostic motion kernel.
+#![no_std]

@@ -1,0 +1,235 @@
+//! `cargo xtask`: Forja's one entry point for building, testing and running the firmware.
+//!
+//! Each subcommand is a list of steps run in order; the first failing step stops the run and
+//! names itself. The help text below is the documentation of every command.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, ExitCode};
+
+use clap::{Parser, Subcommand};
+
+/// Forja's build, test and run tasks.
+#[derive(Parser)]
+#[command(name = "cargo xtask", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    task: Task,
+}
+
+#[derive(Subcommand)]
+enum Task {
+    /// Run every check CI runs: formatting, clippy with -D warnings, all host tests, the
+    /// portable crates checked for both firmware targets, and the firmware builds.
+    Test,
+    /// Run the simulator with the bundled sample job and print the result; with `--listen`,
+    /// wait for clients on TCP and a pseudo-terminal instead. Extra arguments go to the simulator.
+    Sim {
+        /// Arguments passed to the simulator (see `cargo xtask sim -- --help`).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// Run every fuzz target for the given time each (needs the nightly toolchain; installs
+    /// cargo-fuzz when it is missing).
+    Fuzz {
+        /// Seconds per target.
+        #[arg(long, default_value_t = 60)]
+        seconds: u64,
+        /// Run only this target.
+        #[arg(long)]
+        target: Option<String>,
+    },
+    /// Run the criterion benchmarks of the portable crates.
+    Bench {
+        /// Extra arguments passed to criterion (for example a benchmark name filter).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+}
+
+/// Portable crates that must build for every firmware target.
+const PORTABLE: &[&str] = &[
+    "forja-hal-abstraction",
+    "forja-protocol",
+    "forja-motion",
+    "forja-drivers",
+];
+
+/// The firmware targets of the boards.
+const FIRMWARE_TARGETS: &[&str] = &["thumbv7em-none-eabihf", "riscv32imc-unknown-none-elf"];
+
+/// Benchmarked crates.
+const BENCHED: &[&str] = &["forja-protocol", "forja-motion"];
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.task {
+        Task::Test => test(),
+        Task::Sim { args } => sim(&args),
+        Task::Fuzz { seconds, target } => fuzz(seconds, target.as_deref()),
+        Task::Bench { args } => bench(&args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("xtask: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// The workspace root (the parent of this crate's directory).
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| PathBuf::from("."))
+}
+
+/// A command run from `dir`, described by `what` when it fails.
+struct Step {
+    what: String,
+    cmd: Command,
+}
+
+impl Step {
+    fn cargo(what: impl Into<String>, args: &[&str]) -> Self {
+        let mut cmd = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
+        cmd.args(args).current_dir(root());
+        Self {
+            what: what.into(),
+            cmd,
+        }
+    }
+
+    fn run(mut self) -> Result<(), String> {
+        eprintln!("\n==> {}", self.what);
+        let status = self
+            .cmd
+            .status()
+            .map_err(|e| format!("{}: could not start: {e}", self.what))?;
+        if status.success() {
+            Ok(())
+        } else {
+            Err(format!("{} failed ({status})", self.what))
+        }
+    }
+}
+
+fn run_all(steps: Vec<Step>) -> Result<(), String> {
+    steps.into_iter().try_for_each(Step::run)
+}
+
+fn test() -> Result<(), String> {
+    let mut steps = vec![
+        Step::cargo("format check", &["fmt", "--all", "--check"]),
+        Step::cargo(
+            "clippy (all targets, -D warnings)",
+            &[
+                "clippy",
+                "--workspace",
+                "--all-targets",
+                "--",
+                "-D",
+                "warnings",
+            ],
+        ),
+        Step::cargo("host tests", &["test", "--workspace", "--all-targets"]),
+        Step::cargo("doc tests", &["test", "--workspace", "--doc"]),
+    ];
+    for target in FIRMWARE_TARGETS {
+        let mut args = vec!["check", "--target", target];
+        for krate in PORTABLE {
+            args.extend(["-p", krate]);
+        }
+        steps.push(Step::cargo(format!("portable crates on {target}"), &args));
+    }
+    run_all(steps)
+}
+
+fn sim(args: &[String]) -> Result<(), String> {
+    let mut all = vec!["run", "--quiet", "--release", "-p", "forja-sim", "--"];
+    all.extend(args.iter().map(String::as_str));
+    Step::cargo("simulator", &all).run()
+}
+
+/// The fuzz targets, as listed in `fuzz/Cargo.toml`.
+fn fuzz_targets() -> Result<Vec<String>, String> {
+    let manifest = root().join("fuzz").join("Cargo.toml");
+    let text = std::fs::read_to_string(&manifest)
+        .map_err(|e| format!("cannot read {}: {e}", manifest.display()))?;
+    let mut targets = Vec::new();
+    let mut in_bin = false;
+    for line in text.lines().map(str::trim) {
+        if line.starts_with('[') {
+            in_bin = line == "[[bin]]";
+        } else if in_bin && let Some(rest) = line.strip_prefix("name") {
+            let name = rest
+                .trim_start()
+                .trim_start_matches('=')
+                .trim()
+                .trim_matches('"');
+            targets.push(name.to_string());
+        }
+    }
+    if targets.is_empty() {
+        return Err(format!("no [[bin]] targets in {}", manifest.display()));
+    }
+    Ok(targets)
+}
+
+fn ensure_cargo_tool(probe: &[&str], install: &[&str], what: &str) -> Result<(), String> {
+    let present = Command::new("cargo")
+        .args(probe)
+        .current_dir(root())
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false);
+    if present {
+        return Ok(());
+    }
+    eprintln!("{what} is not installed; installing it (one time, a few minutes)");
+    let mut args = vec!["install", "--locked"];
+    args.extend(install);
+    Step::cargo(format!("install {what}"), &args).run()
+}
+
+fn fuzz(seconds: u64, only: Option<&str>) -> Result<(), String> {
+    ensure_cargo_tool(
+        &["+nightly", "fuzz", "--version"],
+        &["cargo-fuzz"],
+        "cargo-fuzz",
+    )?;
+    let targets = fuzz_targets()?;
+    let chosen: Vec<&String> = match only {
+        Some(t) => {
+            let found: Vec<&String> = targets.iter().filter(|n| *n == t).collect();
+            if found.is_empty() {
+                return Err(format!(
+                    "no fuzz target named {t}; the targets are: {}",
+                    targets.join(", ")
+                ));
+            }
+            found
+        }
+        None => targets.iter().collect(),
+    };
+    let max_time = format!("-max_total_time={seconds}");
+    for target in chosen {
+        Step::cargo(
+            format!("fuzz {target} for {seconds} s"),
+            &["+nightly", "fuzz", "run", target, "--", &max_time],
+        )
+        .run()?;
+    }
+    Ok(())
+}
+
+fn bench(args: &[String]) -> Result<(), String> {
+    let mut all = vec!["bench"];
+    for krate in BENCHED {
+        all.extend(["-p", krate]);
+    }
+    all.push("--");
+    all.extend(args.iter().map(String::as_str));
+    Step::cargo("benchmarks", &all).run()
+}
