@@ -1,2 +1,80 @@
-//! Forja's plugin drivers over embedded-hal and embedded-io.
-#![no_std]
+//! # Forja drivers
+//!
+//! Concrete drivers for the traits of [`forja_hal_abstraction`], written against
+//! `embedded-hal` 1.0, `embedded-io` and `embedded-storage` only: no chip, no vendor HAL, no
+//! executor. A board crate builds them from its HAL's pins, PWM channels, ADC, UART and flash,
+//! and hands them to the kernel.
+//!
+//! ## Drivers and their execution contexts
+//!
+//! | module | driver | implements | context |
+//! |---|---|---|---|
+//! | [`stepper`] | [`StepDir`](stepper::StepDir) | `Stepper` (interrupt), `StepperEnable` (thread) | step edges in the step interrupt: one pin write each |
+//! | [`limit`] | [`LimitInput`](limit::LimitInput) | `LimitSwitch` | either: polled by the step interrupt, one pin read |
+//! | [`uart`] | [`UartBuffers`](uart::UartBuffers) | `embedded_io::{Read, ReadReady, Write, WriteReady}` | RX/TX interrupts push and pop; the protocol task reads and writes |
+//! | [`session`] | [`LinkSession`](session::LinkSession) | `LinkStatus` | thread: the network task |
+//! | [`thermistor`] | [`Thermistor`](thermistor::Thermistor) | `TemperatureSensor` | thread: may block for one ADC conversion |
+//! | [`max31855`] | [`Max31855`](max31855::Max31855) | `TemperatureSensor` | thread: one SPI transfer |
+//! | [`heater`] | [`PidHeater`](heater::PidHeater), [`HeaterChannel`](heater::HeaterChannel) | (sans-IO controller) | thread: the temperature loop |
+//! | [`pwm`] | [`Fan`](pwm::Fan), [`Spindle`](pwm::Spindle), [`PwmHeater`](pwm::PwmHeater) | `Heater` (for `PwmHeater`) | thread |
+//! | [`storage`] | [`FlashRecordStorage`](storage::FlashRecordStorage), [`Records`](storage::Records) | `RecordStorage` | thread: may block for a flash erase |
+//! | [`ram_flash`] | [`RamNorFlash`](ram_flash::RamNorFlash) | `embedded_storage::nor_flash::NorFlash` | a simulated flash for the host simulator and tests |
+//!
+//! "Interrupt" methods are integer-only, allocation-free, panic-free and constant-time: a pin
+//! write or read and a few instructions. "Thread" methods may use `f32` (the heater and the
+//! thermistor do) and may block where their documentation says so. Nothing in this crate
+//! panics outside tests, nothing allocates, and there is no `unsafe` code.
+//!
+//! ## Errors
+//!
+//! Each driver has one small `#[non_exhaustive]` error type with `Display`, mapped onto
+//! [`forja_hal_abstraction::ErrorKind`] through [`forja_hal_abstraction::Error::kind`]: a pin
+//! or bus failure is `Hardware`, an open or shorted sensor is `SensorFault`, a full store is
+//! `Full`. Errors that are reported to the host have stable numeric codes, from
+//! `code()`, in 200..=299:
+//!
+//! | codes | errors |
+//! |---|---|
+//! | 210–215 | [`HeaterFault`](heater::HeaterFault) |
+//! | 230–236 | [`StorageError`](storage::StorageError) |
+//! | 237–238 | [`RecordError`](storage::RecordError) (encoding and decoding typed records) |
+//!
+//! ## Board requirements
+//!
+//! The UART queues coordinate through the `critical-section` crate, so that they also run on
+//! targets without compare-and-swap atomics (RISC-V `imc`). The firmware binary provides the
+//! implementation: `cortex-m`'s `critical-section-single-core` feature, or the one built into
+//! esp-hal.
+//!
+//! ## Writing a driver
+//!
+//! `docs/writing-a-driver.md` explains how a driver plugs in, with [`max31855`] as its worked
+//! example.
+#![cfg_attr(not(test), no_std)]
+#![forbid(unsafe_code)]
+#![cfg_attr(
+    not(test),
+    deny(
+        clippy::unwrap_used,
+        clippy::expect_used,
+        clippy::panic,
+        clippy::indexing_slicing,
+        clippy::unreachable,
+        clippy::todo
+    )
+)]
+
+pub mod heater;
+pub mod limit;
+pub mod max31855;
+pub mod pin;
+pub mod pwm;
+pub mod ram_flash;
+pub mod session;
+pub mod stepper;
+pub mod storage;
+pub mod thermistor;
+pub mod uart;
+
+#[cfg(test)]
+mod test_fakes;

@@ -1,0 +1,215 @@
+//! Session rules of connection-oriented links (the ESP32's WiFi/TCP link, the simulator's TCP
+//! link): one controlling client at a time, a greeting on connect, periodic keep-alives.
+//!
+//! [`LinkSession`] is sans-IO. The caller owns the sockets and the clock: it reports
+//! connections and disconnections, calls [`LinkSession::poll`] with the time, and carries out
+//! the [`SessionAction`]s it gets back, encoding the messages with the protocol crate:
+//!
+//! | action | the caller |
+//! |---|---|
+//! | [`SessionAction::SendConnected`] | sends message 54 (connected) to the new client |
+//! | [`SessionAction::SendKeepAlive`] | sends message 55 (keep-alive) with the counter |
+//! | [`SessionAction::RefuseSecondClient`] | sends the refusal to the *new* client and closes it; the controlling client is untouched |
+//!
+//! ```
+//! use forja_drivers::session::{LinkSession, SessionAction};
+//!
+//! let mut session = LinkSession::new(1_000);
+//! assert_eq!(session.on_connect(0), SessionAction::SendConnected);
+//! assert_eq!(session.on_connect(10), SessionAction::RefuseSecondClient);
+//! assert_eq!(session.poll(999), None);
+//! assert_eq!(session.poll(1_000), Some(SessionAction::SendKeepAlive(0)));
+//! assert_eq!(session.poll_at(), Some(2_000));
+//! ```
+//!
+//! Times are milliseconds of a wrapping `u32` clock; deadlines compare correctly while they are
+//! less than 2³¹ ms (24 days) apart.
+//!
+//! # Execution context
+//!
+//! Thread (the network task). Never blocks, never fails.
+
+use forja_hal_abstraction::link::{LinkState, LinkStatus};
+
+/// What the caller must do on the link.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum SessionAction {
+    /// Send message 54 (connected) to the client that just became the controller.
+    SendConnected,
+    /// Send message 55 (keep-alive) carrying this counter, which starts at 0 for each session
+    /// and increments (wrapping) with each keep-alive.
+    SendKeepAlive(u32),
+    /// A client connected while another is in control: send it the refusal message and close
+    /// its connection.
+    RefuseSecondClient,
+}
+
+/// The session of one link: who is in control and when the next keep-alive is due.
+#[derive(Debug, Clone)]
+pub struct LinkSession {
+    keep_alive_interval_ms: u32,
+    connected: bool,
+    next_keep_alive_ms: u32,
+    counter: u32,
+}
+
+/// `true` when `a` is at or after `b` on a wrapping millisecond clock.
+const fn at_or_after(a: u32, b: u32) -> bool {
+    (a.wrapping_sub(b) as i32) >= 0
+}
+
+impl LinkSession {
+    /// No client, keep-alives every `keep_alive_interval_ms` once one connects (at least
+    /// 1 ms).
+    pub const fn new(keep_alive_interval_ms: u32) -> Self {
+        Self {
+            keep_alive_interval_ms: if keep_alive_interval_ms == 0 {
+                1
+            } else {
+                keep_alive_interval_ms
+            },
+            connected: false,
+            next_keep_alive_ms: 0,
+            counter: 0,
+        }
+    }
+
+    /// A client connected at `now_ms`. The first one becomes the controller
+    /// ([`SessionAction::SendConnected`]; its first keep-alive is due one interval later); any
+    /// other, while one is in control, is refused ([`SessionAction::RefuseSecondClient`]) and
+    /// does not change the session.
+    pub fn on_connect(&mut self, now_ms: u32) -> SessionAction {
+        if self.connected {
+            return SessionAction::RefuseSecondClient;
+        }
+        self.connected = true;
+        self.counter = 0;
+        self.next_keep_alive_ms = now_ms.wrapping_add(self.keep_alive_interval_ms);
+        SessionAction::SendConnected
+    }
+
+    /// The controlling client went away (closed, reset, timed out). Call it for the controller
+    /// only: a refused client never joined the session. Idempotent.
+    pub fn on_disconnect(&mut self) {
+        self.connected = false;
+    }
+
+    /// Whether a client is in control.
+    pub fn is_connected(&self) -> bool {
+        self.connected
+    }
+
+    /// The action due at `now_ms`, if any: a keep-alive when its time has come. Call again
+    /// until it returns `None`, and at the latest at [`LinkSession::poll_at`].
+    ///
+    /// A late call sends one keep-alive, not one per missed interval, and the next one is due
+    /// a full interval later.
+    pub fn poll(&mut self, now_ms: u32) -> Option<SessionAction> {
+        if !self.connected || !at_or_after(now_ms, self.next_keep_alive_ms) {
+            return None;
+        }
+        let counter = self.counter;
+        self.counter = counter.wrapping_add(1);
+        let next = self
+            .next_keep_alive_ms
+            .wrapping_add(self.keep_alive_interval_ms);
+        self.next_keep_alive_ms = if at_or_after(now_ms, next) {
+            now_ms.wrapping_add(self.keep_alive_interval_ms)
+        } else {
+            next
+        };
+        Some(SessionAction::SendKeepAlive(counter))
+    }
+
+    /// When [`LinkSession::poll`] has something to do next; `None` while nobody is connected.
+    pub fn poll_at(&self) -> Option<u32> {
+        self.connected.then_some(self.next_keep_alive_ms)
+    }
+}
+
+impl LinkStatus for LinkSession {
+    fn state(&self) -> LinkState {
+        if self.connected {
+            LinkState::Connected
+        } else {
+            LinkState::Disconnected
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_controller_at_a_time() {
+        let mut s = LinkSession::new(500);
+        assert_eq!(s.state(), LinkState::Disconnected);
+        assert_eq!(s.poll_at(), None);
+        assert_eq!(s.on_connect(100), SessionAction::SendConnected);
+        assert_eq!(s.state(), LinkState::Connected);
+        assert_eq!(s.on_connect(200), SessionAction::RefuseSecondClient);
+        assert_eq!(s.on_connect(300), SessionAction::RefuseSecondClient);
+        assert!(s.is_connected(), "refusals leave the controller in place");
+        assert_eq!(s.poll_at(), Some(600));
+        s.on_disconnect();
+        assert_eq!(s.state(), LinkState::Disconnected);
+        s.on_disconnect();
+        assert_eq!(s.poll(10_000), None);
+        assert_eq!(s.on_connect(1_000), SessionAction::SendConnected);
+    }
+
+    #[test]
+    fn keep_alives_are_periodic_and_counted() {
+        let mut s = LinkSession::new(1_000);
+        s.on_connect(0);
+        let mut sent = Vec::new();
+        for now in (0..=5_000).step_by(10) {
+            while let Some(a) = s.poll(now) {
+                sent.push((now, a));
+            }
+        }
+        let expect: Vec<_> = (0..5)
+            .map(|i| ((i + 1) * 1_000, SessionAction::SendKeepAlive(i)))
+            .collect();
+        assert_eq!(sent, expect);
+    }
+
+    #[test]
+    fn a_new_session_restarts_the_counter() {
+        let mut s = LinkSession::new(100);
+        s.on_connect(0);
+        assert_eq!(s.poll(100), Some(SessionAction::SendKeepAlive(0)));
+        assert_eq!(s.poll(200), Some(SessionAction::SendKeepAlive(1)));
+        s.on_disconnect();
+        s.on_connect(250);
+        assert_eq!(s.poll(300), None);
+        assert_eq!(s.poll(350), Some(SessionAction::SendKeepAlive(0)));
+    }
+
+    #[test]
+    fn a_late_poll_sends_one_keep_alive_not_a_burst() {
+        let mut s = LinkSession::new(100);
+        s.on_connect(0);
+        assert_eq!(s.poll(1_050), Some(SessionAction::SendKeepAlive(0)));
+        assert_eq!(s.poll(1_050), None);
+        assert_eq!(s.poll_at(), Some(1_150));
+    }
+
+    #[test]
+    fn the_clock_may_wrap() {
+        let mut s = LinkSession::new(1_000);
+        s.on_connect(u32::MAX - 500);
+        assert_eq!(s.poll(u32::MAX), None);
+        assert_eq!(s.poll_at(), Some(499));
+        assert_eq!(s.poll(499), Some(SessionAction::SendKeepAlive(0)));
+    }
+
+    #[test]
+    fn zero_interval_is_one_millisecond() {
+        let mut s = LinkSession::new(0);
+        s.on_connect(5);
+        assert_eq!(s.poll(5), None);
+        assert_eq!(s.poll(6), Some(SessionAction::SendKeepAlive(0)));
+    }
+}
