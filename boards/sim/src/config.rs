@@ -1,0 +1,1092 @@
+//! The machine file: what the simulated machine is.
+//!
+//! A machine file is TOML. It names the axes with their scale, rates, travel, homing and
+//! switches, the simulated heaters with their thermal constants, the PWM outputs, the virtual
+//! clock rate and the link settings. [`MachineConfig::from_toml_str`] parses and validates one;
+//! every error names the line, the section and the field ([`MachineFileError`]).
+//!
+//! Two machine files are bundled ([`BUNDLED`]): `default` (`machines/default.toml`, a 4-axis
+//! X/Y/Z/A CNC router, the simulator's default) and `printer` (`machines/printer.toml`, an
+//! X/Y/Z/E 3D printer with a hot end and a bed). The bundled files are the reference of the
+//! format: every field is there with a comment.
+//!
+//! # Format
+//!
+//! ```toml
+//! name = "Example"            # optional, free text
+//! tick_hz = 1_000_000         # optional, virtual clock rate; 10 kHz ..= 250 MHz
+//!
+//! [[axis]]
+//! letter = "X"                # X Y Z A B C U V W or E, each at most once
+//! kind = "linear"             # optional: "linear" (default), "rotary" ("mm" means degrees)
+//!                             # or "extruder" (filament feed, no travel limits)
+//! steps_per_mm = 80.0         # > 0
+//! max_rate_mm_min = 6000.0    # > 0, and reachable by the driver's pulse timing
+//! accel_mm_s2 = 500.0         # > 0
+//! travel_min_mm = 0.0         # required for linear axes, optional for rotary and extruder ones
+//! travel_max_mm = 300.0       # > travel_min_mm
+//! start_mm = 150.0            # optional: physical position at power-up (default: mid-travel, or 0)
+//! min_pulse_ns = 2000         # optional: simulated driver's STEP high/low minimum
+//! dir_setup_ns = 1000         # optional: simulated driver's DIR set-up before a STEP edge
+//!
+//! [axis.homing]               # optional
+//! direction = "negative"      # "negative" or "positive": needs a switch on that side
+//! seek_mm_min = 2000.0        # > 0
+//! locate_mm_min = 100.0       # > 0 and <= seek_mm_min
+//! pull_off_mm = 2.0           # >= 0
+//!
+//! [[axis.switch]]             # zero or more, at most one per side
+//! side = "min"                # "min": triggered at or below position_mm; "max": at or above
+//! position_mm = 0.0
+//! polarity = "normally_closed" # optional: "normally_open" (default) or "normally_closed"
+//!
+//! [[heater]]                  # zero or more
+//! name = "hotend"
+//! power_w = 40.0              # > 0: power at full duty
+//! heat_capacity_j_per_k = 10.0 # > 0
+//! loss_w_per_k = 0.1          # > 0: loss to ambient per kelvin above it
+//! ambient_c = 25.0            # optional, default 25
+//! start_c = 25.0              # optional, default ambient_c
+//!
+//! [[output]]                  # PWM outputs (fans, spindles); zero or more
+//! name = "spindle"
+//! max_duty = 1000             # 1 ..= 65535
+//!
+//! [link]                      # optional
+//! tcp_bind = "127.0.0.1"      # default 127.0.0.1
+//! tcp_port = 2323             # default 2323; 0 = any free port
+//! ```
+//!
+//! Unknown fields are errors, so that a misspelt field is not silently ignored. Integers are
+//! accepted where a decimal number is expected.
+
+use core::fmt;
+use std::net::IpAddr;
+
+use forja_hal_abstraction::stepper::{Direction, StepTiming};
+use serde::Deserialize;
+use toml::Spanned;
+
+/// The bundled machine files, by name: `default` (the 4-axis router) and `printer`.
+pub const BUNDLED: &[(&str, &str)] = &[
+    ("default", include_str!("../machines/default.toml")),
+    ("printer", include_str!("../machines/printer.toml")),
+];
+
+/// The default TCP port of the simulator's link: telnet's port 23, unprivileged.
+///
+/// The ESP32 board serves its WiFi link on port 23 like other WiFi CNC controllers; a host
+/// process may not bind ports below 1024, hence 2323.
+pub const DEFAULT_TCP_PORT: u16 = 2323;
+
+/// The default virtual clock rate: 1 MHz, one tick per microsecond.
+pub const DEFAULT_TICK_HZ: u32 = 1_000_000;
+
+/// Lowest accepted [`MachineConfig::tick_hz`].
+pub const MIN_TICK_HZ: u32 = 10_000;
+
+/// Highest accepted [`MachineConfig::tick_hz`] (above every supported board's timer).
+pub const MAX_TICK_HZ: u32 = 250_000_000;
+
+/// Axis letters a machine file may use.
+pub const AXIS_LETTERS: &str = "XYZABCUVWE";
+
+/// A validated machine description.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MachineConfig {
+    /// Free-text name of the machine.
+    pub name: String,
+    /// Rate of the virtual clock, in ticks per second.
+    pub tick_hz: u32,
+    /// The axes, in file order; an axis's index here is its index everywhere in the simulator.
+    pub axes: Vec<AxisConfig>,
+    /// Simulated heaters, in file order.
+    pub heaters: Vec<HeaterConfig>,
+    /// PWM outputs, in file order.
+    pub outputs: Vec<OutputConfig>,
+    /// Link settings.
+    pub link: LinkConfig,
+}
+
+/// Whether an axis moves in a line or turns.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum AxisKind {
+    /// A linear axis: positions in millimetres.
+    Linear,
+    /// A rotary axis: every `_mm` quantity of the axis is in degrees, as G-code treats A/B/C.
+    Rotary,
+    /// A 3D printer's filament feed (`E`): millimetres of filament, no travel limits needed.
+    Extruder,
+}
+
+/// The end of travel a limit switch sits at.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum SwitchSide {
+    /// Triggered at or below its position.
+    Min,
+    /// Triggered at or above its position.
+    Max,
+}
+
+/// The electrical behaviour of a limit switch, wired between the input and ground with a
+/// pull-up (the same naming as the `forja-drivers` limit input).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum SwitchPolarity {
+    /// Closes at the limit: the input reads **low** when triggered.
+    NormallyOpen,
+    /// Opens at the limit: the input reads **high** when triggered.
+    NormallyClosed,
+}
+
+/// Travel limits of an axis, in millimetres (degrees for rotary axes).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Travel {
+    /// Lowest machine position.
+    pub min_mm: f64,
+    /// Highest machine position.
+    pub max_mm: f64,
+}
+
+/// How an axis homes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HomingConfig {
+    /// Direction of travel towards the homing switch.
+    pub direction: Direction,
+    /// Rate of the fast search for the switch.
+    pub seek_mm_min: f64,
+    /// Rate of the slow, precise approach.
+    pub locate_mm_min: f64,
+    /// Distance to back off the switch after homing.
+    pub pull_off_mm: f64,
+}
+
+/// One simulated limit switch.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SwitchConfig {
+    /// Which end it sits at.
+    pub side: SwitchSide,
+    /// Machine position at which it trips, in millimetres (degrees for rotary axes).
+    pub position_mm: f64,
+    /// How its input pin reads when triggered.
+    pub polarity: SwitchPolarity,
+}
+
+/// One axis.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AxisConfig {
+    /// Axis letter, upper case.
+    pub letter: char,
+    /// Linear or rotary.
+    pub kind: AxisKind,
+    /// Motor steps per millimetre (per degree for rotary axes).
+    pub steps_per_mm: f64,
+    /// Highest rate.
+    pub max_rate_mm_min: f64,
+    /// Acceleration.
+    pub accel_mm_s2: f64,
+    /// Travel limits; `None` only for a rotary axis that turns without limit or an extruder.
+    pub travel: Option<Travel>,
+    /// Physical position at power-up.
+    pub start_mm: f64,
+    /// Homing, when the axis homes.
+    pub homing: Option<HomingConfig>,
+    /// Limit switches, at most one per side.
+    pub switches: Vec<SwitchConfig>,
+    /// Timing that the simulated driver chip enforces.
+    pub step_timing: StepTiming,
+}
+
+/// One simulated heater with its first-order thermal model (see [`crate::thermal`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct HeaterConfig {
+    /// Name, unique among heaters (`hotend`, `bed`).
+    pub name: String,
+    /// Electrical power at full duty, in watts.
+    pub power_w: f64,
+    /// Heat capacity of the heated mass, in joules per kelvin.
+    pub heat_capacity_j_per_k: f64,
+    /// Heat lost to ambient, in watts per kelvin above ambient.
+    pub loss_w_per_k: f64,
+    /// Ambient temperature, in degrees Celsius.
+    pub ambient_c: f64,
+    /// Temperature at power-up, in degrees Celsius.
+    pub start_c: f64,
+}
+
+/// One PWM output (fan, spindle).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OutputConfig {
+    /// Name, unique among outputs.
+    pub name: String,
+    /// Duty value meaning 100 %.
+    pub max_duty: u16,
+}
+
+/// Link settings.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LinkConfig {
+    /// Address the TCP listener binds to.
+    pub tcp_bind: IpAddr,
+    /// TCP port; 0 picks any free port.
+    pub tcp_port: u16,
+}
+
+impl Default for LinkConfig {
+    fn default() -> Self {
+        Self {
+            tcp_bind: IpAddr::from([127, 0, 0, 1]),
+            tcp_port: DEFAULT_TCP_PORT,
+        }
+    }
+}
+
+impl MachineConfig {
+    /// Parse and validate a machine file.
+    ///
+    /// Errors: [`MachineFileError::Syntax`] for TOML that does not parse or a field of the wrong
+    /// type, missing or unknown; [`MachineFileError::Invalid`] for a value out of range or
+    /// inconsistent with another. Both carry the line of the offending text.
+    pub fn from_toml_str(text: &str) -> Result<Self, MachineFileError> {
+        let raw: RawMachine = toml::from_str(text).map_err(|e| MachineFileError::Syntax {
+            line: e.span().map(|s| line_of(text, s.start)),
+            message: e.message().trim().to_string(),
+        })?;
+        Validator { text }.machine(raw)
+    }
+
+    /// The text of a bundled machine file by name (see [`BUNDLED`]).
+    pub fn bundled_toml(name: &str) -> Option<&'static str> {
+        BUNDLED.iter().find(|(n, _)| *n == name).map(|(_, t)| *t)
+    }
+
+    /// The bundled default machine: the 4-axis router of `machines/default.toml`.
+    ///
+    /// Cannot fail: the bundled file is validated by this crate's tests.
+    pub fn default_router() -> Self {
+        Self::from_toml_str(include_str!("../machines/default.toml"))
+            .expect("the bundled default machine file is valid")
+    }
+
+    /// The index of the axis named `letter` (either case).
+    pub fn axis_index(&self, letter: char) -> Option<usize> {
+        let letter = letter.to_ascii_uppercase();
+        self.axes.iter().position(|a| a.letter == letter)
+    }
+}
+
+impl AxisConfig {
+    /// `mm` millimetres (degrees) in whole steps, rounded to the nearest step.
+    pub fn mm_to_steps(&self, mm: f64) -> i64 {
+        (mm * self.steps_per_mm).round() as i64
+    }
+
+    /// `steps` in millimetres (degrees).
+    pub fn steps_to_mm(&self, steps: i64) -> f64 {
+        steps as f64 / self.steps_per_mm
+    }
+
+    /// The switch on `side`, if any.
+    pub fn switch(&self, side: SwitchSide) -> Option<&SwitchConfig> {
+        self.switches.iter().find(|s| s.side == side)
+    }
+}
+
+/// A machine file that cannot be used, with the line it was found at.
+///
+/// Its `Display` is one line: `machine file line 12: axis Y: steps_per_mm must be > 0`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum MachineFileError {
+    /// Not TOML, or a field of the wrong type, missing, duplicated or unknown.
+    Syntax {
+        /// 1-based line of the offending text, when known.
+        line: Option<usize>,
+        /// The parser's description.
+        message: String,
+    },
+    /// A value out of range, or inconsistent with another.
+    Invalid {
+        /// 1-based line of the offending value (or of its section, for a missing one).
+        line: Option<usize>,
+        /// The section: `axis Y`, `heater bed`, `output fan`, `link`, or empty at top level.
+        section: String,
+        /// The field name, as written in the file (`steps_per_mm`, `homing.direction`).
+        field: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+}
+
+impl MachineFileError {
+    /// The 1-based line the error was found at, when known.
+    pub fn line(&self) -> Option<usize> {
+        match self {
+            Self::Syntax { line, .. } | Self::Invalid { line, .. } => *line,
+        }
+    }
+
+    /// The offending field, for a validation error.
+    pub fn field(&self) -> Option<&str> {
+        match self {
+            Self::Syntax { .. } => None,
+            Self::Invalid { field, .. } => Some(field),
+        }
+    }
+}
+
+impl fmt::Display for MachineFileError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("machine file")?;
+        if let Some(line) = self.line() {
+            write!(f, " line {line}")?;
+        }
+        match self {
+            Self::Syntax { message, .. } => {
+                write!(f, ": {}", message.lines().next().unwrap_or_default())
+            }
+            Self::Invalid {
+                section,
+                field,
+                reason,
+                ..
+            } => {
+                if !section.is_empty() {
+                    write!(f, ": {section}")?;
+                }
+                write!(f, ": {field} {reason}")
+            }
+        }
+    }
+}
+
+impl std::error::Error for MachineFileError {}
+
+/// The 1-based line of byte offset `at` in `text`.
+fn line_of(text: &str, at: usize) -> usize {
+    let at = at.min(text.len());
+    text.as_bytes()[..at]
+        .iter()
+        .filter(|&&b| b == b'\n')
+        .count()
+        + 1
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMachine {
+    name: Option<String>,
+    tick_hz: Option<Spanned<i64>>,
+    #[serde(default, rename = "axis")]
+    axes: Vec<Spanned<RawAxis>>,
+    #[serde(default, rename = "heater")]
+    heaters: Vec<Spanned<RawHeater>>,
+    #[serde(default, rename = "output")]
+    outputs: Vec<Spanned<RawOutput>>,
+    link: Option<Spanned<RawLink>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawAxis {
+    letter: Spanned<String>,
+    kind: Option<Spanned<String>>,
+    steps_per_mm: Spanned<f64>,
+    max_rate_mm_min: Spanned<f64>,
+    accel_mm_s2: Spanned<f64>,
+    travel_min_mm: Option<Spanned<f64>>,
+    travel_max_mm: Option<Spanned<f64>>,
+    start_mm: Option<Spanned<f64>>,
+    min_pulse_ns: Option<Spanned<i64>>,
+    dir_setup_ns: Option<Spanned<i64>>,
+    homing: Option<Spanned<RawHoming>>,
+    #[serde(default, rename = "switch")]
+    switches: Vec<Spanned<RawSwitch>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawHoming {
+    direction: Spanned<String>,
+    seek_mm_min: Spanned<f64>,
+    locate_mm_min: Spanned<f64>,
+    pull_off_mm: Spanned<f64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSwitch {
+    side: Spanned<String>,
+    position_mm: Spanned<f64>,
+    polarity: Option<Spanned<String>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawHeater {
+    name: Spanned<String>,
+    power_w: Spanned<f64>,
+    heat_capacity_j_per_k: Spanned<f64>,
+    loss_w_per_k: Spanned<f64>,
+    ambient_c: Option<Spanned<f64>>,
+    start_c: Option<Spanned<f64>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawOutput {
+    name: Spanned<String>,
+    max_duty: Spanned<i64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLink {
+    tcp_bind: Option<Spanned<String>>,
+    tcp_port: Option<Spanned<i64>>,
+}
+
+/// Turns raw, spanned values into a [`MachineConfig`], naming the line of each error.
+struct Validator<'a> {
+    text: &'a str,
+}
+
+type Res<T> = Result<T, MachineFileError>;
+
+impl Validator<'_> {
+    fn err<T>(
+        &self,
+        at: Option<usize>,
+        section: &str,
+        field: &str,
+        reason: impl Into<String>,
+    ) -> Res<T> {
+        Err(MachineFileError::Invalid {
+            line: at.map(|a| line_of(self.text, a)),
+            section: section.to_string(),
+            field: field.to_string(),
+            reason: reason.into(),
+        })
+    }
+
+    /// A finite number, `> 0` when `positive`, `>= 0` otherwise.
+    fn number(&self, v: &Spanned<f64>, section: &str, field: &str, positive: bool) -> Res<f64> {
+        let x = *v.get_ref();
+        if !x.is_finite() {
+            return self.err(
+                Some(v.span().start),
+                section,
+                field,
+                "must be a finite number",
+            );
+        }
+        if positive && x <= 0.0 {
+            return self.err(Some(v.span().start), section, field, "must be > 0");
+        }
+        if !positive && x < 0.0 {
+            return self.err(Some(v.span().start), section, field, "must be >= 0");
+        }
+        Ok(x)
+    }
+
+    fn finite(&self, v: &Spanned<f64>, section: &str, field: &str) -> Res<f64> {
+        let x = *v.get_ref();
+        if x.is_finite() {
+            Ok(x)
+        } else {
+            self.err(
+                Some(v.span().start),
+                section,
+                field,
+                "must be a finite number",
+            )
+        }
+    }
+
+    fn integer(
+        &self,
+        v: &Spanned<i64>,
+        section: &str,
+        field: &str,
+        range: core::ops::RangeInclusive<i64>,
+    ) -> Res<i64> {
+        let x = *v.get_ref();
+        if range.contains(&x) {
+            Ok(x)
+        } else {
+            self.err(
+                Some(v.span().start),
+                section,
+                field,
+                format!("must be in {}..={} (is {x})", range.start(), range.end()),
+            )
+        }
+    }
+
+    fn choice<T: Copy>(
+        &self,
+        v: &Spanned<String>,
+        section: &str,
+        field: &str,
+        options: &[(&str, T)],
+    ) -> Res<T> {
+        match options
+            .iter()
+            .find(|(name, _)| *name == v.get_ref().as_str())
+        {
+            Some((_, value)) => Ok(*value),
+            None => {
+                let names: Vec<String> = options.iter().map(|(n, _)| format!("\"{n}\"")).collect();
+                self.err(
+                    Some(v.span().start),
+                    section,
+                    field,
+                    format!(
+                        "must be one of {} (is \"{}\")",
+                        names.join(", "),
+                        v.get_ref()
+                    ),
+                )
+            }
+        }
+    }
+
+    fn machine(&self, raw: RawMachine) -> Res<MachineConfig> {
+        let tick_hz = match &raw.tick_hz {
+            Some(v) => {
+                self.integer(v, "", "tick_hz", MIN_TICK_HZ as i64..=MAX_TICK_HZ as i64)? as u32
+            }
+            None => DEFAULT_TICK_HZ,
+        };
+        if raw.axes.is_empty() {
+            return self.err(None, "", "axis", "must list at least one axis ([[axis]])");
+        }
+        let mut axes: Vec<AxisConfig> = Vec::with_capacity(raw.axes.len());
+        for a in &raw.axes {
+            let axis = self.axis(a, tick_hz)?;
+            if axes.iter().any(|b| b.letter == axis.letter) {
+                return self.err(
+                    Some(a.get_ref().letter.span().start),
+                    &format!("axis {}", axis.letter),
+                    "letter",
+                    "is used by another axis",
+                );
+            }
+            axes.push(axis);
+        }
+        let mut heaters: Vec<HeaterConfig> = Vec::new();
+        for h in &raw.heaters {
+            let heater = self.heater(h.get_ref())?;
+            if heaters.iter().any(|o| o.name == heater.name) {
+                return self.err(
+                    Some(h.get_ref().name.span().start),
+                    &format!("heater {}", heater.name),
+                    "name",
+                    "is used by another heater",
+                );
+            }
+            heaters.push(heater);
+        }
+        let mut outputs: Vec<OutputConfig> = Vec::new();
+        for o in &raw.outputs {
+            let output = self.output(o.get_ref())?;
+            if outputs.iter().any(|p| p.name == output.name) {
+                return self.err(
+                    Some(o.get_ref().name.span().start),
+                    &format!("output {}", output.name),
+                    "name",
+                    "is used by another output",
+                );
+            }
+            outputs.push(output);
+        }
+        let link = match &raw.link {
+            Some(l) => self.link(l.get_ref())?,
+            None => LinkConfig::default(),
+        };
+        Ok(MachineConfig {
+            name: raw.name.unwrap_or_else(|| "unnamed machine".to_string()),
+            tick_hz,
+            axes,
+            heaters,
+            outputs,
+            link,
+        })
+    }
+
+    fn axis(&self, spanned: &Spanned<RawAxis>, tick_hz: u32) -> Res<AxisConfig> {
+        let a = spanned.get_ref();
+        let letter_text = a.letter.get_ref();
+        let mut chars = letter_text.chars();
+        let letter = match (chars.next(), chars.next()) {
+            (Some(c), None) if AXIS_LETTERS.contains(c) => c,
+            _ => {
+                return self.err(
+                    Some(a.letter.span().start),
+                    "axis",
+                    "letter",
+                    format!(
+                        "must be one upper-case letter of {AXIS_LETTERS} (is \"{letter_text}\")"
+                    ),
+                );
+            }
+        };
+        let s = format!("axis {letter}");
+        let s = s.as_str();
+        let kind = match &a.kind {
+            Some(k) => self.choice(
+                k,
+                s,
+                "kind",
+                &[
+                    ("linear", AxisKind::Linear),
+                    ("rotary", AxisKind::Rotary),
+                    ("extruder", AxisKind::Extruder),
+                ],
+            )?,
+            None => AxisKind::Linear,
+        };
+        let steps_per_mm = self.number(&a.steps_per_mm, s, "steps_per_mm", true)?;
+        let max_rate_mm_min = self.number(&a.max_rate_mm_min, s, "max_rate_mm_min", true)?;
+        let accel_mm_s2 = self.number(&a.accel_mm_s2, s, "accel_mm_s2", true)?;
+
+        let travel = match (&a.travel_min_mm, &a.travel_max_mm) {
+            (Some(lo), Some(hi)) => {
+                let min_mm = self.finite(lo, s, "travel_min_mm")?;
+                let max_mm = self.finite(hi, s, "travel_max_mm")?;
+                if max_mm <= min_mm {
+                    return self.err(
+                        Some(hi.span().start),
+                        s,
+                        "travel_max_mm",
+                        format!("must be > travel_min_mm ({min_mm})"),
+                    );
+                }
+                Some(Travel { min_mm, max_mm })
+            }
+            (None, None) if kind != AxisKind::Linear => None,
+            (None, None) => {
+                return self.err(
+                    Some(spanned.span().start),
+                    s,
+                    "travel_min_mm",
+                    "is required for a linear axis (with travel_max_mm)",
+                );
+            }
+            (Some(lo), None) => {
+                return self.err(
+                    Some(lo.span().start),
+                    s,
+                    "travel_max_mm",
+                    "is required when travel_min_mm is given",
+                );
+            }
+            (None, Some(hi)) => {
+                return self.err(
+                    Some(hi.span().start),
+                    s,
+                    "travel_min_mm",
+                    "is required when travel_max_mm is given",
+                );
+            }
+        };
+
+        let start_mm = match &a.start_mm {
+            Some(v) => {
+                let x = self.finite(v, s, "start_mm")?;
+                if let Some(t) = travel
+                    && !(t.min_mm..=t.max_mm).contains(&x)
+                {
+                    return self.err(
+                        Some(v.span().start),
+                        s,
+                        "start_mm",
+                        format!("must be within travel ({} ..= {})", t.min_mm, t.max_mm),
+                    );
+                }
+                x
+            }
+            None => travel.map_or(0.0, |t| (t.min_mm + t.max_mm) / 2.0),
+        };
+
+        let ns = |v: &Option<Spanned<i64>>, field: &str, default: u32| -> Res<u32> {
+            match v {
+                Some(v) => Ok(self.integer(v, s, field, 1..=1_000_000)? as u32),
+                None => Ok(default),
+            }
+        };
+        let step_timing = StepTiming {
+            min_pulse_ns: ns(
+                &a.min_pulse_ns,
+                "min_pulse_ns",
+                StepTiming::CONSERVATIVE.min_pulse_ns,
+            )?,
+            dir_setup_ns: ns(
+                &a.dir_setup_ns,
+                "dir_setup_ns",
+                StepTiming::CONSERVATIVE.dir_setup_ns,
+            )?,
+        };
+
+        // The fastest step rate must fit the driver's pulse timing (a high and a low time per
+        // step) and the virtual clock (two ticks per step, one per edge).
+        let max_steps_s = max_rate_mm_min / 60.0 * steps_per_mm;
+        let pulse_limit = 1e9 / (2.0 * f64::from(step_timing.min_pulse_ns));
+        let clock_limit = f64::from(tick_hz) / 2.0;
+        let limit = pulse_limit.min(clock_limit);
+        if max_steps_s > limit {
+            return self.err(
+                Some(a.max_rate_mm_min.span().start),
+                s,
+                "max_rate_mm_min",
+                format!(
+                    "needs {max_steps_s:.0} steps/s, more than the {limit:.0} steps/s that \
+                     min_pulse_ns and tick_hz allow"
+                ),
+            );
+        }
+
+        let mut switches: Vec<SwitchConfig> = Vec::new();
+        for sw in &a.switches {
+            let r = sw.get_ref();
+            let side = self.choice(
+                &r.side,
+                s,
+                "switch.side",
+                &[("min", SwitchSide::Min), ("max", SwitchSide::Max)],
+            )?;
+            if switches.iter().any(|o| o.side == side) {
+                return self.err(
+                    Some(r.side.span().start),
+                    s,
+                    "switch.side",
+                    "is used by another switch of this axis",
+                );
+            }
+            let position_mm = self.finite(&r.position_mm, s, "switch.position_mm")?;
+            let polarity = match &r.polarity {
+                Some(p) => self.choice(
+                    p,
+                    s,
+                    "switch.polarity",
+                    &[
+                        ("normally_open", SwitchPolarity::NormallyOpen),
+                        ("normally_closed", SwitchPolarity::NormallyClosed),
+                    ],
+                )?,
+                None => SwitchPolarity::NormallyOpen,
+            };
+            switches.push(SwitchConfig {
+                side,
+                position_mm,
+                polarity,
+            });
+        }
+
+        let homing = match &a.homing {
+            Some(h) => {
+                let h = h.get_ref();
+                let direction = self.choice(
+                    &h.direction,
+                    s,
+                    "homing.direction",
+                    &[
+                        ("negative", Direction::Negative),
+                        ("positive", Direction::Positive),
+                    ],
+                )?;
+                let needed = match direction {
+                    Direction::Negative => SwitchSide::Min,
+                    Direction::Positive => SwitchSide::Max,
+                };
+                if !switches.iter().any(|sw| sw.side == needed) {
+                    let side = if needed == SwitchSide::Min {
+                        "min"
+                    } else {
+                        "max"
+                    };
+                    return self.err(
+                        Some(h.direction.span().start),
+                        s,
+                        "homing.direction",
+                        format!("needs a switch with side = \"{side}\" on this axis"),
+                    );
+                }
+                let seek_mm_min = self.number(&h.seek_mm_min, s, "homing.seek_mm_min", true)?;
+                let locate_mm_min =
+                    self.number(&h.locate_mm_min, s, "homing.locate_mm_min", true)?;
+                if locate_mm_min > seek_mm_min {
+                    return self.err(
+                        Some(h.locate_mm_min.span().start),
+                        s,
+                        "homing.locate_mm_min",
+                        format!("must be <= homing.seek_mm_min ({seek_mm_min})"),
+                    );
+                }
+                if seek_mm_min > max_rate_mm_min {
+                    return self.err(
+                        Some(h.seek_mm_min.span().start),
+                        s,
+                        "homing.seek_mm_min",
+                        format!("must be <= max_rate_mm_min ({max_rate_mm_min})"),
+                    );
+                }
+                let pull_off_mm = self.number(&h.pull_off_mm, s, "homing.pull_off_mm", false)?;
+                Some(HomingConfig {
+                    direction,
+                    seek_mm_min,
+                    locate_mm_min,
+                    pull_off_mm,
+                })
+            }
+            None => None,
+        };
+
+        Ok(AxisConfig {
+            letter,
+            kind,
+            steps_per_mm,
+            max_rate_mm_min,
+            accel_mm_s2,
+            travel,
+            start_mm,
+            homing,
+            switches,
+            step_timing,
+        })
+    }
+
+    fn name(&self, v: &Spanned<String>, what: &str) -> Res<String> {
+        let n = v.get_ref().trim();
+        if n.is_empty()
+            || !n
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        {
+            return self.err(
+                Some(v.span().start),
+                what,
+                "name",
+                format!(
+                    "must be letters, digits, '_' or '-' (is \"{}\")",
+                    v.get_ref()
+                ),
+            );
+        }
+        Ok(n.to_string())
+    }
+
+    fn heater(&self, h: &RawHeater) -> Res<HeaterConfig> {
+        let name = self.name(&h.name, "heater")?;
+        let s = format!("heater {name}");
+        let s = s.as_str();
+        let power_w = self.number(&h.power_w, s, "power_w", true)?;
+        let heat_capacity_j_per_k =
+            self.number(&h.heat_capacity_j_per_k, s, "heat_capacity_j_per_k", true)?;
+        let loss_w_per_k = self.number(&h.loss_w_per_k, s, "loss_w_per_k", true)?;
+        let ambient_c = match &h.ambient_c {
+            Some(v) => self.finite(v, s, "ambient_c")?,
+            None => 25.0,
+        };
+        let start_c = match &h.start_c {
+            Some(v) => self.finite(v, s, "start_c")?,
+            None => ambient_c,
+        };
+        Ok(HeaterConfig {
+            name,
+            power_w,
+            heat_capacity_j_per_k,
+            loss_w_per_k,
+            ambient_c,
+            start_c,
+        })
+    }
+
+    fn output(&self, o: &RawOutput) -> Res<OutputConfig> {
+        let name = self.name(&o.name, "output")?;
+        let s = format!("output {name}");
+        let max_duty = self.integer(&o.max_duty, &s, "max_duty", 1..=i64::from(u16::MAX))? as u16;
+        Ok(OutputConfig { name, max_duty })
+    }
+
+    fn link(&self, l: &RawLink) -> Res<LinkConfig> {
+        let mut link = LinkConfig::default();
+        if let Some(b) = &l.tcp_bind {
+            link.tcp_bind = match b.get_ref().parse::<IpAddr>() {
+                Ok(ip) => ip,
+                Err(_) => {
+                    return self.err(
+                        Some(b.span().start),
+                        "link",
+                        "tcp_bind",
+                        format!("must be an IP address (is \"{}\")", b.get_ref()),
+                    );
+                }
+            };
+        }
+        if let Some(p) = &l.tcp_port {
+            link.tcp_port = self.integer(p, "link", "tcp_port", 0..=i64::from(u16::MAX))? as u16;
+        }
+        Ok(link)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINIMAL: &str = r#"
+[[axis]]
+letter = "X"
+steps_per_mm = 80
+max_rate_mm_min = 6000
+accel_mm_s2 = 500
+travel_min_mm = 0
+travel_max_mm = 300
+"#;
+
+    fn invalid(text: &str) -> MachineFileError {
+        match MachineConfig::from_toml_str(text) {
+            Ok(_) => panic!("accepted:\n{text}"),
+            Err(e) => e,
+        }
+    }
+
+    #[test]
+    fn bundled_files_are_valid() {
+        for (name, text) in BUNDLED {
+            let m = MachineConfig::from_toml_str(text)
+                .unwrap_or_else(|e| panic!("bundled machine {name}: {e}"));
+            assert!(!m.axes.is_empty());
+        }
+        let router = MachineConfig::default_router();
+        let letters: String = router.axes.iter().map(|a| a.letter).collect();
+        assert_eq!(letters, "XYZA");
+        assert_eq!(router.axes[0].steps_per_mm, 80.0);
+        assert_eq!(router.axes[2].steps_per_mm, 400.0);
+        assert_eq!(router.axes[3].kind, AxisKind::Rotary);
+        assert_eq!(router.tick_hz, DEFAULT_TICK_HZ);
+        assert_eq!(router.link.tcp_port, DEFAULT_TCP_PORT);
+        let printer =
+            MachineConfig::from_toml_str(MachineConfig::bundled_toml("printer").unwrap()).unwrap();
+        assert_eq!(printer.heaters.len(), 2);
+        assert_eq!(printer.axis_index('e'), Some(3));
+    }
+
+    #[test]
+    fn minimal_file_gets_defaults() {
+        let m = MachineConfig::from_toml_str(MINIMAL).unwrap();
+        let x = &m.axes[0];
+        assert_eq!(x.kind, AxisKind::Linear);
+        assert_eq!(x.start_mm, 150.0);
+        assert_eq!(x.step_timing, StepTiming::CONSERVATIVE);
+        assert_eq!(x.mm_to_steps(1.5), 120);
+        assert_eq!(x.steps_to_mm(-80), -1.0);
+        assert!(x.homing.is_none() && x.switches.is_empty());
+        assert_eq!(m.link, LinkConfig::default());
+    }
+
+    #[test]
+    fn bad_value_names_line_section_and_field() {
+        let text = MINIMAL.replace("steps_per_mm = 80", "steps_per_mm = 0");
+        let e = invalid(&text);
+        assert_eq!(e.line(), Some(4));
+        assert_eq!(e.field(), Some("steps_per_mm"));
+        assert_eq!(
+            e.to_string(),
+            "machine file line 4: axis X: steps_per_mm must be > 0"
+        );
+    }
+
+    #[test]
+    fn errors_in_the_default_file_point_at_the_right_line() {
+        let text = MachineConfig::bundled_toml("default").unwrap();
+        // Break the Y axis's steps_per_mm and check the error names its line.
+        let y_at = text.find("letter = \"Y\"").unwrap();
+        let rel = text[y_at..].find("steps_per_mm").unwrap();
+        let at = y_at + rel;
+        let line = line_of(text, at);
+        let end = at + text[at..].find('\n').unwrap();
+        let broken = format!("{}steps_per_mm = -80.0{}", &text[..at], &text[end..]);
+        let e = invalid(&broken);
+        assert_eq!(
+            e.to_string(),
+            format!("machine file line {line}: axis Y: steps_per_mm must be > 0")
+        );
+    }
+
+    #[test]
+    fn syntax_and_type_errors_carry_a_line() {
+        let e = invalid(&MINIMAL.replace("accel_mm_s2 = 500", "accel_mm_s2 = \"fast\""));
+        assert!(matches!(e, MachineFileError::Syntax { .. }));
+        assert_eq!(e.line(), Some(6), "{e}");
+        let e = invalid(&format!("{MINIMAL}stepz_per_mm = 3\n"));
+        assert!(e.to_string().contains("stepz_per_mm"), "{e}");
+        let e = invalid(&MINIMAL.replace("accel_mm_s2 = 500\n", ""));
+        assert!(e.to_string().contains("accel_mm_s2"), "{e}");
+        let e = invalid("[[axis]\n");
+        assert_eq!(e.line(), Some(1), "{e}");
+    }
+
+    #[test]
+    fn consistency_errors() {
+        let dup = format!("{MINIMAL}{MINIMAL}");
+        let e = invalid(&dup);
+        assert_eq!(e.field(), Some("letter"));
+        assert_eq!(e.line(), Some(11));
+
+        let e = invalid(&MINIMAL.replace("travel_max_mm = 300", "travel_max_mm = -1"));
+        assert_eq!(e.field(), Some("travel_max_mm"));
+
+        let e = invalid(&MINIMAL.replace("travel_min_mm = 0\ntravel_max_mm = 300\n", ""));
+        assert_eq!(e.field(), Some("travel_min_mm"));
+
+        let e = invalid(&MINIMAL.replace("\"X\"", "\"Q\""));
+        assert_eq!(e.field(), Some("letter"));
+
+        let e = invalid(&format!(
+            "{MINIMAL}[axis.homing]\ndirection = \"negative\"\nseek_mm_min = 1000\n\
+             locate_mm_min = 100\npull_off_mm = 1\n"
+        ));
+        assert_eq!(e.field(), Some("homing.direction"));
+        assert_eq!(e.line(), Some(10));
+
+        let e = invalid(&format!(
+            "{MINIMAL}[[axis.switch]]\nside = \"min\"\nposition_mm = 0\npolarity = \"open\"\n"
+        ));
+        assert_eq!(e.field(), Some("switch.polarity"));
+        assert!(e.to_string().contains("\"normally_open\""), "{e}");
+
+        // 6000 mm/min at 8000 steps/mm is 800 kHz: beyond a 2 µs pulse driver.
+        let e = invalid(&MINIMAL.replace("steps_per_mm = 80", "steps_per_mm = 8000"));
+        assert_eq!(e.field(), Some("max_rate_mm_min"));
+
+        let e = invalid(&format!("tick_hz = 5\n{MINIMAL}"));
+        assert_eq!((e.field(), e.line()), (Some("tick_hz"), Some(1)));
+
+        let e = invalid(&format!("{MINIMAL}[link]\ntcp_port = 70000\n"));
+        assert_eq!(e.field(), Some("tcp_port"));
+        let e = invalid(&format!("{MINIMAL}[link]\ntcp_bind = \"localhost:1\"\n"));
+        assert_eq!(e.field(), Some("tcp_bind"));
+    }
+
+    #[test]
+    fn heaters_and_outputs() {
+        let text = format!(
+            "{MINIMAL}[[heater]]\nname = \"bed\"\npower_w = 200\nheat_capacity_j_per_k = 400\n\
+             loss_w_per_k = 0\n"
+        );
+        let e = invalid(&text);
+        assert_eq!(
+            e.to_string(),
+            "machine file line 13: heater bed: loss_w_per_k must be > 0"
+        );
+        let e = invalid(&format!(
+            "{MINIMAL}[[output]]\nname = \"fan\"\nmax_duty = 0\n"
+        ));
+        assert_eq!(e.field(), Some("max_duty"));
+        let e = invalid(&format!(
+            "{MINIMAL}[[output]]\nname = \"fan\"\nmax_duty = 255\n[[output]]\nname = \"fan\"\nmax_duty = 1\n"
+        ));
+        assert_eq!(e.field(), Some("name"));
+    }
+}

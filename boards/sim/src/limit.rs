@@ -1,0 +1,264 @@
+//! Simulated limit switches.
+//!
+//! A switch sits at a machine position on one side of an axis (machine file `[[axis.switch]]`):
+//! a `min` switch is triggered while the axis is at or below its position, a `max` switch at or
+//! above it. The position is rounded to the nearest step.
+//!
+//! Two ways to read one, like the drivers:
+//! - [`SimLimitSwitch`] implements [`LimitSwitch`], polarity already applied (`true` = at the
+//!   limit);
+//! - [`SimSwitchPin`] is the switch's input as an `embedded-hal` [`InputPin`], at the
+//!   electrical level its polarity gives (normally open: low when triggered; normally closed:
+//!   high when triggered), for the limit input driver of `forja-drivers`.
+//!
+//! A test can override a switch ([`SimMachine::force_switch`]) to simulate a stuck switch or a
+//! cut wire.
+
+use core::convert::Infallible;
+use core::fmt;
+
+use embedded_hal::digital::{self, InputPin};
+use forja_hal_abstraction::ErrorType;
+use forja_hal_abstraction::limit::LimitSwitch;
+
+use crate::config::{AxisConfig, SwitchConfig, SwitchPolarity, SwitchSide};
+use crate::machine::{NoSuchDevice, SimMachine, State};
+
+/// One switch's configuration and override.
+pub(crate) struct SwitchState {
+    axis: usize,
+    side: SwitchSide,
+    trigger_steps: i64,
+    polarity: SwitchPolarity,
+    forced: Option<bool>,
+}
+
+impl SwitchState {
+    pub(crate) fn new(axis: usize, axis_config: &AxisConfig, switch: &SwitchConfig) -> Self {
+        Self {
+            axis,
+            side: switch.side,
+            trigger_steps: axis_config.mm_to_steps(switch.position_mm),
+            polarity: switch.polarity,
+            forced: None,
+        }
+    }
+}
+
+impl State {
+    fn switch_index(&self, axis: usize, side: SwitchSide) -> Option<usize> {
+        self.switches
+            .iter()
+            .position(|s| s.axis == axis && s.side == side)
+    }
+
+    fn switch_triggered(&self, index: usize) -> bool {
+        let s = &self.switches[index];
+        if let Some(forced) = s.forced {
+            return forced;
+        }
+        let position = self.axes[s.axis].position;
+        match s.side {
+            SwitchSide::Min => position <= s.trigger_steps,
+            SwitchSide::Max => position >= s.trigger_steps,
+        }
+    }
+}
+
+impl SimMachine {
+    fn switch_handle(&self, axis: usize, side: SwitchSide) -> Result<usize, NoSuchDevice> {
+        self.check_axis(axis)?;
+        self.state
+            .borrow()
+            .switch_index(axis, side)
+            .ok_or(NoSuchDevice::Switch { axis, side })
+    }
+
+    /// The switch on `side` of `axis`, as a [`LimitSwitch`].
+    pub fn limit_switch(
+        &self,
+        axis: usize,
+        side: SwitchSide,
+    ) -> Result<SimLimitSwitch, NoSuchDevice> {
+        Ok(SimLimitSwitch {
+            machine: self.clone(),
+            index: self.switch_handle(axis, side)?,
+        })
+    }
+
+    /// The input pin of the switch on `side` of `axis`.
+    pub fn switch_pin(&self, axis: usize, side: SwitchSide) -> Result<SimSwitchPin, NoSuchDevice> {
+        Ok(SimSwitchPin {
+            machine: self.clone(),
+            index: self.switch_handle(axis, side)?,
+        })
+    }
+
+    /// Whether the switch on `side` of `axis` is triggered now.
+    pub fn switch_triggered(&self, axis: usize, side: SwitchSide) -> Result<bool, NoSuchDevice> {
+        let index = self.switch_handle(axis, side)?;
+        Ok(self.state.borrow().switch_triggered(index))
+    }
+
+    /// Force the switch on `side` of `axis` to read triggered (`Some(true)`) or released
+    /// (`Some(false)`) whatever the position; `None` returns it to following the position.
+    pub fn force_switch(
+        &self,
+        axis: usize,
+        side: SwitchSide,
+        forced: Option<bool>,
+    ) -> Result<(), NoSuchDevice> {
+        let index = self.switch_handle(axis, side)?;
+        self.state.borrow_mut().switches[index].forced = forced;
+        Ok(())
+    }
+}
+
+/// A simulated end-stop: implements [`LimitSwitch`] (`true` = at the limit). Never fails.
+#[derive(Clone)]
+pub struct SimLimitSwitch {
+    machine: SimMachine,
+    index: usize,
+}
+
+impl fmt::Debug for SimLimitSwitch {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("SimLimitSwitch")
+            .field("index", &self.index)
+            .finish()
+    }
+}
+
+impl ErrorType for SimLimitSwitch {
+    type Error = Infallible;
+}
+
+impl LimitSwitch for SimLimitSwitch {
+    fn is_triggered(&mut self) -> Result<bool, Infallible> {
+        Ok(self.machine.state.borrow().switch_triggered(self.index))
+    }
+}
+
+/// A simulated end-stop's input line, at its electrical level.
+#[derive(Clone)]
+pub struct SimSwitchPin {
+    machine: SimMachine,
+    index: usize,
+}
+
+impl SimSwitchPin {
+    fn level_high(&self) -> bool {
+        let s = self.machine.state.borrow();
+        let triggered = s.switch_triggered(self.index);
+        match s.switches[self.index].polarity {
+            SwitchPolarity::NormallyOpen => !triggered,
+            SwitchPolarity::NormallyClosed => triggered,
+        }
+    }
+}
+
+impl fmt::Debug for SimSwitchPin {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("SimSwitchPin")
+            .field("index", &self.index)
+            .finish()
+    }
+}
+
+impl digital::ErrorType for SimSwitchPin {
+    type Error = Infallible;
+}
+
+impl InputPin for SimSwitchPin {
+    fn is_high(&mut self) -> Result<bool, Infallible> {
+        Ok(self.level_high())
+    }
+
+    fn is_low(&mut self) -> Result<bool, Infallible> {
+        Ok(!self.level_high())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::MachineConfig;
+    use forja_hal_abstraction::stepper::{Direction, Stepper, StepperEnable};
+
+    fn step_n(m: &SimMachine, axis: usize, d: Direction, n: u32) {
+        let mut s = m.stepper(axis).unwrap();
+        s.set_enabled(true).unwrap();
+        s.set_direction(d).unwrap();
+        for _ in 0..n {
+            m.advance_by(5);
+            s.step_begin().unwrap();
+            m.advance_by(5);
+            s.step_end().unwrap();
+        }
+    }
+
+    #[test]
+    fn min_switch_trips_at_its_position() {
+        let m = SimMachine::new(&MachineConfig::default_router());
+        let mut sw = m.limit_switch(0, SwitchSide::Min).unwrap();
+        m.set_position_steps(0, 3).unwrap();
+        assert!(!sw.is_triggered().unwrap());
+        step_n(&m, 0, Direction::Negative, 2);
+        assert!(!sw.is_triggered().unwrap(), "one step above the switch");
+        step_n(&m, 0, Direction::Negative, 1);
+        assert_eq!(m.position_steps(0), Some(0));
+        assert!(sw.is_triggered().unwrap(), "at the switch");
+        step_n(&m, 0, Direction::Negative, 1);
+        assert!(sw.is_triggered().unwrap(), "beyond it");
+        step_n(&m, 0, Direction::Positive, 2);
+        assert!(!sw.is_triggered().unwrap(), "backed off");
+    }
+
+    #[test]
+    fn max_switch_and_polarity() {
+        let m = SimMachine::new(&MachineConfig::default_router());
+        // The router's X max switch is normally closed at 301 mm = 24080 steps.
+        let mut sw = m.limit_switch(0, SwitchSide::Max).unwrap();
+        let mut pin = m.switch_pin(0, SwitchSide::Max).unwrap();
+        m.set_position_steps(0, 24_079).unwrap();
+        assert!(!sw.is_triggered().unwrap());
+        assert!(pin.is_low().unwrap(), "normally closed: low while released");
+        step_n(&m, 0, Direction::Positive, 1);
+        assert!(sw.is_triggered().unwrap());
+        assert!(
+            pin.is_high().unwrap(),
+            "normally closed: high when triggered"
+        );
+        assert!(m.switch_triggered(0, SwitchSide::Max).unwrap());
+
+        let printer =
+            MachineConfig::from_toml_str(MachineConfig::bundled_toml("printer").unwrap()).unwrap();
+        let p = SimMachine::new(&printer);
+        let mut pin = p.switch_pin(0, SwitchSide::Min).unwrap();
+        assert!(pin.is_high().unwrap(), "normally open: high while released");
+        p.set_position_steps(0, 0).unwrap();
+        assert!(pin.is_low().unwrap(), "normally open: low when triggered");
+    }
+
+    #[test]
+    fn forced_switch_and_missing_switch() {
+        let m = SimMachine::new(&MachineConfig::default_router());
+        let mut sw = m.limit_switch(2, SwitchSide::Max).unwrap();
+        assert!(!sw.is_triggered().unwrap());
+        m.force_switch(2, SwitchSide::Max, Some(true)).unwrap();
+        assert!(sw.is_triggered().unwrap());
+        m.force_switch(2, SwitchSide::Max, None).unwrap();
+        assert!(!sw.is_triggered().unwrap());
+        assert_eq!(
+            m.limit_switch(2, SwitchSide::Min).unwrap_err(),
+            NoSuchDevice::Switch {
+                axis: 2,
+                side: SwitchSide::Min
+            }
+        );
+        assert_eq!(
+            m.switch_pin(7, SwitchSide::Min).unwrap_err(),
+            NoSuchDevice::Axis(7)
+        );
+    }
+}

@@ -1,0 +1,233 @@
+//! Host links: TCP (like the ESP32's WiFi), a pseudo-terminal (like a UART), an in-process
+//! pair, and a fault injector over any of them.
+//!
+//! Every link is a [`HostLink`]: bytes move through `embedded-io` ([`Read`], [`ReadReady`],
+//! [`Write`], [`WriteReady`]) exactly as on the firmware boards, and
+//! [`LinkStatus`] says whether a host is at the other
+//! end. The protocol code does not know which link it is on.
+//!
+//! | link | what | connected while |
+//! |---|---|---|
+//! | [`TcpLink`] | a listening socket, one controlling client at a time | a client is accepted and has not closed |
+//! | [`PtyLink`] | a pseudo-terminal pair; host software opens the slave (`/dev/pts/N`) | some process holds the slave open |
+//! | [`MemoryLink`] | an in-process pipe to a [`MemoryHost`], for tests and scripted jobs | the [`MemoryHost`] exists |
+//! | [`FaultInjector`] | wraps any of them; corrupts and drops received bytes | as the wrapped link |
+//!
+//! # Polling
+//!
+//! OS links are non-blocking and buffered: [`HostLink::poll`] (context: thread; never blocks)
+//! accepts or notices the loss of a peer, moves received bytes into the receive buffer and
+//! sends what the transmit buffer holds. The simulation's thread side calls it once per turn,
+//! then reads while [`ReadReady::read_ready`] says so; that read never blocks.
+//! [`ReadReady::read_ready`] on an empty buffer and every [`Write::write`] service the link
+//! too, so received bytes are seen and replies leave without waiting for the next poll.
+//!
+//! The plain blocking methods keep their `embedded-io` meaning, for code that does not poll:
+//! [`Read::read`] with an empty buffer polls and waits (in steps of a millisecond) until a byte
+//! arrives; [`Write::write`] with a full transmit buffer waits for room; [`Write::flush`]
+//! waits until everything is sent. With no peer connected, writes are discarded at once (like
+//! a UART with nothing attached), so the firmware never stalls on an absent host.
+//!
+//! Receive buffers hold at most [`RX_CAPACITY`] bytes: past that, OS links stop reading and
+//! the host is held back by TCP flow control or the terminal's buffer, as flow control would
+//! on a UART. Transmit buffers hold [`TX_CAPACITY`] bytes.
+
+mod fault;
+mod memory;
+mod pty;
+mod tcp;
+
+use std::collections::VecDeque;
+use std::io;
+
+pub use embedded_io::{Read, ReadReady, Write, WriteReady};
+pub use fault::{FaultConfig, FaultConfigError, FaultInjector, FaultStats, FaultyBytes};
+pub use memory::{MemoryHost, MemoryLink};
+pub use pty::PtyLink;
+pub use tcp::TcpLink;
+
+use forja_hal_abstraction::link::{LinkState, LinkStatus};
+
+/// Most bytes a link's receive buffer holds.
+pub const RX_CAPACITY: usize = 64 * 1024;
+
+/// Most bytes a link's transmit buffer holds.
+pub const TX_CAPACITY: usize = 64 * 1024;
+
+/// How long blocking link calls sleep between two polls.
+const BLOCKING_POLL: std::time::Duration = std::time::Duration::from_millis(1);
+
+/// A byte link to a host.
+pub trait HostLink: Read + ReadReady + Write + WriteReady + LinkStatus {
+    /// Service the link: accept or drop peers, fill the receive buffer, drain the transmit
+    /// buffer.
+    ///
+    /// Context: thread. Never blocks. Errors: the link itself failed (the listening socket or
+    /// the terminal master); a peer that goes away is not an error but a state change.
+    fn poll(&mut self) -> Result<(), Self::Error>;
+
+    /// How many peers have connected so far: a change tells the protocol layer that a new host
+    /// is there and its decoder should start afresh.
+    fn connections(&self) -> u64;
+}
+
+impl<T: HostLink + ?Sized> HostLink for &mut T {
+    fn poll(&mut self) -> Result<(), Self::Error> {
+        T::poll(self)
+    }
+    fn connections(&self) -> u64 {
+        T::connections(self)
+    }
+}
+
+/// The receive and transmit buffers of an OS link.
+#[derive(Debug, Default)]
+pub(crate) struct Buffers {
+    pub(crate) rx: VecDeque<u8>,
+    pub(crate) tx: VecDeque<u8>,
+}
+
+impl Buffers {
+    pub(crate) fn rx_room(&self) -> usize {
+        RX_CAPACITY.saturating_sub(self.rx.len())
+    }
+
+    /// Move up to `buf.len()` received bytes into `buf`.
+    pub(crate) fn take_rx(&mut self, buf: &mut [u8]) -> usize {
+        let n = buf.len().min(self.rx.len());
+        for (dst, src) in buf.iter_mut().zip(self.rx.drain(..n)) {
+            *dst = src;
+        }
+        n
+    }
+
+    /// Queue as much of `buf` as fits for transmission.
+    pub(crate) fn put_tx(&mut self, buf: &[u8]) -> usize {
+        let n = buf.len().min(TX_CAPACITY.saturating_sub(self.tx.len()));
+        self.tx.extend(&buf[..n]);
+        n
+    }
+}
+
+/// The parts of an OS link that the shared `embedded-io` implementation needs.
+pub(crate) trait BufferedPort {
+    fn buffers(&mut self) -> &mut Buffers;
+    fn is_connected(&self) -> bool;
+    fn service(&mut self) -> io::Result<()>;
+}
+
+pub(crate) fn port_read<P: BufferedPort>(port: &mut P, buf: &mut [u8]) -> io::Result<usize> {
+    if buf.is_empty() {
+        return Ok(0);
+    }
+    loop {
+        let n = port.buffers().take_rx(buf);
+        if n > 0 {
+            return Ok(n);
+        }
+        port.service()?;
+        if port.buffers().rx.is_empty() {
+            std::thread::sleep(BLOCKING_POLL);
+        }
+    }
+}
+
+pub(crate) fn port_write<P: BufferedPort>(port: &mut P, buf: &[u8]) -> io::Result<usize> {
+    if buf.is_empty() {
+        return Ok(0);
+    }
+    loop {
+        if !port.is_connected() {
+            return Ok(buf.len());
+        }
+        let n = port.buffers().put_tx(buf);
+        if n > 0 {
+            // Send at once rather than at the next poll: replies go out with no added latency.
+            port.service()?;
+            return Ok(n);
+        }
+        port.service()?;
+        if port.buffers().tx.len() >= TX_CAPACITY {
+            std::thread::sleep(BLOCKING_POLL);
+        }
+    }
+}
+
+pub(crate) fn port_flush<P: BufferedPort>(port: &mut P) -> io::Result<()> {
+    loop {
+        port.service()?;
+        if !port.is_connected() || port.buffers().tx.is_empty() {
+            return Ok(());
+        }
+        std::thread::sleep(BLOCKING_POLL);
+    }
+}
+
+pub(crate) fn port_write_ready<P: BufferedPort>(port: &mut P) -> bool {
+    !port.is_connected() || port.buffers().tx.len() < TX_CAPACITY
+}
+
+pub(crate) fn state(connected: bool) -> LinkState {
+    if connected {
+        LinkState::Connected
+    } else {
+        LinkState::Disconnected
+    }
+}
+
+/// Implements `embedded-io`, [`LinkStatus`] and [`HostLink`] for a [`BufferedPort`].
+macro_rules! buffered_link {
+    ($ty:ty) => {
+        impl embedded_io::ErrorType for $ty {
+            type Error = std::io::Error;
+        }
+
+        impl embedded_io::ReadReady for $ty {
+            fn read_ready(&mut self) -> Result<bool, std::io::Error> {
+                if $crate::link::BufferedPort::buffers(self).rx.is_empty() {
+                    $crate::link::BufferedPort::service(self)?;
+                }
+                Ok(!$crate::link::BufferedPort::buffers(self).rx.is_empty())
+            }
+        }
+
+        impl embedded_io::Read for $ty {
+            fn read(&mut self, buf: &mut [u8]) -> Result<usize, std::io::Error> {
+                $crate::link::port_read(self, buf)
+            }
+        }
+
+        impl embedded_io::WriteReady for $ty {
+            fn write_ready(&mut self) -> Result<bool, std::io::Error> {
+                Ok($crate::link::port_write_ready(self))
+            }
+        }
+
+        impl embedded_io::Write for $ty {
+            fn write(&mut self, buf: &[u8]) -> Result<usize, std::io::Error> {
+                $crate::link::port_write(self, buf)
+            }
+
+            fn flush(&mut self) -> Result<(), std::io::Error> {
+                $crate::link::port_flush(self)
+            }
+        }
+
+        impl forja_hal_abstraction::link::LinkStatus for $ty {
+            fn state(&self) -> forja_hal_abstraction::link::LinkState {
+                $crate::link::state($crate::link::BufferedPort::is_connected(self))
+            }
+        }
+
+        impl $crate::link::HostLink for $ty {
+            fn poll(&mut self) -> Result<(), std::io::Error> {
+                $crate::link::BufferedPort::service(self)
+            }
+
+            fn connections(&self) -> u64 {
+                self.connections
+            }
+        }
+    };
+}
+pub(crate) use buffered_link;

@@ -1,0 +1,177 @@
+//! The TCP link, like the ESP32 board's WiFi link.
+
+use std::io::{self, Read as _, Write as _};
+use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
+
+use super::{BufferedPort, Buffers, buffered_link};
+
+/// A TCP listener with one controlling client at a time.
+///
+/// The first client to connect controls the machine until it closes. A client that connects
+/// while another is in control is sent the busy message (given by the protocol layer, e.g. an
+/// error line) and closed; [`TcpLink::refused`] counts them. If the refused client has already
+/// sent bytes that arrive after its connection is drained, the operating system may reset the
+/// connection rather than close it, and the message can be lost; a host that waits for the
+/// controller to speak first always receives it.
+///
+/// Bytes received from a client stay in the receive buffer after it disconnects (they were
+/// sent); unsent replies are discarded. Implements [`super::HostLink`].
+#[derive(Debug)]
+pub struct TcpLink {
+    listener: TcpListener,
+    client: Option<TcpStream>,
+    peer: Option<SocketAddr>,
+    bufs: Buffers,
+    busy_message: Vec<u8>,
+    connections: u64,
+    refused: u64,
+}
+
+impl TcpLink {
+    /// Listen on `addr` (port 0: any free port; see [`TcpLink::local_addr`]). A second client
+    /// while one is connected receives `busy_message` and is closed.
+    ///
+    /// Errors: the address cannot be bound (in use, not local, no permission).
+    pub fn bind(addr: SocketAddr, busy_message: impl Into<Vec<u8>>) -> io::Result<Self> {
+        let listener = TcpListener::bind(addr)?;
+        listener.set_nonblocking(true)?;
+        Ok(Self {
+            listener,
+            client: None,
+            peer: None,
+            bufs: Buffers::default(),
+            busy_message: busy_message.into(),
+            connections: 0,
+            refused: 0,
+        })
+    }
+
+    /// The address actually listened on (with the port chosen when bound to port 0).
+    ///
+    /// Errors: as `TcpListener::local_addr` (practically never).
+    pub fn local_addr(&self) -> io::Result<SocketAddr> {
+        self.listener.local_addr()
+    }
+
+    /// The controlling client's address, while one is connected.
+    pub fn peer_addr(&self) -> Option<SocketAddr> {
+        self.peer
+    }
+
+    /// Clients refused because another was in control.
+    pub fn refused(&self) -> u64 {
+        self.refused
+    }
+
+    /// Close the controlling client's connection, if any.
+    pub fn disconnect(&mut self) {
+        if let Some(client) = self.client.take() {
+            let _ = client.shutdown(Shutdown::Both);
+        }
+        self.peer = None;
+        self.bufs.tx.clear();
+    }
+
+    fn refuse(&mut self, mut stream: TcpStream) {
+        self.refused += 1;
+        // Drain what the client already sent, so that closing sends FIN rather than RST.
+        let mut sink = [0u8; 512];
+        if stream.set_nonblocking(true).is_ok() {
+            while matches!(stream.read(&mut sink), Ok(n) if n > 0) {}
+        }
+        let _ = stream.set_nonblocking(false);
+        let _ = stream.set_write_timeout(Some(std::time::Duration::from_millis(100)));
+        let _ = stream.write_all(&self.busy_message);
+        let _ = stream.shutdown(Shutdown::Write);
+    }
+
+    fn receive(&mut self) {
+        let Some(client) = self.client.as_mut() else {
+            return;
+        };
+        let mut chunk = [0u8; 4096];
+        loop {
+            let room = self.bufs.rx_room().min(chunk.len());
+            if room == 0 {
+                return;
+            }
+            match client.read(&mut chunk[..room]) {
+                Ok(0) => return self.disconnect(),
+                Ok(n) => self.bufs.rx.extend(&chunk[..n]),
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => return,
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(_) => return self.disconnect(),
+            }
+        }
+    }
+
+    fn send(&mut self) {
+        let Some(client) = self.client.as_mut() else {
+            return;
+        };
+        while !self.bufs.tx.is_empty() {
+            let pending = self.bufs.tx.make_contiguous();
+            match client.write(pending) {
+                Ok(0) => return self.disconnect(),
+                Ok(n) => {
+                    self.bufs.tx.drain(..n);
+                }
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => return,
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(_) => return self.disconnect(),
+            }
+        }
+    }
+
+    fn accept(&mut self) -> io::Result<()> {
+        loop {
+            match self.listener.accept() {
+                Ok((stream, addr)) => {
+                    if self.client.is_some() {
+                        self.refuse(stream);
+                        continue;
+                    }
+                    if stream.set_nonblocking(true).is_err() {
+                        continue;
+                    }
+                    let _ = stream.set_nodelay(true);
+                    self.client = Some(stream);
+                    self.peer = Some(addr);
+                    self.connections += 1;
+                }
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(()),
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::Interrupted
+                            | io::ErrorKind::ConnectionAborted
+                            | io::ErrorKind::ConnectionReset
+                    ) => {}
+                Err(e) => return Err(e),
+            }
+        }
+    }
+}
+
+impl BufferedPort for TcpLink {
+    fn buffers(&mut self) -> &mut Buffers {
+        &mut self.bufs
+    }
+
+    fn is_connected(&self) -> bool {
+        self.client.is_some()
+    }
+
+    /// Serve the current client first, so that a client that closed and a new one waiting
+    /// in the same turn hand over rather than the new one being refused.
+    fn service(&mut self) -> io::Result<()> {
+        self.receive();
+        self.send();
+        self.accept()?;
+        self.receive();
+        self.send();
+        Ok(())
+    }
+}
+
+buffered_link!(TcpLink);

@@ -1,0 +1,547 @@
+//! The simulation loop: virtual time, the step interrupt and the thread side.
+//!
+//! A firmware board has two execution contexts: the step **interrupt**, raised by the alarm,
+//! and the **thread** (main loop or tasks) that reads the links, plans and runs the heaters.
+//! [`Simulation`] reproduces both over virtual time, for whatever implements [`Firmware`]:
+//!
+//! 1. It looks at the armed alarm ([`crate::SimAlarm`]) and at the next thread poll (every
+//!    [`SimulationConfig::poll_period_ticks`]) and moves virtual time to the earlier of the two;
+//!    when both fall on the same tick the interrupt goes first, as it would preempt the thread.
+//! 2. An alarm calls [`Firmware::on_alarm`] with the current instant, after disarming the
+//!    alarm; the instant it returns, if any, re-arms it (the interrupt may also re-arm through
+//!    its own [`crate::SimAlarm`] handle and return `None`). Interrupt code takes no virtual
+//!    time: a pulse's falling edge must be scheduled, as on hardware.
+//! 3. A poll calls [`Firmware::poll`], which returns [`Flow::Stop`] when the firmware is done.
+//! 4. The thermal models follow virtual time exactly ([`crate::thermal`]).
+//!
+//! It stops when the firmware says so, at the time limit, or when a stop flag is raised
+//! (Ctrl-C). [`Pacing::AsFastAsPossible`] runs virtual time as fast as the host computes;
+//! [`Pacing::Realtime`] holds virtual time to the wall clock (sleeping whenever it is more than
+//! [`PACING_SLACK`] ahead), for links to real host software.
+//!
+//! The loop never touches a device itself: the kernel wiring owns the steppers, switches,
+//! heaters and links and hands them to the firmware object, so the hardware types do not
+//! change when the kernel is plugged in.
+
+use core::fmt;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use forja_hal_abstraction::time::Instant;
+
+use crate::machine::SimMachine;
+
+/// How far virtual time may run ahead of the wall clock in [`Pacing::Realtime`] before the
+/// loop sleeps.
+pub const PACING_SLACK: std::time::Duration = std::time::Duration::from_micros(500);
+
+/// What the thread side wants after a poll.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Flow {
+    /// Keep running.
+    Continue,
+    /// Stop the simulation: the job is done or the firmware gave up.
+    Stop,
+}
+
+/// The firmware under simulation: its step interrupt and its thread side.
+pub trait Firmware {
+    /// The step alarm fired at `now`. Returns the instant to fire next, or `None` to leave the
+    /// alarm as the handler left it (disarmed, unless it armed it through a
+    /// [`crate::SimAlarm`]).
+    ///
+    /// Context: interrupt. Takes no virtual time.
+    fn on_alarm(&mut self, now: Instant) -> Option<Instant>;
+
+    /// One turn of the thread side (read links, plan, control heaters) at `now`.
+    ///
+    /// Context: thread. Takes no virtual time.
+    fn poll(&mut self, now: Instant) -> Flow;
+}
+
+impl<T: Firmware + ?Sized> Firmware for &mut T {
+    fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
+        T::on_alarm(self, now)
+    }
+    fn poll(&mut self, now: Instant) -> Flow {
+        T::poll(self, now)
+    }
+}
+
+/// A [`Firmware`] made of two closures: the interrupt and the thread side.
+pub struct FnFirmware<A, P> {
+    /// The step interrupt.
+    pub on_alarm: A,
+    /// The thread side.
+    pub poll: P,
+}
+
+impl<A, P> Firmware for FnFirmware<A, P>
+where
+    A: FnMut(Instant) -> Option<Instant>,
+    P: FnMut(Instant) -> Flow,
+{
+    fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
+        (self.on_alarm)(now)
+    }
+    fn poll(&mut self, now: Instant) -> Flow {
+        (self.poll)(now)
+    }
+}
+
+/// How virtual time relates to the wall clock.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Pacing {
+    /// As fast as the host computes.
+    AsFastAsPossible,
+    /// Held to the wall clock: one virtual second takes one second.
+    Realtime,
+}
+
+/// Settings of a [`Simulation`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct SimulationConfig {
+    /// Fast or paced.
+    pub pacing: Pacing,
+    /// Stop after this much virtual time (from the start of [`Simulation::run`]).
+    pub time_limit_ticks: Option<u64>,
+    /// Virtual time between two thread polls; at least 1.
+    pub poll_period_ticks: u64,
+    /// Alarms allowed at a single tick before the run fails with [`RunError::AlarmStorm`].
+    pub max_alarms_per_tick: u32,
+}
+
+impl SimulationConfig {
+    /// As fast as possible, no time limit, a thread poll every millisecond, at most 10 000
+    /// alarms per tick.
+    pub fn new(tick_hz: u32) -> Self {
+        Self {
+            pacing: Pacing::AsFastAsPossible,
+            time_limit_ticks: None,
+            poll_period_ticks: u64::from(tick_hz / 1000).max(1),
+            max_alarms_per_tick: 10_000,
+        }
+    }
+}
+
+/// Why a run ended normally.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum StopReason {
+    /// [`Firmware::poll`] returned [`Flow::Stop`].
+    Firmware,
+    /// The time limit was reached.
+    TimeLimit,
+    /// The stop flag was raised.
+    Interrupted,
+}
+
+/// What a run did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RunReport {
+    /// Why it ended.
+    pub stop: StopReason,
+    /// Virtual time at the start, in ticks.
+    pub start_ticks: u64,
+    /// Virtual time at the end, in ticks.
+    pub end_ticks: u64,
+    /// Alarms fired.
+    pub alarms: u64,
+    /// Thread polls made.
+    pub polls: u64,
+    /// Wall-clock time taken.
+    pub wall: std::time::Duration,
+}
+
+impl RunReport {
+    /// Virtual time the run took, in ticks.
+    pub fn virtual_ticks(&self) -> u64 {
+        self.end_ticks - self.start_ticks
+    }
+}
+
+/// A run that went wrong.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum RunError {
+    /// The alarm kept firing without virtual time moving: the interrupt re-arms itself at or
+    /// before now, and the thread side would never run again.
+    AlarmStorm {
+        /// The tick it happened at.
+        at_ticks: u64,
+        /// Alarms fired at that tick.
+        alarms: u32,
+    },
+}
+
+impl fmt::Display for RunError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::AlarmStorm { at_ticks, alarms } => write!(
+                f,
+                "the step alarm fired {alarms} times at tick {at_ticks} without time moving"
+            ),
+        }
+    }
+}
+
+impl std::error::Error for RunError {}
+
+/// The simulation loop of one machine.
+#[derive(Debug)]
+pub struct Simulation {
+    machine: SimMachine,
+    config: SimulationConfig,
+    stop: Option<Arc<AtomicBool>>,
+}
+
+impl Simulation {
+    /// A loop over `machine` with `config`.
+    pub fn new(machine: SimMachine, config: SimulationConfig) -> Self {
+        Self {
+            machine,
+            config,
+            stop: None,
+        }
+    }
+
+    /// Stop the run (with [`StopReason::Interrupted`]) once `flag` is raised; checked before
+    /// every event.
+    pub fn set_stop_flag(&mut self, flag: Arc<AtomicBool>) {
+        self.stop = Some(flag);
+    }
+
+    /// The machine.
+    pub fn machine(&self) -> &SimMachine {
+        &self.machine
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &SimulationConfig {
+        &self.config
+    }
+
+    /// Change the settings for the next run.
+    pub fn config_mut(&mut self) -> &mut SimulationConfig {
+        &mut self.config
+    }
+
+    /// Run `firmware` until it stops, the time limit passes or the stop flag is raised. The
+    /// first poll happens at the current virtual time.
+    ///
+    /// Errors: [`RunError::AlarmStorm`].
+    pub fn run<F: Firmware + ?Sized>(&mut self, firmware: &mut F) -> Result<RunReport, RunError> {
+        let m = &self.machine;
+        let wall_start = std::time::Instant::now();
+        let start_ticks = m.now_ticks();
+        let deadline = self
+            .config
+            .time_limit_ticks
+            .map(|l| start_ticks.saturating_add(l));
+        let period = self.config.poll_period_ticks.max(1);
+        let tick_hz = f64::from(m.tick_hz());
+        let mut next_poll = start_ticks;
+        let mut report = RunReport {
+            stop: StopReason::Firmware,
+            start_ticks,
+            end_ticks: start_ticks,
+            alarms: 0,
+            polls: 0,
+            wall: std::time::Duration::ZERO,
+        };
+        let mut storm = (start_ticks, 0u32);
+        let finish = |mut report: RunReport, stop| {
+            report.stop = stop;
+            report.end_ticks = m.now_ticks();
+            report.wall = wall_start.elapsed();
+            report
+        };
+
+        loop {
+            if self
+                .stop
+                .as_ref()
+                .is_some_and(|f| f.load(Ordering::Relaxed))
+            {
+                return Ok(finish(report, StopReason::Interrupted));
+            }
+            let alarm = m.alarm_at_ticks().filter(|&a| a <= next_poll);
+            let t = alarm.unwrap_or(next_poll).max(m.now_ticks());
+            if let Some(d) = deadline
+                && t > d
+            {
+                m.advance_to(d);
+                return Ok(finish(report, StopReason::TimeLimit));
+            }
+            if self.config.pacing == Pacing::Realtime {
+                let target = wall_start
+                    + std::time::Duration::from_secs_f64((t - start_ticks) as f64 / tick_hz);
+                let ahead = target.saturating_duration_since(std::time::Instant::now());
+                if ahead > PACING_SLACK {
+                    std::thread::sleep(ahead);
+                }
+            }
+            m.advance_to(t);
+            let now = Instant::from_ticks(t as u32);
+            if alarm.is_some() {
+                m.take_alarm();
+                if storm.0 == t {
+                    storm.1 += 1;
+                    if storm.1 > self.config.max_alarms_per_tick {
+                        return Err(RunError::AlarmStorm {
+                            at_ticks: t,
+                            alarms: storm.1,
+                        });
+                    }
+                } else {
+                    storm = (t, 1);
+                }
+                report.alarms += 1;
+                if let Some(next) = firmware.on_alarm(now) {
+                    m.set_alarm_ticks(m.instant_to_ticks(next));
+                }
+            } else {
+                report.polls += 1;
+                next_poll = t + period;
+                if firmware.poll(now) == Flow::Stop {
+                    return Ok(finish(report, StopReason::Firmware));
+                }
+            }
+        }
+    }
+
+    /// [`Simulation::run`] with two closures: the interrupt and the thread side.
+    pub fn run_with<A, P>(&mut self, on_alarm: A, poll: P) -> Result<RunReport, RunError>
+    where
+        A: FnMut(Instant) -> Option<Instant>,
+        P: FnMut(Instant) -> Flow,
+    {
+        self.run(&mut FnFirmware { on_alarm, poll })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::MachineConfig;
+    use forja_hal_abstraction::clock::{Alarm, Clock};
+    use forja_hal_abstraction::stepper::{Direction, Stepper, StepperEnable};
+    use forja_hal_abstraction::time::Duration;
+
+    fn machine() -> SimMachine {
+        let m = SimMachine::new(&MachineConfig::default_router());
+        m.set_tracing(true);
+        m
+    }
+
+    /// A minimal step generator: `n` steps on X every `period` ticks, pulse 2 ticks wide,
+    /// scheduled edge by edge like the kernel's step interrupt.
+    struct Stepping {
+        x: crate::SimStepper,
+        left: u32,
+        high: bool,
+        period: u32,
+    }
+
+    impl Firmware for Stepping {
+        fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
+            if self.high {
+                self.x.step_end().unwrap();
+                self.high = false;
+                self.left -= 1;
+                (self.left > 0).then(|| now.wrapping_add(Duration::from_ticks(self.period - 2)))
+            } else {
+                self.x.step_begin().unwrap();
+                self.high = true;
+                Some(now.wrapping_add(Duration::from_ticks(2)))
+            }
+        }
+        fn poll(&mut self, _now: Instant) -> Flow {
+            if self.left == 0 {
+                Flow::Stop
+            } else {
+                Flow::Continue
+            }
+        }
+    }
+
+    #[test]
+    fn interrupt_runs_at_the_scheduled_times() {
+        let m = machine();
+        let mut x = m.stepper(0).unwrap();
+        x.set_enabled(true).unwrap();
+        x.set_direction(Direction::Positive).unwrap();
+        let start = m.position_steps(0).unwrap();
+        let mut alarm = m.alarm();
+        alarm.set_alarm(Instant::from_ticks(100)).unwrap();
+        let mut fw = Stepping {
+            x,
+            left: 1000,
+            high: false,
+            period: 125, // 8 kHz: 6000 mm/min at 80 steps/mm
+        };
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        let report = sim.run(&mut fw).unwrap();
+        assert_eq!(report.stop, StopReason::Firmware);
+        assert_eq!(report.alarms, 2000);
+        assert_eq!(m.position_steps(0), Some(start + 1000));
+        let times = m.step_times(0);
+        assert_eq!(times.len(), 1000);
+        assert!(
+            times
+                .iter()
+                .enumerate()
+                .all(|(i, &t)| t == 100 + 125 * i as u64)
+        );
+        assert_eq!(m.violation_count(), 0);
+        // The last falling edge is at 100 + 999 * 125 + 2; the poll after it stops the run.
+        assert_eq!(report.end_ticks, 125_000);
+        assert_eq!(report.polls, 126);
+    }
+
+    #[test]
+    fn time_limit_and_poll_period() {
+        let m = machine();
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        sim.config_mut().time_limit_ticks = Some(10_500);
+        let mut polls = Vec::new();
+        let report = sim
+            .run_with(
+                |_| None,
+                |now| {
+                    polls.push(now.ticks());
+                    Flow::Continue
+                },
+            )
+            .unwrap();
+        assert_eq!(report.stop, StopReason::TimeLimit);
+        assert_eq!(report.end_ticks, 10_500);
+        assert_eq!(polls, (0..=10).map(|i| i * 1000).collect::<Vec<_>>());
+        // A second run continues from there.
+        sim.config_mut().time_limit_ticks = Some(1000);
+        let report = sim.run_with(|_| None, |_| Flow::Continue).unwrap();
+        assert_eq!((report.start_ticks, report.end_ticks), (10_500, 11_500));
+    }
+
+    #[test]
+    fn interrupt_preempts_a_poll_due_at_the_same_tick_and_can_rearm_itself() {
+        let m = machine();
+        let mut alarm = m.alarm();
+        alarm.set_alarm(Instant::from_ticks(1000)).unwrap();
+        let log = core::cell::RefCell::new(Vec::new());
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        sim.config_mut().time_limit_ticks = Some(2000);
+        let mut own = m.alarm();
+        let mut fired = 0;
+        sim.run_with(
+            |now| {
+                log.borrow_mut().push(("isr", now.ticks()));
+                fired += 1;
+                if fired == 1 {
+                    // Re-arm through the handle instead of the return value.
+                    own.set_alarm(now.wrapping_add(Duration::from_ticks(500)))
+                        .unwrap();
+                }
+                None
+            },
+            |now| {
+                log.borrow_mut().push(("poll", now.ticks()));
+                Flow::Continue
+            },
+        )
+        .unwrap();
+        assert_eq!(
+            log.into_inner(),
+            [
+                ("poll", 0),
+                ("isr", 1000),
+                ("poll", 1000),
+                ("isr", 1500),
+                ("poll", 2000)
+            ]
+        );
+        assert_eq!(m.alarm_at_ticks(), None);
+    }
+
+    #[test]
+    fn an_alarm_storm_is_an_error() {
+        let m = machine();
+        m.set_alarm_ticks(10);
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        let e = sim.run_with(Some, |_| Flow::Continue).unwrap_err();
+        assert_eq!(
+            e,
+            RunError::AlarmStorm {
+                at_ticks: 10,
+                alarms: 10_001
+            }
+        );
+        assert!(e.to_string().contains("10001 times at tick 10"));
+    }
+
+    #[test]
+    fn stop_flag_interrupts() {
+        let m = machine();
+        let flag = Arc::new(AtomicBool::new(false));
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        sim.set_stop_flag(Arc::clone(&flag));
+        let mut n = 0;
+        let report = sim
+            .run_with(
+                |_| None,
+                |_| {
+                    n += 1;
+                    if n == 5 {
+                        flag.store(true, Ordering::Relaxed);
+                    }
+                    Flow::Continue
+                },
+            )
+            .unwrap();
+        assert_eq!(report.stop, StopReason::Interrupted);
+        assert_eq!(report.polls, 5);
+    }
+
+    #[test]
+    fn realtime_pacing_follows_the_wall_clock() {
+        let m = machine();
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        sim.config_mut().pacing = Pacing::Realtime;
+        sim.config_mut().time_limit_ticks = Some(150_000); // 150 ms
+        let report = sim.run_with(|_| None, |_| Flow::Continue).unwrap();
+        let wall = report.wall.as_secs_f64();
+        assert!(wall >= 0.148, "{wall} s is faster than real time");
+        assert!(wall < 1.0, "{wall} s");
+
+        // The same span unpaced takes a fraction of it.
+        let mut fast = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        fast.config_mut().time_limit_ticks = Some(150_000);
+        let report = fast.run_with(|_| None, |_| Flow::Continue).unwrap();
+        assert!(report.wall.as_secs_f64() < 0.1);
+        assert_eq!(m.clock().now().ticks(), 300_000);
+    }
+
+    #[test]
+    fn heaters_follow_virtual_time_during_a_run() {
+        let text = MachineConfig::bundled_toml("printer").unwrap();
+        let m = SimMachine::new(&MachineConfig::from_toml_str(text).unwrap());
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        sim.config_mut().time_limit_ticks = Some(600 * 1_000_000);
+        let mut heater = m.heater(0).unwrap();
+        let mut sensor = m.temperature_sensor(0).unwrap();
+        // A bang-bang controller on the thread side holds 200 °C.
+        use forja_hal_abstraction::thermal::{FULL_POWER, Heater, TemperatureSensor};
+        sim.run_with(
+            |_| None,
+            |_| {
+                let t = sensor.read_millicelsius().unwrap();
+                heater
+                    .set_power(if t < 200_000 { FULL_POWER } else { 0 })
+                    .unwrap();
+                Flow::Continue
+            },
+        )
+        .unwrap();
+        let t = m.temperature_c(0).unwrap();
+        assert!((t - 200.0).abs() < 0.5, "{t}");
+    }
+}
