@@ -1,2 +1,76 @@
-//! Forja's board-agnostic motion kernel.
+//! # Forja's motion kernel
+//!
+//! The board-agnostic heart of the firmware: parsed G-code lines in, step pulses out. It never
+//! names a chip, a HAL or an executor; it reaches hardware only through the traits of
+//! `forja-hal-abstraction` (steppers, limit switches) and reads no clock: every entry point
+//! takes the current [`Instant`](forja_hal_abstraction::time::Instant).
+//!
+//! ## Two sides, one queue
+//!
+//! ```text
+//!  thread side (task / main loop)                         interrupt side (step alarm)
+//!  ┌───────────────────────────────────────────────┐      ┌──────────────────────────────┐
+//!  │ Kernel::execute(&Line) ─► interpreter ─► planner│      │ StepGenerator::on_alarm(now, │
+//!  │ Kernel::poll(now) ─► segment preparation ──────┼─────►│   &mut [S; N], &mut [L])     │
+//!  │   (float, exact per-axis step times)           │ Step │   → Option<Instant>          │
+//!  │ Kernel::{jog, home, hold, resume, stop, reset} │ Queue│ (integer only, no panics)    │
+//!  └───────────────────────────────────────────────┘      └──────────────────────────────┘
+//! ```
+//!
+//! [`split`] creates both halves around a [`StepQueue`] that outlives them (a `static`, or a
+//! local in tests). The [`Kernel`] lives in a thread context; [`Kernel::poll`] must run at least
+//! every half `queue_lead_ms` while the machine moves, and returns the instant to arm the step
+//! alarm at when the interrupt side is idle and has work. The [`StepGenerator`] lives in the
+//! step interrupt: each alarm, call [`StepGenerator::on_alarm`] and re-arm at what it returns.
+//!
+//! ## Contract
+//!
+//! - Floats stay on the thread side. The interrupt side is integer-only, allocation-free and
+//!   panic-free; one call handles one event (falling edges, direction changes, switch checks,
+//!   rising edges) in a bounded number of instructions (see `docs/performance.md`).
+//! - Every axis steps at its own exact time (rounded to the nearest tick), not on a shared
+//!   Bresenham grid; every move emits exactly its integer step count, so there is no drift.
+//! - A refused G-code line changes nothing; unsupported commands are named in the error.
+//! - The queue uses load/store atomics only (no compare-and-swap, no `unsafe`): it works on
+//!   `thumbv7em` and `riscv32imc` alike.
+//!
+//! ## Modules
+//!
+//! | module | what |
+//! |---|---|
+//! | [`config`] | [`MachineConfig`], [`AxisConfig`], validation, `postcard` storage |
+//! | [`effect`] | [`Effect`]: commands for other subsystems, returned in stream order |
+//! | [`error`] | the error enums and the table of their wire codes |
+//! | [`job`] | program store, job runner, progress and time estimate |
+//! | `sim` (feature `std`) | a deterministic host simulation of the interrupt side |
 #![no_std]
+#![forbid(unsafe_code)]
+#![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::panic))]
+
+#[cfg(any(test, feature = "std"))]
+extern crate std;
+
+mod arc;
+pub mod config;
+pub mod effect;
+pub mod error;
+mod interp;
+pub mod job;
+mod kernel;
+mod planner;
+mod prep;
+mod profile;
+mod queue;
+#[cfg(any(test, feature = "std"))]
+pub mod sim;
+mod stepgen;
+
+pub use config::{AxisConfig, AxisKind, HomeDirection, HomingConfig, MachineConfig, SoftLimits};
+pub use effect::{Effect, Sync};
+pub use error::{Alarm, CommandError, ConfigError, JobError, StoreError};
+pub use kernel::{Kernel, MachineState, PositionReport, Reply, split};
+pub use queue::StepQueue;
+pub use stepgen::StepGenerator;
+
+/// The most axes a machine can have (step masks are 8 bits wide).
+pub const MAX_AXES: usize = 8;

@@ -1,0 +1,153 @@
+//! Workload for instruction counting under `valgrind --tool=callgrind` (see
+//! `docs/performance.md`): plans a program of 1 mm segments, then runs it through the whole
+//! kernel with no-op pins. The three measured parts are separate, never-inlined functions so
+//! that `--toggle-collect` can count each one:
+//!
+//! ```text
+//! cargo build --release -p forja-motion --example instructions
+//! valgrind --tool=callgrind --toggle-collect='*count_plan*' target/release/examples/instructions
+//! valgrind --tool=callgrind --toggle-collect='*count_isr*' target/release/examples/instructions
+//! valgrind --tool=callgrind --toggle-collect='*count_thread*' target/release/examples/instructions
+//! ```
+//!
+//! It prints the number of lines, step events and interrupt calls to divide by.
+
+use std::convert::Infallible;
+use std::hint::black_box;
+
+use forja_hal_abstraction::ErrorType;
+use forja_hal_abstraction::limit::LimitSwitch;
+use forja_hal_abstraction::stepper::{Direction, StepTiming, Stepper};
+use forja_hal_abstraction::time::Instant;
+use forja_motion::job::{ProgramStore, RamStore, estimate_seconds};
+use forja_motion::{AxisConfig, Kernel, MachineConfig, Reply, StepGenerator, StepQueue, split};
+use forja_protocol::gcode::Line;
+
+struct Pin(u64);
+impl ErrorType for Pin {
+    type Error = Infallible;
+}
+impl Stepper for Pin {
+    fn set_direction(&mut self, d: Direction) -> Result<(), Infallible> {
+        black_box(d);
+        Ok(())
+    }
+    fn step_begin(&mut self) -> Result<(), Infallible> {
+        self.0 += 1;
+        Ok(())
+    }
+    fn step_end(&mut self) -> Result<(), Infallible> {
+        black_box(());
+        Ok(())
+    }
+    fn timing(&self) -> StepTiming {
+        StepTiming::CONSERVATIVE
+    }
+}
+struct Switch;
+impl ErrorType for Switch {
+    type Error = Infallible;
+}
+impl LimitSwitch for Switch {
+    fn is_triggered(&mut self) -> Result<bool, Infallible> {
+        Ok(black_box(false))
+    }
+}
+
+fn config() -> MachineConfig<3> {
+    MachineConfig::new([
+        AxisConfig::linear(b'X', 80.0, 12_000.0, 3000.0, 1000.0),
+        AxisConfig::linear(b'Y', 80.0, 12_000.0, 3000.0, 1000.0),
+        AxisConfig::linear(b'Z', 400.0, 900.0, 200.0, 200.0),
+    ])
+}
+
+fn program(n: usize) -> Vec<String> {
+    let (mut x, mut y) = (500.0f64, 500.0f64);
+    (0..n)
+        .map(|k| {
+            let a = k as f64 * 0.05;
+            x += a.cos();
+            y += a.sin();
+            format!("G1 X{x:.3} Y{y:.3} F6000")
+        })
+        .collect()
+}
+
+#[inline(never)]
+fn count_plan<P: ProgramStore>(kernel: &Kernel<'_, 3>, store: &mut P) -> f32 {
+    estimate_seconds(kernel, store, 1).unwrap_or(0.0)
+}
+
+#[inline(never)]
+fn count_isr(
+    isr: &mut StepGenerator<'_, 3, 256>,
+    at: Instant,
+    pins: &mut [Pin; 3],
+    sw: &mut [Switch; 1],
+) -> Option<Instant> {
+    isr.on_alarm(at, pins, sw)
+}
+
+#[inline(never)]
+fn count_thread(kernel: &mut Kernel<'_, 3>, now: Instant) -> Option<Instant> {
+    kernel.poll(now)
+}
+
+#[inline(never)]
+fn count_execute(kernel: &mut Kernel<'_, 3>, text: &str) -> bool {
+    match Line::parse(text.as_bytes()) {
+        Ok(line) => !matches!(kernel.execute(&line), Ok(Reply::Busy)),
+        Err(_) => true,
+    }
+}
+
+fn main() {
+    let lines = program(1000);
+    let mut store = RamStore::<1000>::new();
+    for (i, l) in lines.iter().enumerate() {
+        let _ = store.store(i as u16 + 1, l.as_bytes());
+    }
+    let mut q = StepQueue::<3, 256>::new();
+    let Ok((mut kernel, mut isr)) =
+        split::<3, 32, 256>(&mut q, config(), 1_000_000, StepTiming::CONSERVATIVE)
+    else {
+        return;
+    };
+    let t = count_plan(&kernel, &mut store);
+    println!("plan: {} lines, estimate {t:.2} s", lines.len());
+
+    let mut pins = [Pin(0), Pin(0), Pin(0)];
+    let mut sw = [Switch];
+    let mut now = 0u32;
+    let mut alarm = None;
+    let mut calls = 0u64;
+    let mut next = 0;
+    loop {
+        while next < lines.len() && kernel.can_accept() && count_execute(&mut kernel, &lines[next])
+        {
+            next += 1;
+        }
+        if let Some(at) = count_thread(&mut kernel, Instant::from_ticks(now)) {
+            alarm = Some(at);
+        }
+        let until = now.wrapping_add(1000);
+        while let Some(at) = alarm {
+            if at.signed_ticks_since(Instant::from_ticks(until)) > 0 {
+                break;
+            }
+            now = now.max(at.ticks());
+            alarm = count_isr(&mut isr, at, &mut pins, &mut sw);
+            calls += 1;
+        }
+        now = until;
+        if next == lines.len() && kernel.is_idle() {
+            break;
+        }
+    }
+    let steps: u64 = pins.iter().map(|p| p.0).sum();
+    println!(
+        "pipeline: {} lines, {steps} step events, {calls} interrupt calls",
+        lines.len()
+    );
+}

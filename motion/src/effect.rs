@@ -1,0 +1,202 @@
+//! What the kernel hands back to the controller: commands for other subsystems, in order.
+//!
+//! Heaters, fans, spindles, the link's line numbering, storage and motor power are not the
+//! motion kernel's hardware, but their commands arrive in the same G-code stream and must take
+//! effect at the right place in it. The kernel therefore recognises them, parses their
+//! arguments, and returns each as an [`Effect`] from [`crate::Kernel::execute`] — at the moment
+//! it is to be carried out:
+//!
+//! - an effect whose [`Effect::sync`] is [`Sync::Now`] is returned as soon as its line is
+//!   offered (motion already queued keeps running): temperature targets, reports, line numbers,
+//!   storage commands, motors on;
+//! - an effect that is [`Sync::AfterMotion`] is returned only once every move before it has
+//!   finished: until then `execute` answers [`crate::Reply::Busy`] for that line. Spindle, fan,
+//!   tool change, motors off, program stop and pause thus happen exactly between the moves
+//!   around them, as grbl does for its spindle.
+//!
+//! The controller executes each effect when it receives it, then acknowledges the line.
+//! Waiting effects (`M109`, `M116`) are the controller's to wait for: it offers no further line
+//! to the kernel until the wait is over, while the moves already queued go on.
+
+use forja_protocol::gcode::Decimal;
+
+/// When an effect is to be carried out relative to the motion queued before it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Sync {
+    /// At once: the moves already queued go on.
+    Now,
+    /// After every move queued before it has finished (the kernel waits before returning it).
+    AfterMotion,
+}
+
+/// A heater named by a command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Heater {
+    /// An extruder's hot end: the `T` word of the command, or the current tool (`None`).
+    Extruder(Option<u8>),
+    /// The bed (`M140`).
+    Bed,
+}
+
+/// Spindle state (`M3`/`M4`/`M5`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Spindle {
+    /// `M3`: clockwise, at `rpm` (the `S` word) when given.
+    Clockwise {
+        /// Speed, when the line has `S`.
+        rpm: Option<Decimal>,
+    },
+    /// `M4`: counter-clockwise.
+    CounterClockwise {
+        /// Speed, when the line has `S`.
+        rpm: Option<Decimal>,
+    },
+    /// `M5`: stopped.
+    Off,
+}
+
+/// SD card / file storage commands `M20`–`M29`, for the controller's storage subsystem.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Storage<'l> {
+    /// `M20`: list files.
+    List,
+    /// `M21`: initialise the card.
+    Init,
+    /// `M22`: release the card.
+    Release,
+    /// `M23 <name>`: select a file.
+    Select(&'l [u8]),
+    /// `M24`: start or resume printing the selected file.
+    Start,
+    /// `M25`: pause printing the selected file.
+    Pause,
+    /// `M26 S<bytes>`: set the position in the file.
+    SetPosition(u32),
+    /// `M27`: report the printing status.
+    Report,
+    /// `M28 <name>`: begin writing to a file.
+    BeginWrite(&'l [u8]),
+    /// `M29 <name>`: stop writing.
+    EndWrite(Option<&'l [u8]>),
+}
+
+/// How motion stopped on a program command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StopKind {
+    /// `M0`: the moves before it finished; the machine is halted until a reset.
+    Program,
+    /// `M112`: motion was cut at once; the machine is in alarm until a reset or a homing.
+    Emergency,
+}
+
+/// A command for a subsystem other than motion, returned in stream order. See the module
+/// documentation for when each is returned.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub enum Effect<'l> {
+    /// `M104`, `M109` (`wait`), `M140`: set a heater's target, °C (`S`, 0 = off).
+    SetTemperature {
+        /// Which heater.
+        heater: Heater,
+        /// Target temperature in °C.
+        celsius: Decimal,
+        /// Hold further lines until it is reached (`M109`).
+        wait: bool,
+    },
+    /// `M116`: hold further lines until every heater is at its target.
+    WaitForTemperatures,
+    /// `M105`: report temperatures (`ok T:… B:…`).
+    ReportTemperatures,
+    /// `M106` (`S` 0–255, default 255; `P` fan index) and `M107` (duty 0).
+    Fan {
+        /// Fan index (`P`, default 0).
+        index: u8,
+        /// PWM duty, 0–255.
+        duty: u8,
+    },
+    /// `M3`, `M4`, `M5`.
+    Spindle(Spindle),
+    /// `M110`: the next line number the link expects is this plus one.
+    SetLineNumber(u32),
+    /// `M115`: report firmware name and capabilities.
+    ReportFirmware,
+    /// `M119`: report the limit switches.
+    ReportEndstops,
+    /// `M20`–`M29`.
+    Storage(Storage<'l>),
+    /// `T<n>`: select tool `n`.
+    SelectTool(u8),
+    /// `M17` (on), `M18`/`M84` (off): stepper driver power. Turning them off loses the homed
+    /// state (the kernel forgets it).
+    Motors {
+        /// Energise (`true`) or release the motors.
+        enabled: bool,
+    },
+    /// `M0` or `M112`: motion stopped; the controller turns heaters and motors off.
+    Stopped(StopKind),
+    /// `M226`: the program pauses here (motion before it is done); [`crate::Kernel::resume`]
+    /// continues.
+    Paused,
+}
+
+impl Effect<'_> {
+    /// When the effect is to be carried out.
+    pub fn sync(&self) -> Sync {
+        match self {
+            Self::Spindle(_)
+            | Self::Fan { .. }
+            | Self::SelectTool(_)
+            | Self::Motors { enabled: false }
+            | Self::Stopped(StopKind::Program)
+            | Self::Paused => Sync::AfterMotion,
+            _ => Sync::Now,
+        }
+    }
+}
+
+/// The same slice of `to` as `s` is of `from` (both the same line text).
+fn rebase_slice<'a>(s: &[u8], from: &[u8], to: &'a [u8]) -> &'a [u8] {
+    let off = (s.as_ptr() as usize).wrapping_sub(from.as_ptr() as usize);
+    to.get(off..off.saturating_add(s.len())).unwrap_or(&[])
+}
+
+impl Effect<'_> {
+    /// The same effect with its texts borrowed from `to`, a copy of the line `from`.
+    pub(crate) fn rebase<'a>(self, from: &[u8], to: &'a [u8]) -> Effect<'a> {
+        let r = |s: &[u8]| rebase_slice(s, from, to);
+        match self {
+            Effect::Storage(st) => Effect::Storage(match st {
+                Storage::Select(n) => Storage::Select(r(n)),
+                Storage::BeginWrite(n) => Storage::BeginWrite(r(n)),
+                Storage::EndWrite(n) => Storage::EndWrite(n.map(r)),
+                Storage::List => Storage::List,
+                Storage::Init => Storage::Init,
+                Storage::Release => Storage::Release,
+                Storage::Start => Storage::Start,
+                Storage::Pause => Storage::Pause,
+                Storage::SetPosition(p) => Storage::SetPosition(p),
+                Storage::Report => Storage::Report,
+            }),
+            Effect::SetTemperature {
+                heater,
+                celsius,
+                wait,
+            } => Effect::SetTemperature {
+                heater,
+                celsius,
+                wait,
+            },
+            Effect::WaitForTemperatures => Effect::WaitForTemperatures,
+            Effect::ReportTemperatures => Effect::ReportTemperatures,
+            Effect::Fan { index, duty } => Effect::Fan { index, duty },
+            Effect::Spindle(s) => Effect::Spindle(s),
+            Effect::SetLineNumber(n) => Effect::SetLineNumber(n),
+            Effect::ReportFirmware => Effect::ReportFirmware,
+            Effect::ReportEndstops => Effect::ReportEndstops,
+            Effect::SelectTool(t) => Effect::SelectTool(t),
+            Effect::Motors { enabled } => Effect::Motors { enabled },
+            Effect::Stopped(k) => Effect::Stopped(k),
+            Effect::Paused => Effect::Paused,
+        }
+    }
+}

@@ -1,0 +1,705 @@
+//! The G-code interpreter: modal state and the meaning of each supported command.
+//!
+//! Thread side. Positions are kept exactly, in integer nanometres, so that relative moves,
+//! `G92` offsets and inch conversions never accumulate rounding; step targets are rounded from
+//! them once per move. The interpreter only decides what a line means ([`Action`]); the kernel
+//! checks it (soft limits, state) and commits it, so a refused line leaves no trace.
+//!
+//! | command | meaning |
+//! |---|---|
+//! | `G0`, `G1` | straight move (rapid, or at `F`; an `F` on the `G1` line is reached within the move) |
+//! | `G2`, `G3` | clockwise / counter-clockwise arc, `I`/`J`/`K` centre offsets or `R` radius; `G17`/`G18`/`G19` pick the plane |
+//! | `G4` | dwell `P` ms or `S` s |
+//! | `G20`, `G21` | inches, millimetres |
+//! | `G28` | home all axes, or those named (their values are ignored) |
+//! | `G90`, `G91` | absolute, relative |
+//! | `G92` | set the current position (all axes to 0 without words) |
+//! | `M82`, `M83` | extruder absolute, relative |
+//! | `M17`, `M18`, `M84` | motors on, off |
+//! | `M92` | set steps per unit |
+//! | `M114` | report position |
+//! | `M0`, `M112`, `M226` | stop, emergency stop, pause |
+//! | `M3`–`M5`, `M104`–`M107`, `M109`, `M110`, `M115`, `M116`, `M119`, `M140`, `M20`–`M29`, `T` | returned as [`crate::Effect`]s |
+
+use forja_protocol::gcode::{Decimal, Line};
+
+use crate::arc::{ArcCenter, ArcCutter, Nm};
+use crate::config::{AxisKind, MachineConfig};
+use crate::effect::{Effect, Heater, Spindle, StopKind, Storage};
+use crate::error::CommandError;
+
+/// Nanometres per millimetre.
+pub(crate) const NM_PER_MM: f64 = 1e6;
+/// Largest position magnitude accepted, nm (100 m).
+const MAX_NM: i64 = 100_000_000_000;
+
+/// What one line asks for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Action<'l, const N: usize> {
+    /// Only modal state changed.
+    None,
+    /// A straight move to machine position `target` (nm).
+    Move {
+        target: [Nm; N],
+        feed_mm_min: Option<f32>,
+        ramp: bool,
+    },
+    /// An arc; chords follow from the cutter.
+    Arc {
+        cutter: ArcCutter<N>,
+        feed_mm_min: f32,
+        ramp: bool,
+    },
+    /// Wait at rest.
+    Dwell { ms: u32 },
+    /// Home these axes.
+    Home { mask: u8 },
+    /// Report the position.
+    Report,
+    /// New steps per unit for some axes.
+    SetStepsPerMm([Option<f32>; N]),
+    /// For the controller.
+    Effect(Effect<'l>),
+    /// `M0` / `M112`.
+    Stop(StopKind),
+    /// `M226`.
+    Pause,
+}
+
+/// Active plane for arcs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Plane {
+    Xy,
+    Zx,
+    Yz,
+}
+
+/// Modal motion.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Motion {
+    Rapid,
+    Linear,
+    Cw,
+    Ccw,
+}
+
+/// The interpreter's state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Interpreter<const N: usize> {
+    /// Commanded machine position, nm.
+    pub(crate) pos: [Nm; N],
+    /// Work offset: work = machine + offset (set by `G92`).
+    offset: [Nm; N],
+    absolute: bool,
+    extruder_relative: Option<bool>,
+    inches: bool,
+    motion: Motion,
+    plane: Plane,
+    pub(crate) feed_mm_min: f32,
+}
+
+/// A number in nm from a decimal in the current unit.
+fn to_nm(v: Decimal, inches: bool, letter: u8) -> Result<Nm, CommandError> {
+    let per_unit: i128 = if inches { 25_400_000 } else { 1_000_000 };
+    let num = i128::from(v.mantissa()) * per_unit;
+    let den = 10i128
+        .checked_pow(u32::from(v.scale()))
+        .ok_or(CommandError::BadValue { letter })?;
+    let half = den / 2;
+    let q = if num >= 0 {
+        (num + half) / den
+    } else {
+        (num - half) / den
+    };
+    let q = i64::try_from(q).map_err(|_| CommandError::BadValue { letter })?;
+    if q.abs() > MAX_NM {
+        return Err(CommandError::BadValue { letter });
+    }
+    Ok(q)
+}
+
+/// Steps for a machine position in nm.
+pub(crate) fn nm_to_steps(nm: Nm, steps_per_mm: f32) -> i32 {
+    let s = libm::round(nm as f64 * f64::from(steps_per_mm) / NM_PER_MM);
+    s.clamp(f64::from(i32::MIN), f64::from(i32::MAX)) as i32
+}
+
+/// Nanometres for a step count.
+pub(crate) fn steps_to_nm(steps: i32, steps_per_mm: f32) -> Nm {
+    libm::round(f64::from(steps) / f64::from(steps_per_mm) * NM_PER_MM) as Nm
+}
+
+fn set_once<T>(slot: &mut Option<T>, v: T) -> Result<(), CommandError> {
+    if slot.is_some() {
+        return Err(CommandError::ModalConflict);
+    }
+    *slot = Some(v);
+    Ok(())
+}
+
+fn small_int(v: Decimal, letter: u8, max: u32) -> Result<u32, CommandError> {
+    v.as_u32()
+        .filter(|n| *n <= max)
+        .ok_or(CommandError::BadValue { letter })
+}
+
+impl<const N: usize> Interpreter<N> {
+    /// Power-on state: absolute, millimetres, XY plane, rapid, the default feed.
+    pub(crate) fn new(config: &MachineConfig<N>) -> Self {
+        Self {
+            pos: [0; N],
+            offset: [0; N],
+            absolute: true,
+            extruder_relative: None,
+            inches: false,
+            motion: Motion::Rapid,
+            plane: Plane::Xy,
+            feed_mm_min: config.default_feed_mm_min,
+        }
+    }
+
+    /// Back to the power-on modal state, keeping the position and clearing offsets.
+    pub(crate) fn reset_modal(&mut self, config: &MachineConfig<N>) {
+        let pos = self.pos;
+        *self = Self::new(config);
+        self.pos = pos;
+    }
+
+    /// The commanded position in work coordinates, nm.
+    pub(crate) fn work_position(&self) -> [Nm; N] {
+        core::array::from_fn(|i| self.pos[i] + self.offset[i])
+    }
+
+    /// Interpret one line, updating the modal state of `self` (the caller works on a copy and
+    /// keeps it only when the action is accepted).
+    pub(crate) fn interpret<'l>(
+        &mut self,
+        line: &Line<'l>,
+        config: &MachineConfig<N>,
+    ) -> Result<Action<'l, N>, CommandError> {
+        let mut command: Option<(u8, u32)> = None;
+        let mut motion: Option<Motion> = None;
+        let mut units: Option<bool> = None;
+        let mut distance: Option<bool> = None;
+        let mut plane: Option<Plane> = None;
+        for w in line.words() {
+            if !matches!(w.letter, b'G' | b'M' | b'T') {
+                continue;
+            }
+            let number = w.value.as_u32().filter(|_| w.value.as_integer().is_some());
+            let Some(n) = number else {
+                return Err(CommandError::Unsupported {
+                    letter: w.letter,
+                    number: None,
+                });
+            };
+            match (w.letter, n) {
+                (b'G', 0) => set_once(&mut motion, Motion::Rapid)?,
+                (b'G', 1) => set_once(&mut motion, Motion::Linear)?,
+                (b'G', 2) => set_once(&mut motion, Motion::Cw)?,
+                (b'G', 3) => set_once(&mut motion, Motion::Ccw)?,
+                (b'G', 17) => set_once(&mut plane, Plane::Xy)?,
+                (b'G', 18) => set_once(&mut plane, Plane::Zx)?,
+                (b'G', 19) => set_once(&mut plane, Plane::Yz)?,
+                (b'G', 20) => set_once(&mut units, true)?,
+                (b'G', 21) => set_once(&mut units, false)?,
+                (b'G', 90) => set_once(&mut distance, true)?,
+                (b'G', 91) => set_once(&mut distance, false)?,
+                (b'G', 4 | 28 | 92) | (b'M', _) | (b'T', _) => {
+                    set_once(&mut command, (w.letter, n))?;
+                }
+                (letter, n) => {
+                    return Err(CommandError::Unsupported {
+                        letter,
+                        number: Some(n),
+                    });
+                }
+            }
+        }
+        if motion.is_some() && command.is_some() {
+            return Err(CommandError::ModalConflict);
+        }
+        // Modal settings take effect first, for the whole line.
+        if let Some(u) = units {
+            self.inches = u;
+        }
+        if let Some(d) = distance {
+            self.absolute = d;
+        }
+        if let Some(p) = plane {
+            self.plane = p;
+        }
+        if let Some(f) = line.get(b'F') {
+            let per_min = f.to_f32() * if self.inches { 25.4 } else { 1.0 };
+            if !(per_min.is_finite() && per_min > 0.0) {
+                return Err(CommandError::BadValue { letter: b'F' });
+            }
+            self.feed_mm_min = per_min;
+        }
+        match command {
+            Some((letter, n)) => self.command(letter, n, line, config),
+            None => {
+                if let Some(m) = motion {
+                    self.motion = m;
+                }
+                let has_axis = config.axes.iter().any(|a| line.has(a.letter));
+                if has_axis || (motion.is_some() && matches!(self.motion, Motion::Cw | Motion::Ccw))
+                {
+                    self.motion_line(line, config)
+                } else {
+                    // Unknown letters on a line without a command are reported.
+                    for w in line.words() {
+                        let known = matches!(w.letter, b'G' | b'F' | b'I' | b'J' | b'K' | b'R');
+                        if !known && config.axis_index(w.letter).is_none() {
+                            return Err(CommandError::UnknownAxis { letter: w.letter });
+                        }
+                    }
+                    Ok(Action::None)
+                }
+            }
+        }
+    }
+
+    fn is_relative(&self, kind: AxisKind) -> bool {
+        match (kind, self.extruder_relative) {
+            (AxisKind::Extruder, Some(r)) => r,
+            _ => !self.absolute,
+        }
+    }
+
+    /// The target machine position of the axis words on the line.
+    fn target(&self, line: &Line<'_>, config: &MachineConfig<N>) -> Result<[Nm; N], CommandError> {
+        let mut target = self.pos;
+        for (i, a) in config.axes.iter().enumerate() {
+            if let Some(v) = line.get(a.letter) {
+                let nm = to_nm(v, self.inches, a.letter)?;
+                target[i] = if self.is_relative(a.kind) {
+                    self.pos[i] + nm
+                } else {
+                    nm - self.offset[i]
+                };
+                if target[i].abs() > MAX_NM {
+                    return Err(CommandError::BadValue { letter: a.letter });
+                }
+            }
+        }
+        for w in line.words() {
+            let known = matches!(w.letter, b'G' | b'F' | b'I' | b'J' | b'K' | b'R');
+            if !known && config.axis_index(w.letter).is_none() {
+                return Err(CommandError::UnknownAxis { letter: w.letter });
+            }
+        }
+        Ok(target)
+    }
+
+    fn motion_line<'l>(
+        &mut self,
+        line: &Line<'l>,
+        config: &MachineConfig<N>,
+    ) -> Result<Action<'l, N>, CommandError> {
+        let target = self.target(line, config)?;
+        let ramp = line.has(b'F');
+        let action = match self.motion {
+            Motion::Rapid => Action::Move {
+                target,
+                feed_mm_min: None,
+                ramp: false,
+            },
+            Motion::Linear => Action::Move {
+                target,
+                feed_mm_min: Some(self.feed_mm_min),
+                ramp,
+            },
+            Motion::Cw | Motion::Ccw => {
+                let (l0, l1, o0, o1) = match self.plane {
+                    Plane::Xy => (b'X', b'Y', b'I', b'J'),
+                    Plane::Zx => (b'Z', b'X', b'K', b'I'),
+                    Plane::Yz => (b'Y', b'Z', b'J', b'K'),
+                };
+                let ax0 = config
+                    .axis_index(l0)
+                    .ok_or(CommandError::UnknownAxis { letter: l0 })?;
+                let ax1 = config
+                    .axis_index(l1)
+                    .ok_or(CommandError::UnknownAxis { letter: l1 })?;
+                let center = match line.get(b'R') {
+                    Some(r) => ArcCenter::Radius(to_nm(r, self.inches, b'R')?),
+                    None => {
+                        let i = line.get(o0);
+                        let j = line.get(o1);
+                        if i.is_none() && j.is_none() {
+                            return Err(CommandError::MissingValue { letter: o0 });
+                        }
+                        let i = i.map_or(Ok(0), |v| to_nm(v, self.inches, o0))?;
+                        let j = j.map_or(Ok(0), |v| to_nm(v, self.inches, o1))?;
+                        ArcCenter::Offset(i, j)
+                    }
+                };
+                let cutter = ArcCutter::new(
+                    self.pos,
+                    target,
+                    (ax0, ax1),
+                    center,
+                    self.motion == Motion::Cw,
+                    f64::from(config.arc_tolerance_mm),
+                )?;
+                Action::Arc {
+                    cutter,
+                    feed_mm_min: self.feed_mm_min,
+                    ramp,
+                }
+            }
+        };
+        self.pos = target;
+        Ok(action)
+    }
+
+    fn command<'l>(
+        &mut self,
+        letter: u8,
+        n: u32,
+        line: &Line<'l>,
+        config: &MachineConfig<N>,
+    ) -> Result<Action<'l, N>, CommandError> {
+        let s = line.get(b'S');
+        Ok(match (letter, n) {
+            (b'G', 4) => {
+                let ms = match (line.get(b'P'), s) {
+                    (Some(p), _) => p.to_f64(),
+                    (None, Some(sec)) => sec.to_f64() * 1000.0,
+                    (None, None) => 0.0,
+                };
+                if !(0.0..=4.0e9).contains(&ms) {
+                    return Err(CommandError::BadValue { letter: b'P' });
+                }
+                Action::Dwell {
+                    ms: libm::round(ms) as u32,
+                }
+            }
+            (b'G', 28) => {
+                let mut mask = 0u8;
+                let named = config.axes.iter().any(|a| line.has(a.letter));
+                for (i, a) in config.axes.iter().enumerate() {
+                    if named && !line.has(a.letter) {
+                        continue;
+                    }
+                    match a.homing {
+                        Some(_) => mask |= 1 << i,
+                        None if named => {
+                            return Err(CommandError::BadValue { letter: a.letter });
+                        }
+                        None => {}
+                    }
+                }
+                Action::Home { mask }
+            }
+            (b'G', 92) => {
+                let named = config.axes.iter().any(|a| line.has(a.letter));
+                for (i, a) in config.axes.iter().enumerate() {
+                    let value = match line.get(a.letter) {
+                        Some(v) => to_nm(v, self.inches, a.letter)?,
+                        None if named => continue,
+                        None => 0,
+                    };
+                    self.offset[i] = value - self.pos[i];
+                }
+                Action::None
+            }
+            (b'M', 0) => Action::Stop(StopKind::Program),
+            (b'M', 112) => Action::Stop(StopKind::Emergency),
+            (b'M', 226) => Action::Pause,
+            (b'M', 82) => {
+                self.extruder_relative = Some(false);
+                Action::None
+            }
+            (b'M', 83) => {
+                self.extruder_relative = Some(true);
+                Action::None
+            }
+            (b'M', 17) => Action::Effect(Effect::Motors { enabled: true }),
+            (b'M', 18 | 84) => Action::Effect(Effect::Motors { enabled: false }),
+            (b'M', 92) => {
+                let mut out = [None; N];
+                for (i, a) in config.axes.iter().enumerate() {
+                    if let Some(v) = line.get(a.letter) {
+                        let spm = v.to_f32() / if self.inches { 25.4 } else { 1.0 };
+                        if !(spm.is_finite() && spm > 0.0) {
+                            return Err(CommandError::BadValue { letter: a.letter });
+                        }
+                        out[i] = Some(spm);
+                    }
+                }
+                Action::SetStepsPerMm(out)
+            }
+            (b'M', 114) => Action::Report,
+            (b'M', 3) => Action::Effect(Effect::Spindle(Spindle::Clockwise { rpm: s })),
+            (b'M', 4) => Action::Effect(Effect::Spindle(Spindle::CounterClockwise { rpm: s })),
+            (b'M', 5) => Action::Effect(Effect::Spindle(Spindle::Off)),
+            (b'M', 104 | 109 | 140) => {
+                let celsius = s.ok_or(CommandError::MissingValue { letter: b'S' })?;
+                let heater = if n == 140 {
+                    Heater::Bed
+                } else {
+                    let t = match line.get(b'T') {
+                        Some(t) => Some(small_int(t, b'T', 255)? as u8),
+                        None => None,
+                    };
+                    Heater::Extruder(t)
+                };
+                Action::Effect(Effect::SetTemperature {
+                    heater,
+                    celsius,
+                    wait: n == 109,
+                })
+            }
+            (b'M', 105) => Action::Effect(Effect::ReportTemperatures),
+            (b'M', 106) => {
+                let duty = match s {
+                    Some(v) => {
+                        let d = v.to_f32();
+                        if !(0.0..=255.0).contains(&d) {
+                            return Err(CommandError::BadValue { letter: b'S' });
+                        }
+                        libm::roundf(d) as u8
+                    }
+                    None => 255,
+                };
+                let index = match line.get(b'P') {
+                    Some(p) => small_int(p, b'P', 255)? as u8,
+                    None => 0,
+                };
+                Action::Effect(Effect::Fan { index, duty })
+            }
+            (b'M', 107) => {
+                let index = match line.get(b'P') {
+                    Some(p) => small_int(p, b'P', 255)? as u8,
+                    None => 0,
+                };
+                Action::Effect(Effect::Fan { index, duty: 0 })
+            }
+            (b'M', 110) => {
+                let number = match line.get(b'N') {
+                    Some(v) => small_int(v, b'N', u32::MAX)?,
+                    None => line.number().unwrap_or(0),
+                };
+                Action::Effect(Effect::SetLineNumber(number))
+            }
+            (b'M', 115) => Action::Effect(Effect::ReportFirmware),
+            (b'M', 116) => Action::Effect(Effect::WaitForTemperatures),
+            (b'M', 119) => Action::Effect(Effect::ReportEndstops),
+            (b'M', 20..=29) => {
+                let text = line.text_arg();
+                let name = || text.ok_or(CommandError::MissingValue { letter: b'M' });
+                Action::Effect(Effect::Storage(match n {
+                    20 => Storage::List,
+                    21 => Storage::Init,
+                    22 => Storage::Release,
+                    23 => Storage::Select(name()?),
+                    24 => Storage::Start,
+                    25 => Storage::Pause,
+                    26 => Storage::SetPosition(small_int(
+                        s.ok_or(CommandError::MissingValue { letter: b'S' })?,
+                        b'S',
+                        u32::MAX,
+                    )?),
+                    27 => Storage::Report,
+                    28 => Storage::BeginWrite(name()?),
+                    _ => Storage::EndWrite(text),
+                }))
+            }
+            (b'T', t) => {
+                let t = u8::try_from(t).map_err(|_| CommandError::BadValue { letter: b'T' })?;
+                Action::Effect(Effect::SelectTool(t))
+            }
+            (letter, number) => {
+                return Err(CommandError::Unsupported {
+                    letter,
+                    number: Some(number),
+                });
+            }
+        })
+    }
+
+    /// After a stop or a homing: the commanded position is where the machine is.
+    pub(crate) fn set_machine_position(&mut self, pos: [Nm; N]) {
+        self.pos = pos;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::AxisConfig;
+
+    fn cfg() -> MachineConfig<4> {
+        let mut e = AxisConfig::linear(b'E', 100.0, 3000.0, 1000.0, 1000.0);
+        e.kind = AxisKind::Extruder;
+        e.min_mm = -1000.0;
+        MachineConfig::new([
+            AxisConfig::linear(b'X', 80.0, 6000.0, 500.0, 200.0),
+            AxisConfig::linear(b'Y', 80.0, 6000.0, 500.0, 200.0),
+            AxisConfig::linear(b'Z', 400.0, 600.0, 100.0, 100.0),
+            e,
+        ])
+    }
+
+    fn run<'l>(it: &mut Interpreter<4>, text: &'l [u8]) -> Result<Action<'l, 4>, CommandError> {
+        let line = Line::parse(text).expect("parses");
+        let mut next = *it;
+        let a = next.interpret(&line, &cfg())?;
+        *it = next;
+        Ok(a)
+    }
+
+    #[test]
+    fn moves_in_absolute_relative_and_inches() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        assert_eq!(
+            run(&mut it, b"G1 X10.5 Y-2 F1500"),
+            Ok(Action::Move {
+                target: [10_500_000, -2_000_000, 0, 0],
+                feed_mm_min: Some(1500.0),
+                ramp: true
+            })
+        );
+        run(&mut it, b"G91").expect("ok");
+        assert_eq!(
+            run(&mut it, b"X0.1"),
+            Ok(Action::Move {
+                target: [10_600_000, -2_000_000, 0, 0],
+                feed_mm_min: Some(1500.0),
+                ramp: false
+            })
+        );
+        run(&mut it, b"G90 G20").expect("ok");
+        assert_eq!(
+            run(&mut it, b"G0 Z1"),
+            Ok(Action::Move {
+                target: [10_600_000, -2_000_000, 25_400_000, 0],
+                feed_mm_min: None,
+                ramp: false
+            })
+        );
+    }
+
+    #[test]
+    fn g92_offsets_and_extruder_modes() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        run(&mut it, b"G1 X10 E5").expect("ok");
+        run(&mut it, b"G92 X0 E0").expect("ok");
+        assert_eq!(it.work_position(), [0, 0, 0, 0]);
+        run(&mut it, b"M83").expect("ok");
+        let a = run(&mut it, b"G1 X1 E1").expect("ok");
+        // X is absolute in work coordinates (machine 11), E relative (machine 6).
+        assert!(matches!(
+            a,
+            Action::Move {
+                target: [11_000_000, 0, 0, 6_000_000],
+                ..
+            }
+        ));
+        run(&mut it, b"G92").expect("ok");
+        assert_eq!(it.work_position(), [0; 4]);
+    }
+
+    #[test]
+    fn unsupported_and_unknown_are_named() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        assert_eq!(
+            run(&mut it, b"G38.2 X1"),
+            Err(CommandError::Unsupported {
+                letter: b'G',
+                number: None
+            })
+        );
+        assert_eq!(
+            run(&mut it, b"M999"),
+            Err(CommandError::Unsupported {
+                letter: b'M',
+                number: Some(999)
+            })
+        );
+        assert_eq!(
+            run(&mut it, b"G1 A3"),
+            Err(CommandError::UnknownAxis { letter: b'A' })
+        );
+        assert_eq!(run(&mut it, b"G20 G21"), Err(CommandError::ModalConflict));
+        assert_eq!(
+            run(&mut it, b"G1 X1 G4 P1"),
+            Err(CommandError::ModalConflict)
+        );
+    }
+
+    #[test]
+    fn other_subsystems_come_back_as_effects() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        assert_eq!(
+            run(&mut it, b"M109 S210"),
+            Ok(Action::Effect(Effect::SetTemperature {
+                heater: Heater::Extruder(None),
+                celsius: Decimal::new(210, 0),
+                wait: true
+            }))
+        );
+        assert_eq!(
+            run(&mut it, b"M106 S127"),
+            Ok(Action::Effect(Effect::Fan {
+                index: 0,
+                duty: 127
+            }))
+        );
+        assert_eq!(
+            run(&mut it, b"M23 part.gco"),
+            Ok(Action::Effect(Effect::Storage(Storage::Select(
+                b"part.gco"
+            ))))
+        );
+        assert_eq!(
+            run(&mut it, b"M110 N41"),
+            Ok(Action::Effect(Effect::SetLineNumber(41)))
+        );
+        assert_eq!(
+            run(&mut it, b"T1"),
+            Ok(Action::Effect(Effect::SelectTool(1)))
+        );
+        assert_eq!(
+            run(&mut it, b"M3 S12000"),
+            Ok(Action::Effect(Effect::Spindle(Spindle::Clockwise {
+                rpm: Some(Decimal::new(12000, 0))
+            })))
+        );
+    }
+
+    #[test]
+    fn homing_dwell_and_steps_per_unit() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        assert_eq!(run(&mut it, b"G4 P200"), Ok(Action::Dwell { ms: 200 }));
+        assert_eq!(run(&mut it, b"G4 S1.5"), Ok(Action::Dwell { ms: 1500 }));
+        // No axis of this configuration has homing.
+        assert_eq!(run(&mut it, b"G28"), Ok(Action::Home { mask: 0 }));
+        assert_eq!(
+            run(&mut it, b"G28 X0"),
+            Err(CommandError::BadValue { letter: b'X' })
+        );
+        assert_eq!(
+            run(&mut it, b"M92 E93"),
+            Ok(Action::SetStepsPerMm([None, None, None, Some(93.0)]))
+        );
+    }
+
+    #[test]
+    fn exact_decimal_conversion() {
+        assert_eq!(
+            to_nm(Decimal::new(123_456_789, 7), false, b'X'),
+            Ok(12_345_679)
+        );
+        assert_eq!(to_nm(Decimal::new(-15, 1), true, b'X'), Ok(-38_100_000));
+        assert_eq!(nm_to_steps(12_345_679, 80.0), 988);
+        assert_eq!(steps_to_nm(988, 80.0), 12_350_000);
+    }
+}

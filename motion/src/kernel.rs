@@ -1,0 +1,881 @@
+//! The thread side: [`Kernel`] takes G-code lines, jogs and actions, plans, prepares steps
+//! and runs homing; [`split`] creates it together with its interrupt side.
+
+use core::sync::atomic::Ordering;
+
+use forja_hal_abstraction::stepper::StepTiming;
+use forja_hal_abstraction::time::{Duration, Instant};
+use forja_protocol::gcode::{Decimal, Line};
+
+use crate::arc::{ArcCutter, Nm};
+use crate::config::{HomeDirection, MachineConfig, SoftLimits};
+use crate::effect::{Effect, StopKind};
+use crate::error::{Alarm, CommandError, ConfigError};
+use crate::interp::{Action, Interpreter, NM_PER_MM, nm_to_steps, steps_to_nm};
+use crate::planner::{MoveRequest, Planner};
+use crate::prep::Prep;
+use crate::queue::{MAX_DELTA, Producer, StepQueue, StopCause};
+use crate::stepgen::StepGenerator;
+
+/// The answer to one G-code line.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[must_use]
+pub enum Reply<'l, const N: usize> {
+    /// Taken: done, or its motion queued. Acknowledge it (`ok`).
+    Ok,
+    /// Not taken, nothing changed: the planner is full, or the line must wait for the motion
+    /// before it. Offer the same line again after the next [`Kernel::poll`].
+    Busy,
+    /// Taken (`M114`): the position to report.
+    Position(PositionReport<N>),
+    /// Taken: a command for another subsystem, to carry out now, in stream order.
+    Effect(Effect<'l>),
+}
+
+/// Positions for `M114` and the status frames.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionReport<const N: usize> {
+    /// The axis letters.
+    pub letters: [u8; N],
+    /// The commanded position in work coordinates (after `G92`), mm: where the last queued
+    /// move ends.
+    pub work_mm: [f64; N],
+    /// The machine position, mm: where the steppers are now.
+    pub machine_mm: [f64; N],
+}
+
+/// The machine's state, as the controller reports it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MachineState {
+    /// At rest, ready.
+    Idle,
+    /// Moving (or dwelling).
+    Running,
+    /// A feed hold: decelerating (`stopped == false`) or at rest on the path.
+    Hold {
+        /// Whether the machine has come to rest.
+        stopped: bool,
+    },
+    /// Paused by `M226`, at rest; [`Kernel::resume`] continues.
+    Paused,
+    /// Running the homing cycle.
+    Homing,
+    /// Locked by an alarm: [`Kernel::reset`] or a homing clears it.
+    Alarm(Alarm),
+    /// Stopped by `M0`: [`Kernel::reset`] clears it.
+    Halted,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum HomePhase {
+    Next,
+    Seek,
+    BackOff,
+    Locate,
+    PullOff,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Homing {
+    pending: u8,
+    axis: usize,
+    phase: HomePhase,
+    start_steps: i32,
+    triggered: Option<i32>,
+}
+
+/// A pending arc: chords still to be planned.
+#[derive(Debug, Clone, Copy)]
+struct PendingArc<const N: usize> {
+    cutter: ArcCutter<N>,
+    feed_mm_min: f32,
+    ramp: bool,
+}
+
+/// The thread side of the motion kernel.
+///
+/// `N` axes, a planner of `B` blocks (default 32) and a step queue of `Q` events (default 256,
+/// a power of two). Context: thread (a task or the main loop), never the step interrupt. None
+/// of its methods block; none allocate.
+pub struct Kernel<'q, const N: usize, const B: usize = 32, const Q: usize = 256> {
+    config: MachineConfig<N>,
+    tick_hz: u32,
+    tx: Producer<'q, N, Q>,
+    planner: Planner<N, B>,
+    prep: Prep<N>,
+    interp: Interpreter<N>,
+    /// Commanded machine position in steps (where the last queued move ends).
+    steps: [i32; N],
+    /// Interrupt step count of machine step 0.
+    origin: [i32; N],
+    homed: u8,
+    alarm: Option<Alarm>,
+    halted: bool,
+    paused: bool,
+    hold: bool,
+    stop_requested: bool,
+    arc: Option<PendingArc<N>>,
+    homing: Option<Homing>,
+    flush: Option<u32>,
+    stops_seen: u32,
+    lead_ticks: u32,
+    line_tag: u32,
+}
+
+/// Create the two halves of the kernel around `queue`.
+///
+/// `tick_hz` is the rate of the board's clock ([`forja_hal_abstraction::clock::Clock::tick_hz`]),
+/// `timing` the slowest of the drivers' [`forja_hal_abstraction::stepper::Stepper::timing`]
+/// values (the largest pulse width and set-up time). The [`Kernel`] goes to the thread side,
+/// the [`StepGenerator`] to the step interrupt; the queue must outlive both.
+///
+/// ```
+/// use forja_hal_abstraction::stepper::StepTiming;
+/// use forja_motion::{AxisConfig, Kernel, MachineConfig, StepQueue, split};
+///
+/// let config = MachineConfig::new([
+///     AxisConfig::linear(b'X', 80.0, 6000.0, 500.0, 200.0),
+///     AxisConfig::linear(b'Y', 80.0, 6000.0, 500.0, 200.0),
+/// ]);
+/// let mut queue = StepQueue::<2, 256>::new();
+/// let (kernel, isr): (Kernel<'_, 2>, _) =
+///     split(&mut queue, config, 1_000_000, StepTiming::CONSERVATIVE).unwrap();
+/// assert!(isr.is_idle());
+/// # let _ = kernel;
+/// ```
+pub fn split<'q, const N: usize, const B: usize, const Q: usize>(
+    queue: &'q mut StepQueue<N, Q>,
+    config: MachineConfig<N>,
+    tick_hz: u32,
+    timing: StepTiming,
+) -> Result<(Kernel<'q, N, B, Q>, StepGenerator<'q, N, Q>), ConfigError> {
+    config.validate()?;
+    config.validate_timing(tick_hz, timing)?;
+    let queue: &'q StepQueue<N, Q> = queue;
+    let pulse = Duration::from_nanos_ceil(timing.min_pulse_ns, tick_hz)
+        .ticks()
+        .max(1);
+    let dir_setup = Duration::from_nanos_ceil(timing.dir_setup_ns, tick_hz).ticks();
+    let isr = StepGenerator::new(queue, &config, Duration::from_ticks(pulse));
+    let lead = (u64::from(config.queue_lead_ms) * u64::from(tick_hz) / 1000)
+        .clamp(1, u64::from(MAX_DELTA)) as u32;
+    let origin = queue.positions();
+    let kernel = Kernel {
+        interp: Interpreter::new(&config),
+        tick_hz,
+        tx: Producer::new(queue),
+        planner: Planner::new(),
+        prep: Prep::new(tick_hz, pulse, dir_setup),
+        steps: [0; N],
+        origin,
+        homed: 0,
+        alarm: None,
+        halted: false,
+        paused: false,
+        hold: false,
+        stop_requested: false,
+        arc: None,
+        homing: None,
+        flush: None,
+        stops_seen: queue.stops.load(Ordering::Relaxed),
+        lead_ticks: lead,
+        line_tag: 0,
+        config,
+    };
+    Ok((kernel, isr))
+}
+
+impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
+    /// The configuration in use.
+    pub fn config(&self) -> &MachineConfig<N> {
+        &self.config
+    }
+
+    /// The clock rate given at construction.
+    pub fn tick_hz(&self) -> u32 {
+        self.tick_hz
+    }
+
+    /// The machine's state.
+    pub fn state(&self) -> MachineState {
+        if let Some(a) = self.alarm {
+            return MachineState::Alarm(a);
+        }
+        if self.halted {
+            return MachineState::Halted;
+        }
+        if self.homing.is_some() {
+            return MachineState::Homing;
+        }
+        if self.hold {
+            return MachineState::Hold {
+                stopped: self.isr_idle() && self.tx.len() == 0 && !self.moving_planned(),
+            };
+        }
+        if self.paused {
+            return MachineState::Paused;
+        }
+        if self.is_idle() {
+            MachineState::Idle
+        } else {
+            MachineState::Running
+        }
+    }
+
+    /// Whether every queued move has finished and the steppers are at rest.
+    pub fn is_idle(&self) -> bool {
+        !self.moving_planned()
+            && self.arc.is_none()
+            && self.flush.is_none()
+            && self.tx.len() == 0
+            && self.isr_idle()
+    }
+
+    fn moving_planned(&self) -> bool {
+        (!self.planner.is_empty() || self.prep.is_busy()) && !self.prep.is_held()
+    }
+
+    fn isr_idle(&self) -> bool {
+        let q = self.tx.shared();
+        q.starts.load(Ordering::Relaxed) == q.idles.load(Ordering::Acquire)
+    }
+
+    /// Axes homed since power-on or the last alarm (bit `i` = axis `i`).
+    pub fn homed_axes(&self) -> u8 {
+        self.homed
+    }
+
+    /// The machine position in steps, as the step interrupt has counted it.
+    pub fn machine_steps(&self) -> [i32; N] {
+        let isr = self.tx.shared().positions();
+        core::array::from_fn(|i| isr[i].wrapping_sub(self.origin[i]))
+    }
+
+    /// Positions for a report.
+    pub fn position(&self) -> PositionReport<N> {
+        let m = self.machine_steps();
+        let w = self.interp.work_position();
+        PositionReport {
+            letters: core::array::from_fn(|i| self.config.axes[i].letter),
+            work_mm: core::array::from_fn(|i| w[i] as f64 / NM_PER_MM),
+            machine_mm: core::array::from_fn(|i| {
+                f64::from(m[i]) / f64::from(self.config.axes[i].steps_per_mm)
+            }),
+        }
+    }
+
+    /// The source line of the motion being prepared (the tag set by [`Kernel::set_line_tag`]
+    /// when its line was executed).
+    pub fn current_line(&self) -> u32 {
+        self.prep.line()
+    }
+
+    /// Tag the blocks of the following lines with `tag` (a program line), for progress reports.
+    pub fn set_line_tag(&mut self, tag: u32) {
+        self.line_tag = tag;
+    }
+
+    /// A copy of the interpreter's state (for dry runs).
+    pub(crate) fn interpreter(&self) -> Interpreter<N> {
+        self.interp
+    }
+
+    /// Where the last queued move ends, in machine steps.
+    pub(crate) fn commanded_steps(&self) -> [i32; N] {
+        self.steps
+    }
+
+    /// Whether a motion line would be taken now (the planner has room and nothing is pending).
+    /// A controller checks this before parsing the next line, instead of offering lines that
+    /// come back `Busy`; lines that wait for the machine at rest may still answer `Busy`.
+    pub fn can_accept(&self) -> bool {
+        !self.planner.is_full()
+            && self.arc.is_none()
+            && self.homing.is_none()
+            && self.flush.is_none()
+            && !self.paused
+    }
+
+    /// Blocks waiting in the planner.
+    pub fn planned_blocks(&self) -> usize {
+        self.planner.len()
+    }
+
+    /// Execute one parsed G-code line. See [`Reply`] for what to do with the answer.
+    ///
+    /// Context: thread. A refused line (`Err`) changes nothing.
+    pub fn execute<'l>(&mut self, line: &Line<'l>) -> Result<Reply<'l, N>, CommandError> {
+        if line.is_empty() {
+            return Ok(Reply::Ok);
+        }
+        let mut next = self.interp;
+        let action = next.interpret(line, &self.config)?;
+        // Always accepted: emergency stop, reports and immediate effects.
+        match action {
+            Action::Stop(StopKind::Emergency) => {
+                self.interp = next;
+                self.emergency_stop();
+                return Ok(Reply::Effect(Effect::Stopped(StopKind::Emergency)));
+            }
+            Action::Report => {
+                self.interp = next;
+                return Ok(Reply::Position(self.position()));
+            }
+            Action::Effect(e) if e.sync() == crate::Sync::Now => {
+                self.interp = next;
+                return Ok(Reply::Effect(e));
+            }
+            _ => {}
+        }
+        if let Some(a) = self.alarm
+            && (!matches!(action, Action::Home { .. }) || a == Alarm::EmergencyStop)
+        {
+            return Err(CommandError::Locked);
+        }
+        if self.halted {
+            return Err(CommandError::Halted);
+        }
+        if self.arc.is_some() || self.homing.is_some() || self.flush.is_some() || self.paused {
+            self.drain_arc();
+            return Ok(Reply::Busy);
+        }
+        let idle = self.is_idle();
+        let reply = match action {
+            Action::None => Reply::Ok,
+            Action::Move {
+                target,
+                feed_mm_min,
+                ramp,
+            } => {
+                self.check_soft_limits(&target, &target)?;
+                if self.planner.is_full() {
+                    return Ok(Reply::Busy);
+                }
+                self.queue_move(&target, feed_mm_min, ramp, 0);
+                Reply::Ok
+            }
+            Action::Arc {
+                cutter,
+                feed_mm_min,
+                ramp,
+            } => {
+                let (lo, hi) = cutter.bounds();
+                self.check_soft_limits(&lo, &hi)?;
+                self.arc = Some(PendingArc {
+                    cutter,
+                    feed_mm_min,
+                    ramp,
+                });
+                self.drain_arc();
+                Reply::Ok
+            }
+            Action::Dwell { ms } => {
+                if self.planner.is_full() {
+                    return Ok(Reply::Busy);
+                }
+                let _ = self.planner.push_dwell(ms, self.line_tag);
+                Reply::Ok
+            }
+            Action::Home { mask } => {
+                if !idle {
+                    return Ok(Reply::Busy);
+                }
+                self.start_homing(mask);
+                Reply::Ok
+            }
+            Action::SetStepsPerMm(values) => {
+                if !idle {
+                    return Ok(Reply::Busy);
+                }
+                self.set_steps_per_mm(&values)?;
+                Reply::Ok
+            }
+            Action::Effect(e) => {
+                if !idle {
+                    return Ok(Reply::Busy);
+                }
+                if e == (Effect::Motors { enabled: false }) {
+                    self.homed = 0;
+                }
+                Reply::Effect(e)
+            }
+            Action::Stop(kind) => {
+                if !idle {
+                    return Ok(Reply::Busy);
+                }
+                self.halted = true;
+                Reply::Effect(Effect::Stopped(kind))
+            }
+            Action::Pause => {
+                if !idle {
+                    return Ok(Reply::Busy);
+                }
+                self.paused = true;
+                Reply::Effect(Effect::Paused)
+            }
+            Action::Report => Reply::Position(self.position()),
+        };
+        // Keep the modal state the line set (a move's target is its new position).
+        self.interp = next;
+        Ok(reply)
+    }
+
+    /// Jog (frame message 01): move axis `letter` by `count × step_mm`, relative, at the jog
+    /// feed rate. Soft limits apply as to any move.
+    pub fn jog(
+        &mut self,
+        letter: u8,
+        step_mm: Decimal,
+        count: i32,
+    ) -> Result<Reply<'static, N>, CommandError> {
+        let axis = self
+            .config
+            .axis_index(letter)
+            .ok_or(CommandError::UnknownAxis { letter })?;
+        if self.alarm.is_some() {
+            return Err(CommandError::Locked);
+        }
+        if self.halted {
+            return Err(CommandError::Halted);
+        }
+        if self.homing.is_some() || self.arc.is_some() || self.flush.is_some() {
+            return Err(CommandError::NotIdle);
+        }
+        let den = 10i128
+            .checked_pow(u32::from(step_mm.scale()))
+            .ok_or(CommandError::BadValue { letter: b'S' })?;
+        let nm = i128::from(step_mm.mantissa()) * i128::from(count) * 1_000_000 / den;
+        let nm = i64::try_from(nm).map_err(|_| CommandError::BadValue { letter: b'S' })?;
+        let mut target = self.interp.pos;
+        target[axis] = target[axis].saturating_add(nm);
+        self.check_soft_limits(&target, &target)?;
+        if self.planner.is_full() {
+            return Ok(Reply::Busy);
+        }
+        let feed = self.config.jog_feed_mm_min;
+        self.queue_move(&target, Some(feed), false, 0);
+        self.interp.pos = target;
+        Ok(Reply::Ok)
+    }
+
+    /// Home the axes in `mask` (frame message 02 `Zero`/`ZeroX`…, or `G28`): seek the switch,
+    /// back off, approach slowly, pull off, set the position. Needs the machine at rest.
+    /// Clears an alarm (other than an emergency stop).
+    pub fn home(&mut self, mask: u8) -> Result<(), CommandError> {
+        if self.alarm == Some(Alarm::EmergencyStop) {
+            return Err(CommandError::Locked);
+        }
+        if self.halted {
+            return Err(CommandError::Halted);
+        }
+        for (i, a) in self.config.axes.iter().enumerate() {
+            if mask & (1 << i) != 0 && a.homing.is_none() {
+                return Err(CommandError::BadValue { letter: a.letter });
+            }
+        }
+        if !self.is_idle() || self.homing.is_some() {
+            return Err(CommandError::NotIdle);
+        }
+        self.start_homing(mask);
+        Ok(())
+    }
+
+    /// Feed hold: decelerate to rest on the planned path, keeping every step. Lines can still be
+    /// queued; nothing moves until [`Kernel::resume`].
+    pub fn hold(&mut self) {
+        if self.homing.is_none() {
+            self.hold = true;
+            self.prep.set_hold(true);
+        }
+    }
+
+    /// End a feed hold or an `M226` pause.
+    pub fn resume(&mut self) {
+        self.paused = false;
+        if self.hold && !self.stop_requested {
+            self.hold = false;
+            self.prep.set_hold(false);
+        }
+    }
+
+    /// Stop motion and drop everything queued, keeping the position: a feed hold, then the
+    /// planner is flushed once at rest. The commanded position becomes where the machine
+    /// stopped.
+    pub fn stop(&mut self) {
+        self.arc = None;
+        self.paused = false;
+        if self.homing.is_some() {
+            // Homing moves are slow: cut them at once.
+            self.abort(true, false);
+            return;
+        }
+        if self.is_idle() {
+            self.planner.clear();
+            return;
+        }
+        self.hold = true;
+        self.prep.set_hold(true);
+        self.stop_requested = true;
+    }
+
+    /// `M112`: cut motion at once and lock the machine until a reset.
+    pub fn emergency_stop(&mut self) {
+        self.abort(true, false);
+        self.alarm = Some(Alarm::EmergencyStop);
+    }
+
+    /// Soft reset: stop at once, clear alarms and `M0`, modal state back to defaults
+    /// (position kept, `G92` offsets cleared). When motion was cut, the axes lose their homed
+    /// state (steps may have been lost).
+    pub fn reset(&mut self) {
+        let moving = !self.is_idle();
+        self.abort(moving, false);
+        self.alarm = None;
+        self.halted = false;
+        self.paused = false;
+        self.interp.reset_modal(&self.config);
+    }
+
+    /// Stop the interrupt side at once and drop everything; `lose_homing` forgets the homed axes.
+    fn abort(&mut self, lose_homing: bool, force_flush: bool) {
+        self.arc = None;
+        self.homing = None;
+        self.hold = false;
+        self.stop_requested = false;
+        self.prep.set_hold(false);
+        self.planner.clear();
+        let idle = !force_flush && self.tx.len() == 0 && self.isr_idle() && self.flush.is_none();
+        self.prep
+            .reset(self.tx.shared().consumed_ticks.load(Ordering::Relaxed));
+        if lose_homing {
+            self.homed = 0;
+        }
+        if idle {
+            self.tx.shared().homing_mask.store(0, Ordering::Relaxed);
+            self.resync();
+        } else {
+            self.request_flush();
+        }
+    }
+
+    fn request_flush(&mut self) {
+        let q = self.tx.shared();
+        let req = q.flush_req.load(Ordering::Relaxed).wrapping_add(1);
+        q.homing_mask.store(0, Ordering::Relaxed);
+        q.flush_req.store(req, Ordering::Release);
+        self.flush = Some(req);
+    }
+
+    /// Change steps per unit (`M92`), keeping the machine where it is.
+    fn set_steps_per_mm(&mut self, values: &[Option<f32>; N]) -> Result<(), CommandError> {
+        let mut c = self.config.clone();
+        for (a, v) in c.axes.iter_mut().zip(values.iter()) {
+            if let Some(v) = v {
+                a.steps_per_mm = *v;
+            }
+        }
+        c.validate()
+            .map_err(|_| CommandError::BadValue { letter: b'M' })?;
+        self.config = c;
+        self.resync();
+        Ok(())
+    }
+
+    /// Machine nm limits of axis `i`.
+    fn travel_nm(&self, i: usize) -> (Nm, Nm) {
+        let a = &self.config.axes[i];
+        (
+            libm::round(f64::from(a.min_mm) * NM_PER_MM) as Nm,
+            libm::round(f64::from(a.max_mm) * NM_PER_MM) as Nm,
+        )
+    }
+
+    fn check_soft_limits(&self, lo: &[Nm; N], hi: &[Nm; N]) -> Result<(), CommandError> {
+        for i in 0..N {
+            let checked = match self.config.soft_limits {
+                SoftLimits::Off => false,
+                SoftLimits::WhenHomed => self.homed & (1 << i) != 0,
+                SoftLimits::Always => true,
+            };
+            let (min, max) = self.travel_nm(i);
+            if checked && (lo[i] < min || hi[i] > max) {
+                return Err(CommandError::SoftLimit { axis: i as u8 });
+            }
+        }
+        Ok(())
+    }
+
+    /// Plan a move to `target` (machine nm). The planner must have room.
+    fn queue_move(
+        &mut self,
+        target: &[Nm; N],
+        feed_mm_min: Option<f32>,
+        ramp: bool,
+        homing_mask: u8,
+    ) {
+        let mut delta = [0i32; N];
+        for (i, a) in self.config.axes.iter().enumerate() {
+            let s = nm_to_steps(target[i], a.steps_per_mm);
+            delta[i] = s.wrapping_sub(self.steps[i]);
+            self.steps[i] = s;
+        }
+        let req = MoveRequest {
+            steps: delta,
+            feed_mm_min,
+            ramp,
+            line: self.line_tag,
+            homing_mask,
+        };
+        let _ = self.planner.push_move(&req, &self.config);
+    }
+
+    /// Plan the chords of the pending arc while the planner has room.
+    fn drain_arc(&mut self) {
+        while let Some(mut p) = self.arc {
+            if self.planner.is_full() {
+                return;
+            }
+            match p.cutter.peek() {
+                Some(point) => {
+                    let ramp = p.ramp && p.cutter.is_first();
+                    self.queue_move(&point, Some(p.feed_mm_min), ramp, 0);
+                    p.cutter.advance();
+                    self.arc = Some(p);
+                }
+                None => self.arc = None,
+            }
+        }
+    }
+
+    /// Where the steppers are becomes the commanded position.
+    fn resync(&mut self) {
+        let m = self.machine_steps();
+        let mut pos = self.interp.pos;
+        for (i, a) in self.config.axes.iter().enumerate() {
+            self.steps[i] = m[i];
+            pos[i] = steps_to_nm(m[i], a.steps_per_mm);
+        }
+        self.interp.set_machine_position(pos);
+    }
+
+    /// Run the thread side: take the interrupt's news, advance homing, plan arc chords, and
+    /// prepare steps. Returns the instant to arm the step alarm at when the step interrupt is
+    /// idle and has work (the board arms it; an instant already past fires at once), `None`
+    /// otherwise.
+    ///
+    /// Context: thread. Call it at least every half of `queue_lead_ms` while the machine
+    /// moves, and after each [`Kernel::execute`] that was taken. Its cost is bounded by the
+    /// room in the step queue.
+    pub fn poll(&mut self, now: Instant) -> Option<Instant> {
+        let q = self.tx.shared();
+        let stops = q.stops.load(Ordering::Acquire);
+        if stops != self.stops_seen {
+            self.stops_seen = stops;
+            self.on_interrupt_stop(q.stop_cause());
+        }
+        if let Some(req) = self.flush {
+            if q.flush_done.load(Ordering::Acquire) != req {
+                return self.start_interrupt(now, true);
+            }
+            self.flush = None;
+            self.prep.reset(q.consumed_ticks.load(Ordering::Relaxed));
+            self.resync();
+        }
+        if self.homing.is_some() {
+            self.homing_step();
+        }
+        self.drain_arc();
+        let at_rest = self.prep.is_held() || (!self.prep.is_busy() && self.planner.is_empty());
+        if self.stop_requested && at_rest && self.isr_idle() && self.tx.len() == 0 {
+            self.stop_requested = false;
+            self.abort(false, false);
+            return self.start_interrupt(now, true);
+        }
+        let running = !self.isr_idle();
+        let _ = self.prep.fill(
+            &mut self.planner,
+            &mut self.tx,
+            self.lead_ticks,
+            now,
+            running,
+        );
+        self.start_interrupt(now, false)
+    }
+
+    fn start_interrupt(&mut self, now: Instant, force: bool) -> Option<Instant> {
+        let q = self.tx.shared();
+        let starts = q.starts.load(Ordering::Relaxed);
+        if starts != q.idles.load(Ordering::Acquire) {
+            return None;
+        }
+        if self.tx.len() == 0 && !force {
+            return None;
+        }
+        q.starts.store(starts.wrapping_add(1), Ordering::Release);
+        Some(now)
+    }
+
+    fn on_interrupt_stop(&mut self, cause: Option<StopCause>) {
+        match cause {
+            Some(StopCause::HomingSwitch(i)) => {
+                let isr = self.tx.shared().positions();
+                if let Some(h) = self.homing.as_mut()
+                    && h.axis == usize::from(i)
+                {
+                    h.triggered = isr.get(h.axis).copied();
+                }
+                self.planner.clear();
+                self.prep
+                    .reset(self.tx.shared().consumed_ticks.load(Ordering::Relaxed));
+                self.request_flush();
+                // Keep the cycle going (abort() would end it).
+                return;
+            }
+            Some(StopCause::HardLimit(i)) => self.alarm = Some(Alarm::HardLimit { axis: i }),
+            Some(StopCause::Fault(i)) => self.alarm = Some(Alarm::DriverFault { axis: i }),
+            Some(StopCause::Underrun) | None => self.alarm = Some(Alarm::StepUnderrun),
+        }
+        // The interrupt side discards everything until it sees a flush.
+        self.abort(true, true);
+    }
+
+    fn start_homing(&mut self, mask: u8) {
+        self.alarm = None;
+        self.hold = false;
+        self.prep.set_hold(false);
+        if mask == 0 {
+            return;
+        }
+        self.homed &= !mask;
+        self.homing = Some(Homing {
+            pending: mask,
+            axis: 0,
+            phase: HomePhase::Next,
+            start_steps: 0,
+            triggered: None,
+        });
+    }
+
+    /// Advance the homing cycle once the previous homing move has ended.
+    fn homing_step(&mut self) {
+        let Some(mut h) = self.homing else { return };
+        if !self.is_idle() {
+            return;
+        }
+        let isr = self.tx.shared().positions();
+        let here = isr.get(h.axis).copied().unwrap_or(0);
+        let Some(cfg) = self.config.axes.get(h.axis).and_then(|a| a.homing) else {
+            if h.phase != HomePhase::Next {
+                self.homing = None;
+                return;
+            }
+            h.axis = 0;
+            return self.homing_next(h);
+        };
+        let axis = h.axis;
+        let toward: f32 = match cfg.direction {
+            HomeDirection::Min => -1.0,
+            HomeDirection::Max => 1.0,
+        };
+        match h.phase {
+            HomePhase::Next => return self.homing_next(h),
+            HomePhase::Seek => match h.triggered.take() {
+                Some(_) => {
+                    h.phase = HomePhase::BackOff;
+                    self.homing_move(
+                        axis,
+                        -toward * cfg.pull_off_mm.max(0.5),
+                        cfg.locate_mm_min,
+                        0,
+                    );
+                }
+                None => return self.homing_alarm(Alarm::HomingSwitchNotFound { axis: axis as u8 }),
+            },
+            HomePhase::BackOff => {
+                h.phase = HomePhase::Locate;
+                h.start_steps = here;
+                let dist = 2.0 * cfg.pull_off_mm.max(0.5) + 1.0;
+                self.homing_move(axis, toward * dist, cfg.locate_mm_min, 1 << axis);
+            }
+            HomePhase::Locate => match h.triggered.take() {
+                Some(at) if at == h.start_steps => {
+                    return self.homing_alarm(Alarm::HomingSwitchStuck { axis: axis as u8 });
+                }
+                Some(at) => {
+                    let a = &self.config.axes[axis];
+                    let home_mm = match cfg.direction {
+                        HomeDirection::Min => a.min_mm,
+                        HomeDirection::Max => a.max_mm,
+                    };
+                    let home_steps = nm_to_steps(
+                        libm::round(f64::from(home_mm) * NM_PER_MM) as Nm,
+                        a.steps_per_mm,
+                    );
+                    self.origin[axis] = at.wrapping_sub(home_steps);
+                    self.resync();
+                    h.phase = HomePhase::PullOff;
+                    if cfg.pull_off_mm > 0.0 {
+                        self.homing_move(axis, -toward * cfg.pull_off_mm, cfg.seek_mm_min, 0);
+                    }
+                }
+                None => return self.homing_alarm(Alarm::HomingSwitchNotFound { axis: axis as u8 }),
+            },
+            HomePhase::PullOff => {
+                self.homed |= 1 << axis;
+                h.pending &= !(1 << axis);
+                h.phase = HomePhase::Next;
+                self.homing = Some(h);
+                return self.homing_step();
+            }
+        }
+        self.homing = Some(h);
+    }
+
+    fn homing_next(&mut self, mut h: Homing) {
+        // Lowest `order` first, then axis index.
+        let next = self
+            .config
+            .axes
+            .iter()
+            .enumerate()
+            .filter(|(i, a)| h.pending & (1 << i) != 0 && a.homing.is_some())
+            .min_by_key(|(i, a)| (a.homing.map_or(0, |c| c.order), *i))
+            .map(|(i, _)| i);
+        let Some(axis) = next else {
+            self.homing = None;
+            self.tx.shared().homing_mask.store(0, Ordering::Relaxed);
+            self.resync();
+            return;
+        };
+        let Some(cfg) = self.config.axes[axis].homing else {
+            self.homing = None;
+            return;
+        };
+        h.axis = axis;
+        h.phase = HomePhase::Seek;
+        h.triggered = None;
+        let toward: f32 = match cfg.direction {
+            HomeDirection::Min => -1.0,
+            HomeDirection::Max => 1.0,
+        };
+        let dist = self.config.axes[axis].travel_mm() + 2.0 * cfg.pull_off_mm;
+        self.homing = Some(h);
+        self.homing_move(axis, toward * dist, cfg.seek_mm_min, 1 << axis);
+    }
+
+    fn homing_move(&mut self, axis: usize, mm: f32, feed_mm_min: f32, switch_mask: u8) {
+        self.tx
+            .shared()
+            .homing_mask
+            .store(u32::from(switch_mask), Ordering::Relaxed);
+        let mut target = self.interp.pos;
+        target[axis] += libm::round(f64::from(mm) * NM_PER_MM) as Nm;
+        self.queue_move(&target, Some(feed_mm_min), false, switch_mask);
+        self.interp.pos = target;
+    }
+
+    fn homing_alarm(&mut self, alarm: Alarm) {
+        self.abort(true, false);
+        self.alarm = Some(alarm);
+    }
+}

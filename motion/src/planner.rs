@@ -1,0 +1,486 @@
+//! The look-ahead planner: a ring of blocks with junction-deviation cornering and a grbl-style
+//! reverse/forward pass.
+//!
+//! Thread side. Each added block gets a nominal speed (its feed, capped by every axis's maximum
+//! rate along its direction), an acceleration (capped by every axis's maximum acceleration
+//! along its direction) and a maximum entry speed (the junction-deviation corner speed with the
+//! previous block, capped by both blocks' nominal speeds). The newest block always ends at rest.
+//! The reverse pass raises entry speeds from the newest block backwards, and the forward pass
+//! lowers them where acceleration from the previous block cannot reach them. `planned` marks
+//! the first block whose entry may still change: everything before it is optimal and neither
+//! pass visits it again, so the work per added block is amortised constant (grbl's
+//! `block_buffer_planned`).
+//!
+//! The oldest block (`tail`) belongs to segment preparation once it has started on it: the
+//! passes never change its entry speed, only its exit (the next block's entry), and
+//! preparation caps that exit at what it can still reach from where it is.
+
+use libm::sqrtf;
+
+use crate::config::{AxisKind, MachineConfig};
+
+/// What a block does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum BlockKind {
+    /// A straight move.
+    Move,
+    /// A dwell of this many milliseconds at rest.
+    Dwell(u32),
+}
+
+/// One planned block.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Block<const N: usize> {
+    pub kind: BlockKind,
+    /// Signed step counts of every axis.
+    pub steps: [i32; N],
+    /// Length of the move in mm (all axes).
+    pub mm: f32,
+    /// Acceleration along the path, mm/s².
+    pub accel: f32,
+    /// Square of the nominal speed, (mm/s)².
+    pub nominal_sqr: f32,
+    /// Square of the largest entry speed the junction allows.
+    pub max_entry_sqr: f32,
+    /// Square of the planned entry speed.
+    pub entry_sqr: f32,
+    /// Source line (program line or G-code line number), for progress reports.
+    pub line: u32,
+    /// Axes whose switch ends this move (homing).
+    pub homing_mask: u8,
+}
+
+impl<const N: usize> Block<N> {
+    const EMPTY: Self = Self {
+        kind: BlockKind::Move,
+        steps: [0; N],
+        mm: 0.0,
+        accel: 1.0,
+        nominal_sqr: 0.0,
+        max_entry_sqr: 0.0,
+        entry_sqr: 0.0,
+        line: 0,
+        homing_mask: 0,
+    };
+}
+
+/// What is known of the previous move, for the junction with the next.
+#[derive(Debug, Clone, Copy)]
+struct Previous<const N: usize> {
+    unit: [f32; N],
+    nominal_sqr: f32,
+}
+
+/// A new move for the planner.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct MoveRequest<const N: usize> {
+    /// Signed step counts.
+    pub steps: [i32; N],
+    /// Feed in mm/min along the path, or `None` for the fastest the axes allow (rapid).
+    pub feed_mm_min: Option<f32>,
+    /// The feed was given on this line: the move may enter at the previous speed and reach
+    /// its own within the move (RepRap's feed ramp).
+    pub ramp: bool,
+    /// Source line.
+    pub line: u32,
+    /// Axes whose switch ends this move.
+    pub homing_mask: u8,
+}
+
+/// The planner ring: `B` blocks.
+pub(crate) struct Planner<const N: usize, const B: usize> {
+    blocks: [Block<N>; B],
+    head: usize,
+    tail: usize,
+    planned: usize,
+    len: usize,
+    previous: Option<Previous<N>>,
+}
+
+const fn next(i: usize, b: usize) -> usize {
+    if i + 1 == b { 0 } else { i + 1 }
+}
+
+const fn prev(i: usize, b: usize) -> usize {
+    if i == 0 { b - 1 } else { i - 1 }
+}
+
+impl<const N: usize, const B: usize> Planner<N, B> {
+    pub(crate) const fn new() -> Self {
+        Self {
+            blocks: [Block::EMPTY; B],
+            head: 0,
+            tail: 0,
+            planned: 0,
+            len: 0,
+            previous: None,
+        }
+    }
+
+    pub(crate) fn len(&self) -> usize {
+        self.len
+    }
+
+    pub(crate) fn is_full(&self) -> bool {
+        self.len == B
+    }
+
+    pub(crate) fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Forget every block (stop, alarm).
+    pub(crate) fn clear(&mut self) {
+        self.head = 0;
+        self.tail = 0;
+        self.planned = 0;
+        self.len = 0;
+        self.previous = None;
+    }
+
+    /// The oldest block.
+    pub(crate) fn tail(&self) -> Option<&Block<N>> {
+        if self.len == 0 {
+            None
+        } else {
+            self.blocks.get(self.tail)
+        }
+    }
+
+    /// Square of the planned exit speed of the oldest block (the next one's entry, or rest).
+    pub(crate) fn tail_exit_sqr(&self) -> f32 {
+        if self.len < 2 {
+            0.0
+        } else {
+            self.blocks
+                .get(next(self.tail, B))
+                .map_or(0.0, |b| b.entry_sqr)
+        }
+    }
+
+    /// The blocks from oldest to newest.
+    #[cfg(test)]
+    pub(crate) fn iter(&self) -> impl Iterator<Item = &Block<N>> {
+        (0..self.len).filter_map(move |k| self.blocks.get((self.tail + k) % B))
+    }
+
+    /// Drop the oldest block: preparation has finished it.
+    pub(crate) fn retire_tail(&mut self) {
+        if self.len == 0 {
+            return;
+        }
+        if self.planned == self.tail {
+            self.planned = next(self.tail, B);
+        }
+        self.tail = next(self.tail, B);
+        self.len -= 1;
+        if self.len == 0 {
+            self.previous = None;
+            self.planned = self.tail;
+        }
+    }
+
+    /// Add a dwell; `false` when full.
+    pub(crate) fn push_dwell(&mut self, ms: u32, line: u32) -> bool {
+        if self.is_full() {
+            return false;
+        }
+        let block = Block {
+            kind: BlockKind::Dwell(ms),
+            line,
+            ..Block::EMPTY
+        };
+        self.insert(block);
+        self.previous = None;
+        true
+    }
+
+    /// Add a move; `false` when full. A move with no steps is not added (and returns `true`).
+    pub(crate) fn push_move(&mut self, req: &MoveRequest<N>, config: &MachineConfig<N>) -> bool {
+        if self.is_full() {
+            return false;
+        }
+        let mut mm = [0f32; N];
+        let mut len_sqr = 0f32;
+        let mut feed_len_sqr = 0f32;
+        for (i, (m, a)) in mm.iter_mut().zip(config.axes.iter()).enumerate() {
+            let s = req.steps.get(i).copied().unwrap_or(0);
+            *m = s as f32 / a.steps_per_mm;
+            len_sqr += *m * *m;
+            if a.kind != AxisKind::Extruder {
+                feed_len_sqr += *m * *m;
+            }
+        }
+        if len_sqr <= 0.0 {
+            return true;
+        }
+        let length = sqrtf(len_sqr);
+        let feed_len = if feed_len_sqr > 0.0 {
+            sqrtf(feed_len_sqr)
+        } else {
+            length
+        };
+        let mut unit = [0f32; N];
+        let mut accel = f32::INFINITY;
+        let mut rate = f32::INFINITY;
+        for ((u, m), a) in unit.iter_mut().zip(mm.iter()).zip(config.axes.iter()) {
+            *u = *m / length;
+            let au = u.abs();
+            if au > 0.0 {
+                accel = accel.min(a.accel_mm_s2 / au);
+                rate = rate.min(a.max_rate_mm_s() / au);
+            }
+        }
+        let nominal = match req.feed_mm_min {
+            Some(f) => (f / 60.0 * length / feed_len).min(rate),
+            None => rate,
+        };
+        let nominal_sqr = nominal * nominal;
+        let max_entry_sqr = match (self.len, self.previous) {
+            (0, _) | (_, None) => 0.0,
+            (_, Some(p)) => {
+                let junction = junction_speed_sqr(&p.unit, &unit, config);
+                // A feed ramp may enter above its own feed, never above what its axes allow.
+                let own = if req.ramp { rate * rate } else { nominal_sqr };
+                junction.min(p.nominal_sqr).min(own)
+            }
+        };
+        let block = Block {
+            kind: BlockKind::Move,
+            steps: req.steps,
+            mm: length,
+            accel,
+            nominal_sqr,
+            max_entry_sqr,
+            entry_sqr: 0.0,
+            line: req.line,
+            homing_mask: req.homing_mask,
+        };
+        self.insert(block);
+        self.previous = Some(Previous { unit, nominal_sqr });
+        self.recalculate();
+        true
+    }
+
+    fn insert(&mut self, block: Block<N>) {
+        if let Some(slot) = self.blocks.get_mut(self.head) {
+            *slot = block;
+        }
+        self.head = next(self.head, B);
+        self.len += 1;
+    }
+
+    fn get(&self, i: usize) -> Block<N> {
+        self.blocks.get(i).copied().unwrap_or(Block::EMPTY)
+    }
+
+    fn entry_mut(&mut self, i: usize) -> Option<&mut f32> {
+        self.blocks.get_mut(i).map(|b| &mut b.entry_sqr)
+    }
+
+    /// grbl's `planner_recalculate`: reverse pass down to `planned`, forward pass from it.
+    fn recalculate(&mut self) {
+        let mut idx = prev(self.head, B);
+        if idx == self.planned {
+            return;
+        }
+        // The newest block ends at rest.
+        let newest = self.get(idx);
+        let mut next_entry = newest.max_entry_sqr.min(2.0 * newest.accel * newest.mm);
+        if let Some(e) = self.entry_mut(idx) {
+            *e = next_entry;
+        }
+        idx = prev(idx, B);
+        while idx != self.planned {
+            let cur = self.get(idx);
+            if cur.entry_sqr != cur.max_entry_sqr {
+                let e = (next_entry + 2.0 * cur.accel * cur.mm).min(cur.max_entry_sqr);
+                if let Some(x) = self.entry_mut(idx) {
+                    *x = e;
+                }
+                next_entry = e;
+            } else {
+                next_entry = cur.entry_sqr;
+            }
+            idx = prev(idx, B);
+        }
+        // Forward pass.
+        let mut cur = self.get(self.planned);
+        let mut idx = next(self.planned, B);
+        while idx != self.head {
+            let mut nxt = self.get(idx);
+            if cur.entry_sqr < nxt.entry_sqr {
+                let e = cur.entry_sqr + 2.0 * cur.accel * cur.mm;
+                if e < nxt.entry_sqr {
+                    nxt.entry_sqr = e;
+                    if let Some(x) = self.entry_mut(idx) {
+                        *x = e;
+                    }
+                    self.planned = idx;
+                }
+            }
+            if nxt.entry_sqr == nxt.max_entry_sqr {
+                self.planned = idx;
+            }
+            cur = nxt;
+            idx = next(idx, B);
+        }
+    }
+}
+
+/// Junction deviation (grbl): the corner speed at which a virtual arc, tangent to both moves and
+/// `junction_deviation_mm` from the corner, is taken at the acceleration the axes allow along
+/// the change of direction. Returns the square of the speed.
+pub(crate) fn junction_speed_sqr<const N: usize>(
+    prev_unit: &[f32; N],
+    unit: &[f32; N],
+    config: &MachineConfig<N>,
+) -> f32 {
+    let mut cos_theta = 0f32;
+    let mut delta = [0f32; N];
+    let mut delta_len_sqr = 0f32;
+    for i in 0..N {
+        let (p, u) = (prev_unit[i], unit[i]);
+        cos_theta -= p * u;
+        let d = u - p;
+        delta[i] = d;
+        delta_len_sqr += d * d;
+    }
+    if cos_theta > 0.999_999 {
+        // A reversal: stop.
+        return 0.0;
+    }
+    if cos_theta < -0.999_999 {
+        // Straight on: no corner.
+        return f32::INFINITY;
+    }
+    let delta_len = sqrtf(delta_len_sqr);
+    let mut accel = f32::INFINITY;
+    for (d, a) in delta.iter().zip(config.axes.iter()) {
+        let du = (d / delta_len).abs();
+        if du > 0.0 {
+            accel = accel.min(a.accel_mm_s2 / du);
+        }
+    }
+    let sin_half = sqrtf(0.5 * (1.0 - cos_theta));
+    accel * config.junction_deviation_mm * sin_half / (1.0 - sin_half)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::AxisConfig;
+
+    fn cfg() -> MachineConfig<2> {
+        let mut c = MachineConfig::new([
+            AxisConfig::linear(b'X', 100.0, 6000.0, 1000.0, 500.0),
+            AxisConfig::linear(b'Y', 100.0, 3000.0, 500.0, 500.0),
+        ]);
+        c.junction_deviation_mm = 0.05;
+        c
+    }
+
+    fn mv(x: i32, y: i32, feed: f32) -> MoveRequest<2> {
+        MoveRequest {
+            steps: [x, y],
+            feed_mm_min: Some(feed),
+            ramp: false,
+            line: 0,
+            homing_mask: 0,
+        }
+    }
+
+    #[test]
+    fn per_axis_limits_cap_speed_and_acceleration() {
+        let c = cfg();
+        let mut p = Planner::<2, 8>::new();
+        assert!(p.push_move(&mv(0, 1000, 6000.0), &c));
+        let b = *p.tail().expect("block");
+        assert_eq!(b.nominal_sqr, 50.0 * 50.0);
+        assert_eq!(b.accel, 500.0);
+        assert_eq!(b.entry_sqr, 0.0);
+        p.clear();
+        // Diagonal: X and Y each at 1/sqrt2 of the path.
+        assert!(p.push_move(&mv(1000, 1000, 1.0e6), &c));
+        let b = *p.tail().expect("block");
+        let s2 = core::f32::consts::SQRT_2;
+        assert!((sqrtf(b.nominal_sqr) - 50.0 * s2).abs() < 1e-3);
+        assert!((b.accel - 500.0 * s2).abs() < 1e-2);
+    }
+
+    #[test]
+    fn collinear_blocks_do_not_stop_and_the_last_ends_at_rest() {
+        let c = cfg();
+        let mut p = Planner::<2, 8>::new();
+        for _ in 0..5 {
+            assert!(p.push_move(&mv(1000, 0, 3000.0), &c));
+        }
+        let entries: [f32; 5] =
+            core::array::from_fn(|k| p.iter().nth(k).map_or(-1.0, |b| b.entry_sqr));
+        assert_eq!(entries[0], 0.0);
+        // 10 mm blocks at 50 mm/s and 1000 mm/s²: full speed at every inner junction.
+        for e in &entries[1..] {
+            assert!((*e - 2500.0).abs() < 1e-2, "{entries:?}");
+        }
+        // The last block can stop within its length from its entry.
+        let last = p.iter().last().copied().expect("last");
+        assert!(last.entry_sqr <= 2.0 * last.accel * last.mm + 1e-3);
+    }
+
+    #[test]
+    fn right_angle_corner_obeys_junction_deviation() {
+        let c = cfg();
+        let mut p = Planner::<2, 8>::new();
+        assert!(p.push_move(&mv(10_000, 0, 3000.0), &c));
+        assert!(p.push_move(&mv(0, 10_000, 3000.0), &c));
+        let second = p.iter().nth(1).copied().expect("second");
+        // 90 degrees: sin(45) = 0.7071; direction change (−1, 1)/√2 → both axes √2 · limit.
+        let sin_half = core::f32::consts::FRAC_1_SQRT_2;
+        let accel = 500.0 * core::f32::consts::SQRT_2;
+        let expected = accel * 0.05 * sin_half / (1.0 - sin_half);
+        assert!((second.max_entry_sqr - expected).abs() < 1e-2);
+        assert!((second.entry_sqr - expected).abs() < 1e-2);
+    }
+
+    #[test]
+    fn reversal_stops() {
+        let c = cfg();
+        let mut p = Planner::<2, 8>::new();
+        assert!(p.push_move(&mv(1000, 0, 3000.0), &c));
+        assert!(p.push_move(&mv(-1000, 0, 3000.0), &c));
+        assert_eq!(p.iter().nth(1).map(|b| b.entry_sqr), Some(0.0));
+    }
+
+    #[test]
+    fn feed_on_the_line_ramps_inside_the_move() {
+        let c = cfg();
+        let mut p = Planner::<2, 8>::new();
+        assert!(p.push_move(&mv(1000, 0, 3000.0), &c));
+        let mut slow = mv(1000, 0, 1500.0);
+        slow.ramp = true;
+        assert!(p.push_move(&slow, &c));
+        let b = p.iter().nth(1).copied().expect("second");
+        // Enters at the previous 50 mm/s and slows to 25 mm/s inside the move.
+        assert!((b.max_entry_sqr - 2500.0).abs() < 1e-2);
+        assert!((b.nominal_sqr - 625.0).abs() < 1e-2);
+        let mut p = Planner::<2, 8>::new();
+        assert!(p.push_move(&mv(1000, 0, 3000.0), &c));
+        assert!(p.push_move(&mv(1000, 0, 1500.0), &c));
+        let b = p.iter().nth(1).copied().expect("second");
+        assert!((b.max_entry_sqr - 625.0).abs() < 1e-2);
+    }
+
+    #[test]
+    fn full_ring_refuses_and_retire_frees() {
+        let c = cfg();
+        let mut p = Planner::<2, 4>::new();
+        for _ in 0..4 {
+            assert!(p.push_move(&mv(100, 0, 3000.0), &c));
+        }
+        assert!(p.is_full());
+        assert!(!p.push_move(&mv(100, 0, 3000.0), &c));
+        p.retire_tail();
+        assert!(p.push_move(&mv(100, 0, 3000.0), &c));
+        assert_eq!(p.len(), 4);
+    }
+}

@@ -1,0 +1,238 @@
+//! Velocity profiles along one block: the trapezoid (or triangle) from an anchor point.
+//!
+//! Thread side only (floating point). A profile starts at an anchor — the start of a block, or
+//! the point of the last prepared step when the plan changed — with a known speed, and covers
+//! the rest of the block in up to three phases at constant acceleration: a ramp from the
+//! anchor speed to the cruise speed (up, or down after an `F` decrease), a cruise, and a ramp
+//! down to the exit speed. A feed-hold profile only decelerates, and may stop inside the block.
+
+use libm::sqrt;
+
+/// One velocity profile. Lengths in mm, speeds in mm/s, times in s.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Profile {
+    v0: f64,
+    a: f64,
+    d1: f64,
+    up1: bool,
+    v1: f64,
+    t1: f64,
+    d2: f64,
+    t2: f64,
+    d3: f64,
+    v3: f64,
+    t3: f64,
+    stops: bool,
+}
+
+impl Profile {
+    /// Cover `r` mm starting at `v0`, cruising at most at `vn`, ending at `ve` (lowered to what
+    /// is reachable, raised to what deceleration allows), with acceleration `a`.
+    pub(crate) fn plan(r: f64, v0: f64, vn: f64, ve: f64, a: f64) -> Self {
+        let r = r.max(0.0);
+        let two_a = 2.0 * a;
+        let ve = ve
+            .min(sqrt(v0 * v0 + two_a * r))
+            .max(sqrt((v0 * v0 - two_a * r).max(0.0)));
+        let (d1, up1, v1, d3);
+        if v0 > vn {
+            let vc = vn.max(ve);
+            d1 = ((v0 * v0 - vc * vc) / two_a).min(r);
+            up1 = false;
+            v1 = vc;
+            d3 = ((vc * vc - ve * ve) / two_a).min(r - d1).max(0.0);
+        } else {
+            let full1 = (vn * vn - v0 * v0) / two_a;
+            let full3 = (vn * vn - ve * ve) / two_a;
+            if full1 + full3 <= r {
+                d1 = full1;
+                v1 = vn;
+                d3 = full3;
+            } else {
+                let peak = sqrt(((two_a * r + v0 * v0 + ve * ve) * 0.5).max(0.0))
+                    .max(v0)
+                    .max(ve);
+                v1 = peak;
+                d1 = ((peak * peak - v0 * v0) / two_a).clamp(0.0, r);
+                d3 = (r - d1).max(0.0);
+            }
+            up1 = true;
+        }
+        let d2 = (r - d1 - d3).max(0.0);
+        let v3 = sqrt((v1 * v1 - two_a * d3).max(0.0));
+        Self::from_phases(v0, a, d1, up1, v1, d2, d3, v3, false)
+    }
+
+    /// Decelerate from `v0` at `a` over at most `r` mm: stop inside the block if possible.
+    pub(crate) fn hold(r: f64, v0: f64, a: f64) -> Self {
+        let r = r.max(0.0);
+        let stop_mm = v0 * v0 / (2.0 * a);
+        if stop_mm < r {
+            Self::from_phases(v0, a, 0.0, false, v0, 0.0, stop_mm, 0.0, true)
+        } else {
+            let v3 = sqrt((v0 * v0 - 2.0 * a * r).max(0.0));
+            Self::from_phases(v0, a, 0.0, false, v0, 0.0, r, v3, false)
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn from_phases(
+        v0: f64,
+        a: f64,
+        d1: f64,
+        up1: bool,
+        v1: f64,
+        d2: f64,
+        d3: f64,
+        v3: f64,
+        stops: bool,
+    ) -> Self {
+        let t1 = if d1 > 0.0 { 2.0 * d1 / (v0 + v1) } else { 0.0 };
+        let t2 = if d2 > 0.0 { d2 / v1 } else { 0.0 };
+        let t3 = if d3 > 0.0 { 2.0 * d3 / (v1 + v3) } else { 0.0 };
+        Self {
+            v0,
+            a,
+            d1,
+            up1,
+            v1,
+            t1,
+            d2,
+            t2,
+            d3,
+            v3,
+            t3,
+            stops,
+        }
+    }
+
+    /// Length covered, mm (less than the block's rest when a hold stops inside it).
+    pub(crate) fn length(&self) -> f64 {
+        self.d1 + self.d2 + self.d3
+    }
+
+    /// Time to cover the profile, s.
+    pub(crate) fn duration(&self) -> f64 {
+        self.t1 + self.t2 + self.t3
+    }
+
+    /// Speed at the end, mm/s.
+    pub(crate) fn exit_speed(&self) -> f64 {
+        self.v3
+    }
+
+    /// Whether the profile ends at rest before the end of the block (a completed hold).
+    #[cfg(test)]
+    pub(crate) fn stops(&self) -> bool {
+        self.stops
+    }
+
+    /// Time from the anchor to `x` mm past it, s; `None` beyond a hold's stopping point.
+    pub(crate) fn time_at(&self, x: f64) -> Option<f64> {
+        if x <= 0.0 {
+            return Some(0.0);
+        }
+        let two_a = 2.0 * self.a;
+        if x < self.d1 {
+            let v = if self.up1 {
+                sqrt(self.v0 * self.v0 + two_a * x)
+            } else {
+                sqrt((self.v0 * self.v0 - two_a * x).max(0.0))
+            };
+            return Some(2.0 * x / (self.v0 + v));
+        }
+        let x = x - self.d1;
+        if x < self.d2 {
+            return Some(self.t1 + x / self.v1);
+        }
+        let x = x - self.d2;
+        if x < self.d3 {
+            let v = sqrt((self.v1 * self.v1 - two_a * x).max(0.0));
+            let sum = self.v1 + v;
+            if sum <= 0.0 {
+                return None;
+            }
+            return Some(self.t1 + self.t2 + 2.0 * x / sum);
+        }
+        // At or past the end: within rounding of the end point, it is the end.
+        if self.stops && x > self.d3 * (1.0 + 1e-9) + 1e-12 {
+            return None;
+        }
+        Some(self.duration())
+    }
+
+    /// Speed `x` mm past the anchor, mm/s.
+    pub(crate) fn speed_at(&self, x: f64) -> f64 {
+        let two_a = 2.0 * self.a;
+        if x <= 0.0 {
+            return self.v0;
+        }
+        if x < self.d1 {
+            return if self.up1 {
+                sqrt(self.v0 * self.v0 + two_a * x)
+            } else {
+                sqrt((self.v0 * self.v0 - two_a * x).max(0.0))
+            };
+        }
+        let x = x - self.d1;
+        if x < self.d2 {
+            return self.v1;
+        }
+        let x = (x - self.d2).min(self.d3);
+        sqrt((self.v1 * self.v1 - two_a * x).max(0.0))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() <= 1e-9 * (1.0 + a.abs().max(b.abs()))
+    }
+
+    #[test]
+    fn trapezoid_from_rest_to_rest() {
+        // 100 mm, cruise 50 mm/s, a = 500: ramps of 2.5 mm and 0.1 s each.
+        let p = Profile::plan(100.0, 0.0, 50.0, 0.0, 500.0);
+        assert!(close(p.length(), 100.0));
+        assert!(close(p.duration(), 0.1 + 95.0 / 50.0 + 0.1));
+        assert!(close(p.time_at(2.5).unwrap_or(0.0), 0.1));
+        assert!(close(p.speed_at(50.0), 50.0));
+        assert!(close(p.exit_speed(), 0.0));
+    }
+
+    #[test]
+    fn triangle_when_too_short() {
+        let p = Profile::plan(1.0, 0.0, 100.0, 0.0, 500.0);
+        // Peak speed sqrt(a * r) = sqrt(500).
+        assert!(close(p.speed_at(0.5), sqrt(500.0)));
+        assert!(close(p.duration(), 2.0 * sqrt(500.0) / 500.0));
+    }
+
+    #[test]
+    fn decelerates_to_a_lower_feed_inside_the_block() {
+        let p = Profile::plan(10.0, 50.0, 25.0, 25.0, 500.0);
+        assert!(close(p.speed_at(10.0), 25.0));
+        assert!(close(p.speed_at(0.0), 50.0));
+        assert!(p.speed_at(1.875) <= 25.0 + 1e-9);
+    }
+
+    #[test]
+    fn unreachable_exit_is_lowered() {
+        let p = Profile::plan(1.0, 0.0, 100.0, 100.0, 500.0);
+        assert!(close(p.exit_speed(), sqrt(1000.0)));
+    }
+
+    #[test]
+    fn hold_stops_inside_or_carries_on() {
+        let p = Profile::hold(10.0, 50.0, 500.0);
+        assert!(p.stops());
+        assert!(close(p.length(), 2.5));
+        assert_eq!(p.time_at(3.0), None);
+        assert!(close(p.time_at(2.5).unwrap_or(0.0), 0.1));
+        let p = Profile::hold(1.0, 50.0, 500.0);
+        assert!(!p.stops());
+        assert!(close(p.exit_speed(), sqrt(2500.0 - 1000.0)));
+    }
+}

@@ -1,0 +1,328 @@
+//! The step queue: the one channel between the thread side and the step interrupt.
+//!
+//! A bounded single-producer/single-consumer ring of step events, plus the handful of flags the
+//! two sides exchange (positions, start/idle handshake, flush and stop notices). It is built
+//! from load/store atomics only — no compare-and-swap and no `unsafe` — so it works unchanged
+//! on Cortex-M4 and on `riscv32imc`, which has no atomic read-modify-write instructions. Every
+//! atomic has exactly one writer; the comments on each field name it.
+//!
+//! An event is two 32-bit words: the delay since the previous event in ticks (30 bits) with a
+//! "rest" flag, and four 8-bit axis masks: step lines to lower, directions to change, the new
+//! directions, step lines to raise. The interrupt applies them in that order.
+
+#![deny(clippy::indexing_slicing)]
+
+use core::sync::atomic::{AtomicI32, AtomicU32, Ordering};
+
+/// Largest delay one event can carry; longer waits are split into empty events.
+pub(crate) const MAX_DELTA: u32 = (1 << 30) - 1;
+const REST_FLAG: u32 = 1 << 31;
+
+/// One step event.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub(crate) struct Event {
+    /// Ticks since the previous event (ignored for the first event after an idle interrupt).
+    pub delta: u32,
+    /// After this event the machine is at rest: the interrupt may go idle if nothing follows.
+    pub rest: bool,
+    /// Step lines to return to idle.
+    pub fall: u8,
+    /// Axes whose direction line changes.
+    pub dir_set: u8,
+    /// New directions of those axes: bit set = negative.
+    pub dir_neg: u8,
+    /// Step lines to raise (one step each).
+    pub rise: u8,
+}
+
+impl Event {
+    fn encode(&self) -> [u32; 2] {
+        [
+            (self.delta & MAX_DELTA) | if self.rest { REST_FLAG } else { 0 },
+            u32::from(self.fall)
+                | u32::from(self.dir_set) << 8
+                | u32::from(self.dir_neg) << 16
+                | u32::from(self.rise) << 24,
+        ]
+    }
+
+    fn decode(w: [u32; 2]) -> Self {
+        Self {
+            delta: w[0] & MAX_DELTA,
+            rest: w[0] & REST_FLAG != 0,
+            fall: w[1] as u8,
+            dir_set: (w[1] >> 8) as u8,
+            dir_neg: (w[1] >> 16) as u8,
+            rise: (w[1] >> 24) as u8,
+        }
+    }
+}
+
+/// Why the interrupt stopped motion on its own (published in [`StepQueue`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum StopCause {
+    /// A hard limit tripped on this axis.
+    HardLimit(u8),
+    /// The homing switch of this axis triggered.
+    HomingSwitch(u8),
+    /// A driver or switch error on this axis.
+    Fault(u8),
+    /// The queue ran dry while moving.
+    Underrun,
+}
+
+impl StopCause {
+    fn encode(self) -> u32 {
+        match self {
+            Self::HardLimit(a) => 0x100 | u32::from(a),
+            Self::HomingSwitch(a) => 0x200 | u32::from(a),
+            Self::Fault(a) => 0x300 | u32::from(a),
+            Self::Underrun => 0x400,
+        }
+    }
+
+    fn decode(w: u32) -> Option<Self> {
+        let a = w as u8;
+        match w >> 8 {
+            1 => Some(Self::HardLimit(a)),
+            2 => Some(Self::HomingSwitch(a)),
+            3 => Some(Self::Fault(a)),
+            4 => Some(Self::Underrun),
+            _ => None,
+        }
+    }
+}
+
+/// The storage shared by the thread side ([`crate::Kernel`]) and the step interrupt
+/// ([`crate::StepGenerator`]): `N` axes, `Q` event slots (a power of two).
+///
+/// Create it where it can outlive both sides — a `static` (through the executor's
+/// `&'static mut` resources, e.g. RTIC `#[init(local = [...])]`) or a stack variable in tests —
+/// and hand it to [`crate::split`].
+pub struct StepQueue<const N: usize, const Q: usize> {
+    /// Event words. Written by the producer before it publishes `head`.
+    slots: [[AtomicU32; 2]; Q],
+    /// Events pushed (free-running). Writer: thread.
+    head: AtomicU32,
+    /// Events consumed (free-running). Writer: interrupt.
+    tail: AtomicU32,
+    /// Machine position of each axis in steps. Writer: interrupt (thread only while idle).
+    pub(crate) positions: [AtomicI32; N],
+    /// Sum of the deltas of consumed events, wrapping. Writer: interrupt.
+    pub(crate) consumed_ticks: AtomicU32,
+    /// Scheduled instant (ticks) of the last consumed event. Writer: interrupt.
+    pub(crate) last_event_at: AtomicU32,
+    /// Times the thread started an idle interrupt. Writer: thread.
+    pub(crate) starts: AtomicU32,
+    /// Times the interrupt went idle. Writer: interrupt.
+    pub(crate) idles: AtomicU32,
+    /// Flush requests. Writer: thread.
+    pub(crate) flush_req: AtomicU32,
+    /// Flushes done. Writer: interrupt.
+    pub(crate) flush_done: AtomicU32,
+    /// Stops on the interrupt's own initiative. Writer: interrupt.
+    pub(crate) stops: AtomicU32,
+    /// Cause of the last stop. Writer: interrupt.
+    stop_cause: AtomicU32,
+    /// Axes whose switch ends the current (homing) move. Writer: thread.
+    pub(crate) homing_mask: AtomicU32,
+}
+
+impl<const N: usize, const Q: usize> Default for StepQueue<N, Q> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const N: usize, const Q: usize> StepQueue<N, Q> {
+    const CHECK: () = {
+        assert!(
+            Q.is_power_of_two() && Q >= 8,
+            "Q must be a power of two >= 8"
+        );
+        assert!(N >= 1 && N <= crate::MAX_AXES, "1 to 8 axes");
+    };
+
+    /// An empty queue with every axis at step 0.
+    pub const fn new() -> Self {
+        #[allow(clippy::let_unit_value)]
+        let () = Self::CHECK;
+        Self {
+            slots: [const { [const { AtomicU32::new(0) }; 2] }; Q],
+            head: AtomicU32::new(0),
+            tail: AtomicU32::new(0),
+            positions: [const { AtomicI32::new(0) }; N],
+            consumed_ticks: AtomicU32::new(0),
+            last_event_at: AtomicU32::new(0),
+            starts: AtomicU32::new(0),
+            idles: AtomicU32::new(0),
+            flush_req: AtomicU32::new(0),
+            flush_done: AtomicU32::new(0),
+            stops: AtomicU32::new(0),
+            stop_cause: AtomicU32::new(0),
+            homing_mask: AtomicU32::new(0),
+        }
+    }
+
+    /// Number of event slots.
+    pub const fn capacity(&self) -> usize {
+        Q
+    }
+
+    /// The machine position of every axis, in steps, as the interrupt last published it.
+    pub fn positions(&self) -> [i32; N] {
+        let mut out = [0; N];
+        for (o, p) in out.iter_mut().zip(self.positions.iter()) {
+            *o = p.load(Ordering::Relaxed);
+        }
+        out
+    }
+
+    fn slot(&self, counter: u32) -> Option<&[AtomicU32; 2]> {
+        // `Q` is a power of two, so the mask keeps the index in range.
+        self.slots.get(counter as usize & (Q - 1))
+    }
+
+    pub(crate) fn set_stop_cause(&self, cause: StopCause) {
+        self.stop_cause.store(cause.encode(), Ordering::Relaxed);
+        let n = self.stops.load(Ordering::Relaxed);
+        self.stops.store(n.wrapping_add(1), Ordering::Release);
+    }
+
+    pub(crate) fn stop_cause(&self) -> Option<StopCause> {
+        StopCause::decode(self.stop_cause.load(Ordering::Relaxed))
+    }
+}
+
+/// The thread's end of the queue.
+pub(crate) struct Producer<'q, const N: usize, const Q: usize> {
+    q: &'q StepQueue<N, Q>,
+    head: u32,
+}
+
+impl<'q, const N: usize, const Q: usize> Producer<'q, N, Q> {
+    pub(crate) fn new(q: &'q StepQueue<N, Q>) -> Self {
+        Self {
+            q,
+            head: q.head.load(Ordering::Relaxed),
+        }
+    }
+
+    pub(crate) fn shared(&self) -> &'q StepQueue<N, Q> {
+        self.q
+    }
+
+    /// Slots free now.
+    pub(crate) fn free(&self) -> usize {
+        let tail = self.q.tail.load(Ordering::Acquire);
+        Q - self.head.wrapping_sub(tail) as usize
+    }
+
+    /// Events waiting for the interrupt.
+    pub(crate) fn len(&self) -> usize {
+        Q - self.free()
+    }
+
+    /// Push one event; `false` when full.
+    pub(crate) fn push(&mut self, ev: Event) -> bool {
+        if self.free() == 0 {
+            return false;
+        }
+        let [w0, w1] = ev.encode();
+        let Some([s0, s1]) = self.q.slot(self.head) else {
+            return false;
+        };
+        s0.store(w0, Ordering::Relaxed);
+        s1.store(w1, Ordering::Relaxed);
+        self.head = self.head.wrapping_add(1);
+        self.q.head.store(self.head, Ordering::Release);
+        true
+    }
+}
+
+/// The interrupt's end of the queue.
+pub(crate) struct Consumer<'q, const N: usize, const Q: usize> {
+    pub(crate) q: &'q StepQueue<N, Q>,
+    tail: u32,
+}
+
+impl<'q, const N: usize, const Q: usize> Consumer<'q, N, Q> {
+    pub(crate) fn new(q: &'q StepQueue<N, Q>) -> Self {
+        Self {
+            q,
+            tail: q.tail.load(Ordering::Relaxed),
+        }
+    }
+
+    /// The oldest event, without removing it.
+    #[inline]
+    pub(crate) fn peek(&self) -> Option<Event> {
+        let head = self.q.head.load(Ordering::Acquire);
+        if head == self.tail {
+            return None;
+        }
+        let [s0, s1] = self.q.slot(self.tail)?;
+        Some(Event::decode([
+            s0.load(Ordering::Relaxed),
+            s1.load(Ordering::Relaxed),
+        ]))
+    }
+
+    /// Remove the oldest event (after a successful [`Consumer::peek`]).
+    #[inline]
+    pub(crate) fn advance(&mut self) {
+        self.tail = self.tail.wrapping_add(1);
+        self.q.tail.store(self.tail, Ordering::Release);
+    }
+
+    /// Drop every event pushed so far.
+    pub(crate) fn clear(&mut self) {
+        self.tail = self.q.head.load(Ordering::Acquire);
+        self.q.tail.store(self.tail, Ordering::Release);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn events_round_trip_through_the_ring() {
+        let q = StepQueue::<3, 8>::new();
+        let mut p = Producer::new(&q);
+        let mut c = Consumer::new(&q);
+        assert_eq!(c.peek(), None);
+        for k in 0..20u32 {
+            let ev = Event {
+                delta: k * 1000 + 7,
+                rest: k % 3 == 0,
+                fall: k as u8,
+                dir_set: 1,
+                dir_neg: 2,
+                rise: 0x80 | k as u8,
+            };
+            assert!(p.push(ev));
+            assert_eq!(c.peek(), Some(ev));
+            c.advance();
+        }
+        for _ in 0..8 {
+            assert!(p.push(Event::default()));
+        }
+        assert!(!p.push(Event::default()));
+        assert_eq!(p.len(), 8);
+        c.clear();
+        assert_eq!(p.free(), 8);
+    }
+
+    #[test]
+    fn stop_causes_round_trip() {
+        for c in [
+            StopCause::HardLimit(3),
+            StopCause::HomingSwitch(0),
+            StopCause::Fault(7),
+            StopCause::Underrun,
+        ] {
+            assert_eq!(StopCause::decode(c.encode()), Some(c));
+        }
+    }
+}

@@ -1,0 +1,411 @@
+//! Behaviour of the whole kernel on the simulated machine: arcs, feed hold, homing, limits,
+//! effects, program stops, jogs, dwells.
+
+mod common;
+
+use common::{check_axis, machine, sim};
+use forja_motion::effect::{Effect, StopKind};
+use forja_motion::{Alarm, CommandError, MachineState, Reply, StepQueue};
+use forja_protocol::gcode::{Decimal, Line};
+
+const HZ: u32 = 1_000_000;
+
+fn steps(mm: f64) -> i32 {
+    (mm * 80.0).round() as i32
+}
+
+#[test]
+fn arcs_end_exactly_at_their_end_point() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.send("G1 X50 Y50 F3000").expect("ok");
+    s.send("G2 X65.006 Y40.829 I10 J-0.5").expect("ij arc");
+    s.send("G3 X80 Y40.456 R10.0005").expect("r arc");
+    s.send("G2 X80 Y40.456 I-5 J5 Z3.21").expect("full helix");
+    s.send("G3 X70.001 Y52 R-9").expect("long way round");
+    assert!(s.run_until_idle(60 * u64::from(HZ)));
+    let r = s.rec.borrow();
+    assert_eq!(
+        r.position,
+        [steps(70.001), steps(52.0), (3.21f64 * 400.0).round() as i32]
+    );
+    assert!(r.violations.is_empty(), "{:?}", r.violations);
+}
+
+#[test]
+fn feed_hold_stops_on_the_path_and_resume_loses_no_step() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.send("G1 X150 Y75 F6000").expect("ok");
+    s.advance(u64::from(HZ) / 2);
+    let before = s.rec.borrow().position;
+    assert!(before[0] > 0 && before[0] < steps(150.0));
+    s.kernel.hold();
+    let mut stopped_at = None;
+    for _ in 0..2000 {
+        s.advance(u64::from(HZ) / 1000);
+        if s.kernel.state() == (MachineState::Hold { stopped: true }) {
+            stopped_at = Some(s.now());
+            break;
+        }
+    }
+    assert!(stopped_at.is_some(), "hold came to rest");
+    let held = s.rec.borrow().position;
+    // Still on the path: X:Y = 2:1 within a step.
+    assert!((held[0] - 2 * held[1]).abs() <= 2, "{held:?}");
+    assert!(held[0] < steps(150.0));
+    s.advance(u64::from(HZ));
+    assert_eq!(s.rec.borrow().position, held, "no motion while held");
+    s.kernel.resume();
+    assert!(s.run_until_idle(30 * u64::from(HZ)));
+    let r = s.rec.borrow();
+    assert_eq!(r.position, [steps(150.0), steps(75.0), 0]);
+    assert!(r.violations.is_empty(), "{:?}", r.violations);
+    // The deceleration and the restart respect the axis limits.
+    let c = machine();
+    for i in 0..2 {
+        let a = &c.axes[i];
+        let d = check_axis(
+            &r.steps[i],
+            0,
+            f64::from(a.steps_per_mm),
+            f64::from(a.max_rate_mm_s()),
+            f64::from(a.accel_mm_s2),
+            f64::from(HZ),
+            None,
+        );
+        assert!(d.rate <= 1.01 && d.accel <= 1.01, "{d:?}");
+    }
+}
+
+#[test]
+fn homing_finds_the_switch_backs_off_and_sets_the_position() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    // The X switch sits 1234 steps below the power-on position, the Y switch 3000 below.
+    s.add_switch(0, -1234, true);
+    s.add_switch(1, -3000, true);
+    s.send("G28").expect("ok");
+    assert!(s.run_until_idle(120 * u64::from(HZ)));
+    assert_eq!(s.kernel.state(), MachineState::Idle);
+    assert_eq!(s.kernel.homed_axes(), 0b011);
+    // Home is min_mm = 0 at the switch; the pull-off leaves the axis 1 mm (80 steps) above it.
+    assert_eq!(s.kernel.machine_steps()[..2], [80, 80]);
+    let r = s.rec.borrow();
+    assert_eq!(r.position[..2], [-1234 + 80, -3000 + 80]);
+    assert!(r.violations.is_empty(), "{:?}", r.violations);
+    // The X sequence: seek down, back off up, locate down slowly, pull off up.
+    let xs = &r.steps[0];
+    let mut runs = Vec::new();
+    let mut prev = 0;
+    for st in xs {
+        let d = st.position - prev;
+        prev = st.position;
+        if runs.last().map(|(dir, _)| *dir) != Some(d) {
+            runs.push((d, 0));
+        }
+        if let Some(last) = runs.last_mut() {
+            last.1 += 1;
+        }
+    }
+    let dirs: Vec<i32> = runs.iter().map(|(d, _)| *d).collect();
+    assert_eq!(dirs, [-1, 1, -1, 1], "{runs:?}");
+    drop(r);
+    // After homing, positions are machine positions.
+    s.send("G1 X10 F3000").expect("ok");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(s.kernel.machine_steps()[0], 800);
+}
+
+#[test]
+fn homing_without_a_switch_in_reach_raises_an_alarm() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.add_switch(0, -100_000, true);
+    s.add_switch(1, -100, true);
+    s.send("G28 X0").expect("ok");
+    assert!(s.run_until_idle(120 * u64::from(HZ)));
+    assert_eq!(
+        s.kernel.state(),
+        MachineState::Alarm(Alarm::HomingSwitchNotFound { axis: 0 })
+    );
+    // Travel 200 mm plus twice the pull-off was searched.
+    assert_eq!(s.rec.borrow().position[0], -steps(202.0));
+    assert_eq!(s.send("G1 X1"), Err(CommandError::Locked));
+    s.kernel.reset();
+    s.poll();
+    assert_eq!(s.kernel.state(), MachineState::Idle);
+    s.send("G1 X1 F1000").expect("after reset");
+}
+
+#[test]
+fn a_tripped_hard_limit_stops_motion_within_one_step_period() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.add_switch(0, -500, true);
+    s.add_switch(1, -100_000, true);
+    s.send("G1 X-20 Y-5 F3000").expect("ok");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(
+        s.kernel.state(),
+        MachineState::Alarm(Alarm::HardLimit { axis: 0 })
+    );
+    let r = s.rec.borrow();
+    // The switch closed on the step to -500; the next step was refused.
+    assert_eq!(r.position[0], -500);
+    let xs = &r.steps[0];
+    let last = xs[xs.len() - 1].tick;
+    let period = last - xs[xs.len() - 2].tick;
+    // No axis stepped later than one X step period after the trip.
+    for axis in &r.steps {
+        if let Some(st) = axis.last() {
+            assert!(
+                st.tick <= last + period,
+                "{} > {} + {}",
+                st.tick,
+                last,
+                period
+            );
+        }
+    }
+    assert!(r.violations.is_empty(), "{:?}", r.violations);
+    drop(r);
+    assert_eq!(s.send("G1 X0"), Err(CommandError::Locked));
+    s.kernel.reset();
+    assert_eq!(s.kernel.homed_axes(), 0);
+}
+
+#[test]
+fn soft_limits_reject_moves_before_they_are_planned() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.add_switch(0, 0, true);
+    s.add_switch(1, 0, true);
+    // Not homed yet: no soft limits (WhenHomed).
+    s.send("G1 X-0.5 F3000").expect("not homed: allowed");
+    s.send("G28").expect("ok");
+    assert!(s.run_until_idle(120 * u64::from(HZ)));
+    assert_eq!(s.send("G1 X-0.1"), Err(CommandError::SoftLimit { axis: 0 }));
+    assert_eq!(
+        s.send("G1 Y200.5"),
+        Err(CommandError::SoftLimit { axis: 1 })
+    );
+    // An arc whose ends are inside but whose bulge is not.
+    s.send("G1 X3 Y100").expect("inside");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(
+        s.send("G2 X3 Y110 I0 J5"),
+        Err(CommandError::SoftLimit { axis: 0 })
+    );
+    assert_eq!(s.kernel.planned_blocks(), 0);
+    s.send("G1 X199.9 Y199.9").expect("inside");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+}
+
+#[test]
+fn effects_come_back_in_stream_order() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.send("G1 X20 F3000").expect("ok");
+    // A temperature target is for now: returned while the move runs.
+    let line = Line::parse(b"M104 S210").expect("parse");
+    assert!(matches!(
+        s.kernel.execute(&line),
+        Ok(Reply::Effect(Effect::SetTemperature { wait: false, .. }))
+    ));
+    assert!(!s.kernel.is_idle());
+    // A fan change waits for the move before it.
+    let line = Line::parse(b"M106 S128").expect("parse");
+    let mut waited = 0;
+    loop {
+        match s.kernel.execute(&line) {
+            Ok(Reply::Busy) => {
+                waited += 1;
+                s.advance(1000);
+            }
+            Ok(Reply::Effect(Effect::Fan {
+                index: 0,
+                duty: 128,
+            })) => break,
+            other => panic!("{other:?}"),
+        }
+    }
+    assert!(waited > 100);
+    assert!(s.kernel.is_idle());
+    assert_eq!(s.rec.borrow().position[0], steps(20.0));
+    let line = Line::parse(b"M114").expect("parse");
+    match s.kernel.execute(&line) {
+        Ok(Reply::Position(p)) => {
+            assert_eq!(p.letters, *b"XYZ");
+            assert!((p.work_mm[0] - 20.0).abs() < 1e-9);
+            assert!((p.machine_mm[0] - 20.0).abs() < 1e-9);
+        }
+        other => panic!("{other:?}"),
+    }
+    let line = Line::parse(b"M999").expect("parse");
+    assert_eq!(
+        s.kernel.execute(&line),
+        Err(CommandError::Unsupported {
+            letter: b'M',
+            number: Some(999)
+        })
+    );
+}
+
+#[test]
+fn program_stop_emergency_stop_and_pause() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.send("G1 X10 F3000").expect("ok");
+    s.send("M0").expect("after the move");
+    assert_eq!(s.rec.borrow().position[0], steps(10.0));
+    assert_eq!(s.kernel.state(), MachineState::Halted);
+    assert_eq!(s.send("G1 X0"), Err(CommandError::Halted));
+    s.kernel.reset();
+    s.send("G1 X0 F3000").expect("after reset");
+    s.send("M226").expect("pause");
+    assert_eq!(s.kernel.state(), MachineState::Paused);
+    let line = Line::parse(b"G1 X5").expect("parse");
+    assert_eq!(s.kernel.execute(&line), Ok(Reply::Busy));
+    s.kernel.resume();
+    s.send("G1 X50").expect("resumed");
+    s.advance(u64::from(HZ) / 4);
+    let line = Line::parse(b"M112").expect("parse");
+    assert_eq!(
+        s.kernel.execute(&line),
+        Ok(Reply::Effect(Effect::Stopped(StopKind::Emergency)))
+    );
+    let at = s.rec.borrow().position[0];
+    s.advance(u64::from(HZ) / 10);
+    assert_eq!(s.rec.borrow().position[0], at, "motion cut at once");
+    assert!(at < steps(50.0));
+    assert_eq!(s.kernel.state(), MachineState::Alarm(Alarm::EmergencyStop));
+    assert_eq!(s.send("G28"), Err(CommandError::Locked));
+    s.kernel.reset();
+    s.poll();
+    assert_eq!(s.kernel.state(), MachineState::Idle);
+    assert!(s.rec.borrow().violations.is_empty());
+}
+
+#[test]
+fn stop_keeps_the_position_and_flushes_the_plan() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.send("G1 X100 F3000").expect("ok");
+    s.send("G1 Y100").expect("ok");
+    s.advance(u64::from(HZ));
+    s.kernel.stop();
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    let here = s.rec.borrow().position;
+    assert!(
+        here[0] > 0 && here[0] < steps(100.0) && here[1] == 0,
+        "{here:?}"
+    );
+    assert_eq!(s.kernel.machine_steps(), here);
+    // The next move starts from where the machine stopped.
+    s.send("G91").expect("ok");
+    s.send("G1 X1").expect("ok");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(s.rec.borrow().position[0], here[0] + 80);
+}
+
+#[test]
+fn jog_moves_step_size_times_count() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    // Frame 01 `S0.0125X+1000`: +12.5 mm.
+    let r = s.kernel.jog(b'X', Decimal::new(125, 4), 1000).expect("jog");
+    assert_eq!(r, Reply::Ok);
+    let r = s.kernel.jog(b'Z', Decimal::new(1, 2), -50).expect("jog");
+    assert_eq!(r, Reply::Ok);
+    assert_eq!(
+        s.kernel.jog(b'Q', Decimal::new(1, 0), 1),
+        Err(CommandError::UnknownAxis { letter: b'Q' })
+    );
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(s.rec.borrow().position, [1000, 0, -200]);
+}
+
+#[test]
+fn dwell_waits_between_moves() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.send("G1 X1 F3000").expect("ok");
+    s.send("G4 P500").expect("ok");
+    s.send("G1 X2").expect("ok");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    let r = s.rec.borrow();
+    let xs = &r.steps[0];
+    let gap = xs[80].tick - xs[79].tick;
+    assert!((500_000..520_000).contains(&gap), "{gap}");
+}
+
+#[test]
+fn long_moves_survive_clock_wrap_at_168_mhz() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), 168_000_000);
+    s.rec.borrow_mut().record = false;
+    // 180 mm at 6 mm/s: 30 s, more than the 25.6 s wrap of a 32-bit 168 MHz counter.
+    s.send("G1 X180 Y90 F360").expect("ok");
+    assert!(s.run_until_idle(60 * 168_000_000));
+    assert!(s.now() > 1u64 << 32);
+    let r = s.rec.borrow();
+    assert_eq!(r.position, [steps(180.0), steps(90.0), 0]);
+    assert!(r.violations.is_empty(), "{:?}", r.violations);
+}
+
+#[test]
+fn steps_per_unit_change_keeps_the_machine_where_it_is() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.send("G1 X10 F3000").expect("ok");
+    s.send("M92 X160").expect("ok");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    // 800 steps are now 5 mm; X10 is 1600 steps.
+    s.send("G1 X10").expect("ok");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(s.rec.borrow().position[0], 1600);
+}
+
+#[test]
+fn late_interrupts_keep_pulse_widths_and_positions() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    // Up to 3 µs late at 1 MHz, with 2 µs pulses.
+    s.max_latency = 3;
+    s.send("G1 X30 Y20 Z1 F6000").expect("ok");
+    s.send("G1 X0 Y25 Z0").expect("ok");
+    s.send("G2 X10 Y35 I10 J0").expect("ok");
+    assert!(s.run_until_idle(30 * u64::from(HZ)));
+    let r = s.rec.borrow();
+    assert_eq!(r.position, [steps(10.0), steps(35.0), 0]);
+    assert!(r.violations.is_empty(), "{:?}", r.violations);
+}
+
+#[test]
+fn reversals_at_corners_honour_the_direction_set_up_time() {
+    use forja_hal_abstraction::stepper::StepTiming;
+    use forja_motion::sim::Simulation;
+    // A slow driver behind opto-couplers: 5 µs pulses, 400 µs direction set-up (longer than
+    // the gap between the last step before a corner and the first after it).
+    let timing = StepTiming {
+        min_pulse_ns: 5_000,
+        dir_setup_ns: 400_000,
+    };
+    let mut config = machine();
+    config.junction_deviation_mm = 0.2;
+    let mut q = StepQueue::<3, 256>::new();
+    let (kernel, isr) =
+        forja_motion::split::<3, 32, 256>(&mut q, config, HZ, timing).expect("valid");
+    let mut s = Simulation::new(kernel, isr, timing);
+    // A zig-zag: X reverses at every 90° corner, at the corner speed.
+    s.send("G1 F6000").expect("ok");
+    for k in 1..=20 {
+        let x = if k % 2 == 1 { 5 } else { 0 };
+        s.send(&format!("G1 X{x} Y{}", 5 * k)).expect("ok");
+    }
+    assert!(s.run_until_idle(30 * u64::from(HZ)));
+    let r = s.rec.borrow();
+    assert_eq!(r.position, [0, steps(100.0), 0]);
+    assert!(r.violations.is_empty(), "{:?}", r.violations);
+}
