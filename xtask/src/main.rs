@@ -8,6 +8,9 @@ use std::process::{Command, ExitCode};
 
 use clap::{Parser, Subcommand};
 
+mod firmware;
+mod qemu;
+
 /// Forja's build, test and run tasks.
 #[derive(Parser)]
 #[command(name = "cargo xtask", version, about, long_about = None)]
@@ -44,6 +47,40 @@ enum Task {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// Build a firmware board's release images (every pin-map variant, or one) into
+    /// target/firmware/<board>-<variant>.elf.
+    Build {
+        /// The board: stm32f4.
+        board: String,
+        /// Only this pin-map variant (Cargo feature), e.g. blackpill or qemu.
+        #[arg(long)]
+        variant: Option<String>,
+    },
+    /// Build a board's hardware image and write it with probe-rs through a debug probe
+    /// (installs probe-rs-tools when it is missing).
+    Flash {
+        /// The board: stm32f4.
+        board: String,
+        /// The pin-map variant (default: the board's first hardware one).
+        #[arg(long)]
+        variant: Option<String>,
+    },
+    /// Build a board's QEMU image and run it in qemu-system-arm, its host UART on a local TCP
+    /// port; QEMU starts the firmware when a client connects.
+    Qemu {
+        /// The board: stm32f4.
+        board: String,
+        /// TCP port of the host link on 127.0.0.1 (0: pick a free one).
+        #[arg(long, default_value_t = 2324)]
+        port: u16,
+        /// Instead of running interactively, run the end-to-end check that `test` runs: boot,
+        /// wait for `start`, stream bytes and check that the firmware received them.
+        #[arg(long)]
+        check: bool,
+    },
+    /// Build every firmware release image and print its flash and RAM use against the
+    /// smallest chip it must fit (fails when one does not).
+    Size,
 }
 
 /// Portable crates that must build for every firmware target.
@@ -67,6 +104,10 @@ fn main() -> ExitCode {
         Task::Sim { args } => sim(&args),
         Task::Fuzz { seconds, target } => fuzz(seconds, target.as_deref()),
         Task::Bench { args } => bench(&args),
+        Task::Build { board, variant } => firmware::build(&board, variant.as_deref()),
+        Task::Flash { board, variant } => firmware::flash(&board, variant.as_deref()),
+        Task::Qemu { board, port, check } => firmware::run_qemu(&board, port, check),
+        Task::Size => firmware::size(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -85,32 +126,52 @@ fn root() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from("."))
 }
 
-/// A command run from `dir`, described by `what` when it fails.
+/// A command, or a check run in this process, described by `what` when it fails.
 struct Step {
     what: String,
-    cmd: Command,
+    action: Action,
+}
+
+enum Action {
+    Command(Command),
+    Call(Box<dyn FnOnce() -> Result<(), String>>),
 }
 
 impl Step {
     fn cargo(what: impl Into<String>, args: &[&str]) -> Self {
         let mut cmd = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
         cmd.args(args).current_dir(root());
+        Self::command(what.into(), cmd)
+    }
+
+    fn command(what: String, cmd: Command) -> Self {
         Self {
-            what: what.into(),
-            cmd,
+            what,
+            action: Action::Command(cmd),
         }
     }
 
-    fn run(mut self) -> Result<(), String> {
+    fn call(what: String, check: impl FnOnce() -> Result<(), String> + 'static) -> Self {
+        Self {
+            what,
+            action: Action::Call(Box::new(check)),
+        }
+    }
+
+    fn run(self) -> Result<(), String> {
         eprintln!("\n==> {}", self.what);
-        let status = self
-            .cmd
-            .status()
-            .map_err(|e| format!("{}: could not start: {e}", self.what))?;
-        if status.success() {
-            Ok(())
-        } else {
-            Err(format!("{} failed ({status})", self.what))
+        match self.action {
+            Action::Command(mut cmd) => {
+                let status = cmd
+                    .status()
+                    .map_err(|e| format!("{}: could not start: {e}", self.what))?;
+                if status.success() {
+                    Ok(())
+                } else {
+                    Err(format!("{} failed ({status})", self.what))
+                }
+            }
+            Action::Call(check) => check().map_err(|e| format!("{}: {e}", self.what)),
         }
     }
 }
@@ -143,6 +204,7 @@ fn test() -> Result<(), String> {
         }
         steps.push(Step::cargo(format!("portable crates on {target}"), &args));
     }
+    steps.extend(firmware::test_steps());
     run_all(steps)
 }
 

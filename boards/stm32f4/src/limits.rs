@@ -1,0 +1,70 @@
+//! Limit switch inputs: debounced [`LimitInput`]s, and their EXTI lines.
+//!
+//! The step interrupt polls the switches (homing, hard limits); the EXTI interrupt on either
+//! edge of any switch input wakes the thread side when a switch changes while nothing polls
+//! them, so that a switch hit while idle (a machine pushed by hand) is seen at once.
+//!
+//! In QEMU the GPIO inputs read low and never change: the pin map's polarity makes that the
+//! released state.
+
+use core::sync::atomic::{AtomicU32, Ordering};
+
+use forja_drivers::limit::{LimitConfig, LimitInput};
+use stm32f4xx_hal::gpio::{Edge, ErasedPin, ExtiPin, Input, PinExt};
+use stm32f4xx_hal::pac::EXTI;
+use stm32f4xx_hal::syscfg::SysCfg;
+
+use crate::board::{LIMIT_POLARITY, LIMITS};
+
+/// Samples that must agree before a switch changes state (at the step rate, a few tens of µs).
+pub const DEBOUNCE_SAMPLES: u8 = 3;
+
+/// One limit switch.
+pub type Limit = LimitInput<ErasedPin<Input>>;
+
+/// EXTI lines that fired since the thread side last looked, one bit per line.
+static FIRED: AtomicU32 = AtomicU32::new(0);
+
+/// The limit switch inputs and their EXTI lines.
+pub struct Limits {
+    /// The switches, in axis order.
+    pub switches: [Limit; LIMITS],
+    lines: u32,
+}
+
+impl Limits {
+    /// Configure each pin as an EXTI source on both edges and wrap it in a [`LimitInput`].
+    ///
+    /// Context: init.
+    pub fn new(pins: [ErasedPin<Input>; LIMITS], syscfg: &mut SysCfg, exti: &mut EXTI) -> Self {
+        let mut lines = 0;
+        let config = LimitConfig::new(LIMIT_POLARITY, DEBOUNCE_SAMPLES);
+        let switches = pins.map(|mut pin| {
+            pin.make_interrupt_source(syscfg);
+            pin.trigger_on_edge(exti, Edge::RisingFalling);
+            pin.enable_interrupt(exti);
+            lines |= 1 << pin.pin_id();
+            LimitInput::new(pin, config)
+        });
+        Self { switches, lines }
+    }
+
+    /// Acknowledge the switch lines of an EXTI interrupt and remember them for the thread side.
+    ///
+    /// Context: the EXTI interrupts of the switch lines. Two register accesses.
+    pub fn on_interrupt(&mut self) {
+        // SAFETY: EXTI_PR is write-1-to-clear; only the switch lines are cleared, and EXTI
+        // has no other user.
+        let exti = unsafe { &*EXTI::ptr() };
+        let pending = exti.pr().read().bits() & self.lines;
+        exti.pr().write(|w| unsafe { w.bits(pending) });
+        FIRED.fetch_or(pending, Ordering::Relaxed);
+    }
+}
+
+/// Take the set of EXTI lines that fired since the last call (bit *n* = line *n*).
+///
+/// Context: thread.
+pub fn take_fired() -> u32 {
+    FIRED.swap(0, Ordering::Relaxed)
+}
