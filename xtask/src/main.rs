@@ -144,6 +144,16 @@ impl Step {
         Self::command(what.into(), cmd)
     }
 
+    /// `cargo +<toolchain> …` through the rustup proxy: the `cargo` that runs xtask (`$CARGO`)
+    /// is a toolchain's own binary and does not understand `+toolchain`.
+    fn cargo_on(toolchain: &str, what: impl Into<String>, args: &[&str]) -> Self {
+        let mut cmd = Command::new("cargo");
+        cmd.arg(format!("+{toolchain}"))
+            .args(args)
+            .current_dir(root());
+        Self::command(what.into(), cmd)
+    }
+
     fn command(what: String, cmd: Command) -> Self {
         Self {
             what,
@@ -277,9 +287,10 @@ fn fuzz(seconds: u64, only: Option<&str>) -> Result<(), String> {
     };
     let max_time = format!("-max_total_time={seconds}");
     for target in chosen {
-        Step::cargo(
+        Step::cargo_on(
+            "nightly",
             format!("fuzz {target} for {seconds} s"),
-            &["+nightly", "fuzz", "run", target, "--", &max_time],
+            &["fuzz", "run", target, "--", &max_time],
         )
         .run()?;
     }

@@ -1,0 +1,973 @@
+//! RepRap G-code lines (seed `003_…txt`): words, comments, `N` line numbers with the `*`
+//! checksum, and line-number continuity.
+//!
+//! ```
+//! use forja_protocol::gcode::{Line, LineNumbering};
+//!
+//! let line = Line::parse(b"N7 G1 X2.0 Y2.0 F3000.0*85").unwrap();
+//! assert_eq!(line.number(), Some(7));
+//! assert_eq!(line.get(b'F').unwrap().to_f32(), 3000.0);
+//!
+//! let mut numbering = LineNumbering::new();
+//! numbering.set_expected(7);
+//! assert!(numbering.accept(&line).is_ok());
+//! assert_eq!(numbering.expected(), 8);
+//!
+//! let mut out = [0u8; 64];
+//! let n = line.encode(&mut out).unwrap();
+//! assert_eq!(&out[..n], b"N7 G1 X2.0 Y2.0 F3000.0*85");
+//! ```
+
+use heapless::Vec;
+
+pub use crate::decimal::{Decimal, MAX_SCALE};
+use crate::decimal::{NumberError, parse_prefix};
+pub use crate::error::{EncodeError, LineError};
+use crate::write::{Cursor, Sink, Xor};
+
+/// The longest line accepted, in bytes, terminator excluded. A longer line is
+/// [`LineError::TooLong`], never truncated.
+pub const MAX_LINE_LEN: usize = 256;
+
+/// The most words one line may hold (the `N` line number not counted).
+pub const MAX_WORDS: usize = 32;
+
+/// The M-codes whose argument is free text rather than words: `M23`, `M28`, `M29`, `M30`
+/// (file names) and `M117` (a message). See [`Line::text_arg`].
+pub const TEXT_COMMANDS: [i64; 5] = [23, 28, 29, 30, 117];
+
+/// The checksum of a line: the XOR of every byte of `bytes` up to, not including, the first `*`
+/// (the seed's C snippet, byte for byte).
+pub fn checksum(bytes: &[u8]) -> u8 {
+    bytes
+        .iter()
+        .take_while(|&&b| b != b'*')
+        .fold(0, |cs, &b| cs ^ b)
+}
+
+/// One word: a letter and its number, such as `G1`, `X-2.5` or `F3000.0`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Word {
+    /// The letter, ASCII upper case (lower case input is folded).
+    pub letter: u8,
+    /// The number, exactly as written.
+    pub value: Decimal,
+}
+
+impl Word {
+    /// A word from its parts (`letter` should be an upper-case ASCII letter).
+    pub const fn new(letter: u8, value: Decimal) -> Self {
+        Self { letter, value }
+    }
+
+    /// Whether this word is `letter` followed by the integer `number` (`G1`, `M110`, `G1.0`).
+    pub fn is(&self, letter: u8, number: i64) -> bool {
+        self.letter == letter.to_ascii_uppercase() && self.value.as_integer() == Some(number)
+    }
+
+    fn write<S: Sink>(&self, out: &mut S) -> Result<(), EncodeError> {
+        out.put(self.letter)?;
+        self.value.write_checked(out)
+    }
+}
+
+/// One G-code line, parsed.
+///
+/// Holds the line number, the words in order (comments dropped) and, for the commands of
+/// [`TEXT_COMMANDS`], the free text after the command word, borrowed from the input.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Line<'a> {
+    /// `-1..=u32::MAX`; `-1` only on an `M110` line.
+    number: Option<i64>,
+    words: Vec<Word, MAX_WORDS, u8>,
+    text: Option<&'a [u8]>,
+}
+
+impl<'a> Line<'a> {
+    /// Parse one line without its terminator (a trailing CR or LF is tolerated and ignored).
+    ///
+    /// - Words are a letter and a number (`[+-]digits[.digits]`); spaces between words are
+    ///   optional, letters are folded to upper case.
+    /// - `;` comments run to the end of the line, `(…)` comments to the next `)`.
+    /// - The checksum marker is the first `*` (in a `;` comment, only when a checksum follows
+    ///   it). The checksum is checked first, then the presence of both `N` and `*` or neither,
+    ///   then the body.
+    /// - `N` must be the first word; an `N` word further on (`M110 N0`) is a parameter and is
+    ///   kept in [`words`](Self::words).
+    /// - After one of [`TEXT_COMMANDS`] the rest of the line (up to `*` or `;`) is its text.
+    pub fn parse(bytes: &'a [u8]) -> Result<Line<'a>, LineError> {
+        let bytes = trim_terminators(bytes);
+        if bytes.len() > MAX_LINE_LEN {
+            return Err(LineError::TooLong);
+        }
+        let marker = checksum_marker(bytes)?;
+        let body = match marker {
+            Some((at, received)) => {
+                let (body, _) = bytes.split_at_checked(at).unwrap_or((bytes, &[]));
+                let computed = checksum(body);
+                if computed != received {
+                    return Err(LineError::ChecksumMismatch { computed, received });
+                }
+                body
+            }
+            None => bytes,
+        };
+        let (number, rest) = parse_line_number(body)?;
+        match (number, marker) {
+            (Some(_), None) => return Err(LineError::MissingChecksum),
+            (None, Some(_)) => return Err(LineError::MissingLineNumber),
+            _ => {}
+        }
+        let line = number.and_then(|n| u32::try_from(n).ok());
+        let (words, text) = parse_body(rest, line)?;
+        if number == Some(-1) && !words.first().is_some_and(|w| w.is(b'M', 110)) {
+            return Err(LineError::BadLineNumber);
+        }
+        Ok(Line {
+            number,
+            words,
+            text,
+        })
+    }
+
+    /// A line from its parts, to be [encoded](Self::encode) (a host sending a program).
+    ///
+    /// `words` must not include the line number. `text` is for a line whose only word is one
+    /// of [`TEXT_COMMANDS`]; it must be printable ASCII without `*` or `;`, and without
+    /// surrounding spaces. Fails with [`EncodeError::TooLong`] beyond [`MAX_WORDS`],
+    /// [`EncodeError::OutOfRange`] for a letter that is not upper-case ASCII, a first word `N`
+    /// (it would read back as the line number) or words after a text command,
+    /// [`EncodeError::InvalidText`] for a bad text or a text after another command.
+    pub fn from_parts(
+        number: Option<u32>,
+        words: &[Word],
+        text: Option<&'a [u8]>,
+    ) -> Result<Line<'a>, EncodeError> {
+        let takes_text = words.first().is_some_and(is_text_command);
+        let misplaced =
+            words.first().is_some_and(|w| w.letter == b'N') || (takes_text && words.len() > 1);
+        if misplaced || words.iter().any(|w| !w.letter.is_ascii_uppercase()) {
+            return Err(EncodeError::OutOfRange);
+        }
+        let text = text.filter(|t| !t.is_empty());
+        if let Some(t) = text {
+            let printable = t
+                .iter()
+                .all(|&b| (b' '..=b'~').contains(&b) && b != b'*' && b != b';');
+            if !takes_text || !printable || trim(t).len() != t.len() {
+                return Err(EncodeError::InvalidText);
+            }
+        }
+        Ok(Line {
+            number: number.map(i64::from),
+            words: Vec::from_slice(words).map_err(|_| EncodeError::TooLong)?,
+            text,
+        })
+    }
+
+    /// The line number, if the line has one (`None` too for the `N-1 M110` reset that some
+    /// hosts send, after which line 0 is expected).
+    pub fn number(&self) -> Option<u32> {
+        self.number.and_then(|n| u32::try_from(n).ok())
+    }
+
+    /// The checksum of the line as [encoded](Self::encode), for a numbered line. For a line
+    /// received in canonical form this is the checksum it carried; [`parse`](Self::parse) has
+    /// checked the one it carried either way.
+    pub fn checksum(&self) -> Option<u8> {
+        self.number?;
+        let mut xor = Xor::default();
+        self.write_body(&mut xor).ok()?;
+        Some(xor.value)
+    }
+
+    /// The words in order, without the `N` line number.
+    pub fn words(&self) -> &[Word] {
+        &self.words
+    }
+
+    /// The number of the first word with `letter` (upper or lower case).
+    pub fn get(&self, letter: u8) -> Option<Decimal> {
+        let letter = letter.to_ascii_uppercase();
+        self.words
+            .iter()
+            .find(|w| w.letter == letter)
+            .map(|w| w.value)
+    }
+
+    /// Whether a word with `letter` is present.
+    pub fn has(&self, letter: u8) -> bool {
+        self.get(letter).is_some()
+    }
+
+    /// The command word: the first word, when it is a `G`, `M` or `T` word.
+    pub fn command(&self) -> Option<Word> {
+        self.words
+            .first()
+            .filter(|w| matches!(w.letter, b'G' | b'M' | b'T'))
+            .copied()
+    }
+
+    /// Whether the command word is `letter` + `number` (`line.is_command(b'M', 110)`).
+    pub fn is_command(&self, letter: u8, number: i64) -> bool {
+        self.command().is_some_and(|w| w.is(letter, number))
+    }
+
+    /// Whether the line holds nothing: blank, comments only, or a line number alone.
+    pub fn is_empty(&self) -> bool {
+        self.words.is_empty() && self.text.is_none()
+    }
+
+    /// The free text of a command of [`TEXT_COMMANDS`] (the `M117` message, the `M23`/`M28`/
+    /// `M29`/`M30` file name): the bytes after the command word, up to `*` or `;`, trimmed of
+    /// spaces and tabs. `None` for other commands and when the text is empty.
+    pub fn text_arg(&self) -> Option<&'a [u8]> {
+        self.text
+    }
+
+    /// Write the canonical form into `out` and return its length: `N<n>` if numbered, the
+    /// words separated by one space, the text after one space, then `*<checksum>` if numbered.
+    /// No terminator is written. `"N3 T0*57"` encodes to itself.
+    ///
+    /// Fails with [`EncodeError::BufferTooSmall`] when `out` is too small and
+    /// [`EncodeError::TooLong`] when the result exceeds [`MAX_LINE_LEN`].
+    pub fn encode(&self, out: &mut [u8]) -> Result<usize, EncodeError> {
+        let mut cursor = Cursor::new(out);
+        self.write_body(&mut cursor)?;
+        if self.number.is_some() {
+            let cs = checksum(cursor.written());
+            cursor.put(b'*')?;
+            cursor.put_u64(u64::from(cs))?;
+        }
+        if cursor.len() > MAX_LINE_LEN {
+            return Err(EncodeError::TooLong);
+        }
+        Ok(cursor.len())
+    }
+
+    fn write_body<S: Sink>(&self, out: &mut S) -> Result<(), EncodeError> {
+        let mut first = true;
+        if let Some(n) = self.number {
+            out.put(b'N')?;
+            out.put_i64(n)?;
+            first = false;
+        }
+        for word in &self.words {
+            if !first {
+                out.put(b' ')?;
+            }
+            word.write(out)?;
+            first = false;
+        }
+        if let Some(text) = self.text {
+            out.put(b' ')?;
+            out.put_all(text)?;
+        }
+        Ok(())
+    }
+}
+
+/// Write `body` (one line of a program, without terminator) as numbered line `number`:
+/// `N<number> <body>*<checksum>`, with the body's comments and surrounding spaces removed.
+/// What a host sends when it streams a file with line numbers. Returns the length written.
+pub fn write_numbered(number: u32, body: &[u8], out: &mut [u8]) -> Result<usize, EncodeError> {
+    let body = trim(strip_comments(body));
+    if body.contains(&b'*') || body.iter().any(|&b| b < b' ' && b != b'\t') {
+        return Err(EncodeError::InvalidText);
+    }
+    let mut cursor = Cursor::new(out);
+    cursor.put(b'N')?;
+    cursor.put_u64(u64::from(number))?;
+    if !body.is_empty() {
+        cursor.put(b' ')?;
+        cursor.put_all(body)?;
+    }
+    let cs = checksum(cursor.written());
+    cursor.put(b'*')?;
+    cursor.put_u64(u64::from(cs))?;
+    if cursor.len() > MAX_LINE_LEN {
+        return Err(EncodeError::TooLong);
+    }
+    Ok(cursor.len())
+}
+
+/// `bytes` up to its first `;` comment, with `(…)` comments kept (they may be text).
+fn strip_comments(bytes: &[u8]) -> &[u8] {
+    let end = bytes.iter().position(|&b| b == b';').unwrap_or(bytes.len());
+    bytes.get(..end).unwrap_or(bytes)
+}
+
+fn trim_terminators(mut bytes: &[u8]) -> &[u8] {
+    while let [rest @ .., b'\r' | b'\n'] = bytes {
+        bytes = rest;
+    }
+    bytes
+}
+
+fn is_blank(b: u8) -> bool {
+    b == b' ' || b == b'\t'
+}
+
+fn trim(mut bytes: &[u8]) -> &[u8] {
+    while let [first, rest @ ..] = bytes {
+        if !is_blank(*first) {
+            break;
+        }
+        bytes = rest;
+    }
+    while let [rest @ .., last] = bytes {
+        if !is_blank(*last) {
+            break;
+        }
+        bytes = rest;
+    }
+    bytes
+}
+
+/// The checksum marker and the checksum after it, if the line has them.
+///
+/// The marker is the first `*` of the line, as in the seed's C snippet. A `*` inside a `;`
+/// comment is the marker only when a well-formed checksum follows it (so that a line whose `N`
+/// was damaged into `;` is still caught); otherwise it is comment text.
+fn checksum_marker(bytes: &[u8]) -> Result<Option<(usize, u8)>, LineError> {
+    let Some(at) = bytes.iter().position(|&b| b == b'*') else {
+        return Ok(None);
+    };
+    let in_comment = bytes.iter().take(at).any(|&b| b == b';');
+    match parse_checksum_field(bytes.get(at + 1..).unwrap_or(&[])) {
+        Ok(received) => Ok(Some((at, received))),
+        Err(_) if in_comment => Ok(None),
+        Err(e) => Err(e),
+    }
+}
+
+/// The number after `*`: 1 to 3 digits, at most 255, then only spaces and a comment.
+fn parse_checksum_field(field: &[u8]) -> Result<u8, LineError> {
+    let digits = field.iter().take_while(|b| b.is_ascii_digit()).count();
+    if !(1..=3).contains(&digits) {
+        return Err(LineError::BadChecksum);
+    }
+    let value = field
+        .iter()
+        .take(digits)
+        .fold(0u16, |v, &b| v * 10 + u16::from(b - b'0'));
+    let after = trim(field.get(digits..).unwrap_or(&[]));
+    if !matches!(after.first(), None | Some(b';' | b'(')) {
+        return Err(LineError::BadChecksum);
+    }
+    u8::try_from(value).map_err(|_| LineError::BadChecksum)
+}
+
+/// `bytes` after its leading spaces, tabs and closed `(…)` comments.
+fn skip_blanks_and_comments(mut bytes: &[u8]) -> &[u8] {
+    loop {
+        match bytes.split_first() {
+            Some((b, rest)) if is_blank(*b) => bytes = rest,
+            Some((b'(', rest)) => match rest.iter().position(|&c| c == b')') {
+                Some(close) => bytes = rest.get(close + 1..).unwrap_or(&[]),
+                None => return bytes,
+            },
+            _ => return bytes,
+        }
+    }
+}
+
+/// The leading `N` word (the first word, after any comment), if any, and the bytes after it.
+fn parse_line_number(body: &[u8]) -> Result<(Option<i64>, &[u8]), LineError> {
+    let rest = skip_blanks_and_comments(body);
+    let Some((b'N' | b'n', after)) = rest.split_first() else {
+        return Ok((None, body));
+    };
+    let (negative, digits_from) = match after.first() {
+        Some(b'-') => (true, 1),
+        _ => (false, 0),
+    };
+    let digits = after
+        .get(digits_from..)
+        .unwrap_or(&[])
+        .iter()
+        .take_while(|b| b.is_ascii_digit())
+        .count();
+    let end = digits_from + digits;
+    let delimited = match after.get(end) {
+        None => true,
+        Some(&b) => is_blank(b) || b.is_ascii_alphabetic() || matches!(b, b'(' | b';'),
+    };
+    if digits == 0 || digits > 10 || !delimited {
+        return Err(LineError::BadLineNumber);
+    }
+    let magnitude = after
+        .get(digits_from..end)
+        .unwrap_or(&[])
+        .iter()
+        .fold(0i64, |v, &b| v * 10 + i64::from(b - b'0'));
+    let value = if negative { -magnitude } else { magnitude };
+    if !(-1..=i64::from(u32::MAX)).contains(&value) {
+        return Err(LineError::BadLineNumber);
+    }
+    Ok((Some(value), after.get(end..).unwrap_or(&[])))
+}
+
+type Words = Vec<Word, MAX_WORDS, u8>;
+
+/// The words of a line body (after the line number, before the checksum marker).
+fn parse_body(body: &[u8], line: Option<u32>) -> Result<(Words, Option<&[u8]>), LineError> {
+    let mut words = Words::new();
+    let mut i = 0;
+    while let Some(&b) = body.get(i) {
+        match b {
+            b' ' | b'\t' => i += 1,
+            b';' => break,
+            b'(' => {
+                let close = body
+                    .get(i..)
+                    .and_then(|rest| rest.iter().position(|&c| c == b')'))
+                    .ok_or(LineError::UnclosedComment { line })?;
+                i += close + 1;
+            }
+            b'A'..=b'Z' | b'a'..=b'z' => {
+                let (value, used) =
+                    parse_prefix(body.get(i + 1..).unwrap_or(&[])).map_err(|e| match e {
+                        NumberError::NoDigits => LineError::MissingValue { line },
+                        NumberError::OutOfRange => LineError::NumberOutOfRange { line },
+                    })?;
+                let word = Word::new(b.to_ascii_uppercase(), value);
+                words
+                    .push(word)
+                    .map_err(|_| LineError::TooManyWords { line })?;
+                i += 1 + used;
+                if words.len() == 1 && is_text_command(&word) {
+                    let text = parse_text(body.get(i..).unwrap_or(&[]), line)?;
+                    return Ok((words, text));
+                }
+            }
+            _ => return Err(LineError::UnexpectedCharacter { line }),
+        }
+    }
+    Ok((words, None))
+}
+
+fn is_text_command(word: &Word) -> bool {
+    word.letter == b'M'
+        && word
+            .value
+            .as_integer()
+            .is_some_and(|n| TEXT_COMMANDS.contains(&n))
+}
+
+/// The free text of a text command: up to `;`, trimmed, no control bytes.
+fn parse_text(rest: &[u8], line: Option<u32>) -> Result<Option<&[u8]>, LineError> {
+    let text = trim(strip_comments(rest));
+    if text.iter().any(|&b| (b < b' ' && b != b'\t') || b == 0x7f) {
+        return Err(LineError::UnexpectedCharacter { line });
+    }
+    Ok((!text.is_empty()).then_some(text))
+}
+
+/// What to answer for a line that could not be taken, from
+/// [`LineNumbering::recover`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[non_exhaustive]
+pub enum Recovery {
+    /// Ask for this line again: reply `rs <line>` (see [`crate::reply::Reply::Resend`]).
+    Resend(u32),
+    /// The line arrived but cannot be run: report the error and reply `ok`, so that the host
+    /// goes on (see [`crate::reply::Reply::Notice`]). Resending it would not help.
+    Reject,
+}
+
+/// Line-number continuity for one link.
+///
+/// After [`new`](Self::new) the first line expected is 1 (a host that starts otherwise sends
+/// `M110` first: `M110 N0`, `N0 M110` or `N-1 M110`). Each accepted numbered line moves the
+/// expectation to its number plus one (wrapping after `u32::MAX`); lines without a number are
+/// not checked and do not move it. An `M110` line is always accepted and sets the counter: to
+/// its `N` parameter if it has one (`M110 N100`: line 101 is next), else to its own line number
+/// (`N123 M110`: line 124 is next).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct LineNumbering {
+    expected: u32,
+    numbered: bool,
+}
+
+impl Default for LineNumbering {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl LineNumbering {
+    /// A fresh link: line 1 is expected.
+    pub const fn new() -> Self {
+        Self {
+            expected: 1,
+            numbered: false,
+        }
+    }
+
+    /// Check a parsed line. `Ok(())` takes it (and advances the counter if numbered);
+    /// [`LineError::OutOfOrder`] means it must not be run and `expected` must be asked again.
+    /// An `M110` with an `N` parameter that is not an integer in `-1..=u32::MAX` is
+    /// [`LineError::BadLineNumber`].
+    pub fn accept(&mut self, line: &Line<'_>) -> Result<(), LineError> {
+        if line.is_command(b'M', 110) {
+            let current = match line.get(b'N') {
+                Some(param) => Some(
+                    param
+                        .as_integer()
+                        .filter(|n| (-1..=i64::from(u32::MAX)).contains(n))
+                        .ok_or(LineError::BadLineNumber)?,
+                ),
+                None => line.number,
+            };
+            if let Some(current) = current {
+                // -1 + 1 = 0; u32::MAX + 1 wraps to 0 like any other line.
+                self.expected = (current + 1) as u32;
+            }
+            self.numbered |= line.number.is_some();
+            return Ok(());
+        }
+        let Some(got) = line.number() else {
+            return Ok(());
+        };
+        if got != self.expected {
+            return Err(LineError::OutOfOrder {
+                expected: self.expected,
+                got,
+            });
+        }
+        self.expected = got.wrapping_add(1);
+        self.numbered = true;
+        Ok(())
+    }
+
+    /// The line number expected next.
+    pub fn expected(&self) -> u32 {
+        self.expected
+    }
+
+    /// Expect `line` next (as if `N<line - 1> M110` had been received).
+    pub fn set_expected(&mut self, line: u32) {
+        self.expected = line;
+    }
+
+    /// What to answer for a line that failed [`Line::parse`] or [`accept`](Self::accept) (or
+    /// for a [`crate::stream::Event::TooLong`], as [`LineError::TooLong`]):
+    ///
+    /// - a framing error (damaged checksum, `N` or `*` field, line out of order) asks a resend
+    ///   of the expected line;
+    /// - a line too long asks a resend if the host numbers its lines (a lost terminator is the
+    ///   likely cause), else is rejected;
+    /// - a body error on an intact line is rejected; if that line carried the expected number
+    ///   the counter moves past it, so that the host's next line is in order; if it carried
+    ///   another number, the expected line is asked again.
+    pub fn recover(&mut self, error: &LineError) -> Recovery {
+        match *error {
+            LineError::TooLong if !self.numbered => Recovery::Reject,
+            LineError::OutOfOrder { expected, .. } => Recovery::Resend(expected),
+            e if e.is_framing() => Recovery::Resend(self.expected),
+            e => match e.line() {
+                Some(n) if n == self.expected => {
+                    self.expected = n.wrapping_add(1);
+                    Recovery::Reject
+                }
+                Some(_) => Recovery::Resend(self.expected),
+                None => Recovery::Reject,
+            },
+        }
+    }
+
+    /// What to answer for a [`crate::stream::Event::Garbage`] on a G-code link: the dropped
+    /// bytes may have held a line, so a host that numbers its lines is asked to resend the
+    /// expected one (harmless if it was not sent yet: it is the next line anyway); a host that
+    /// does not number them cannot resend, and the garbage is only reported.
+    pub fn recover_garbage(&self) -> Recovery {
+        if self.numbered {
+            Recovery::Resend(self.expected)
+        } else {
+            Recovery::Reject
+        }
+    }
+
+    /// Whether the host numbers its lines (a numbered line has been accepted).
+    pub fn is_numbered(&self) -> bool {
+        self.numbered
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::panic, clippy::indexing_slicing)]
+mod tests {
+    extern crate std;
+    use std::vec::Vec as StdVec;
+
+    use super::*;
+
+    const SEED_BLOCK: [&str; 6] = [
+        "N3 T0*57",
+        "N4 G92 E0*67",
+        "N5 G28*22",
+        "N6 G1 F1500.0*82",
+        "N7 G1 X2.0 Y2.0 F3000.0*85",
+        "N8 G1 X3.0 Y3.0*33",
+    ];
+
+    fn w(letter: u8, m: i64, s: u8) -> Word {
+        Word::new(letter, Decimal::new(m, s))
+    }
+
+    fn encode(line: &Line<'_>) -> StdVec<u8> {
+        let mut out = [0u8; 300];
+        let n = line.encode(&mut out).unwrap();
+        out[..n].to_vec()
+    }
+
+    #[test]
+    fn the_seed_block_decodes_and_re_encodes_byte_for_byte() {
+        let expected: [(u32, &[Word]); 6] = [
+            (3, &[w(b'T', 0, 0)]),
+            (4, &[w(b'G', 92, 0), w(b'E', 0, 0)]),
+            (5, &[w(b'G', 28, 0)]),
+            (6, &[w(b'G', 1, 0), w(b'F', 15000, 1)]),
+            (
+                7,
+                &[
+                    w(b'G', 1, 0),
+                    w(b'X', 20, 1),
+                    w(b'Y', 20, 1),
+                    w(b'F', 30000, 1),
+                ],
+            ),
+            (8, &[w(b'G', 1, 0), w(b'X', 30, 1), w(b'Y', 30, 1)]),
+        ];
+        let mut numbering = LineNumbering::new();
+        numbering.set_expected(3);
+        for (text, (number, words)) in SEED_BLOCK.iter().zip(expected) {
+            let line = Line::parse(text.as_bytes()).unwrap();
+            assert_eq!(line.number(), Some(number));
+            assert_eq!(line.words(), words);
+            let cs: u8 = text.rsplit('*').next().unwrap().parse().unwrap();
+            assert_eq!(line.checksum(), Some(cs));
+            assert_eq!(encode(&line), text.as_bytes());
+            numbering.accept(&line).unwrap();
+        }
+        assert_eq!(numbering.expected(), 9);
+    }
+
+    #[test]
+    fn the_seed_comment_examples() {
+        let line = Line::parse(b"N3 T0*57 ;This is a comment").unwrap();
+        assert_eq!(line.words(), &[w(b'T', 0, 0)]);
+        assert!(Line::parse(b"; So is this").unwrap().is_empty());
+        assert!(Line::parse(b"").unwrap().is_empty());
+        assert!(Line::parse(b"   \t").unwrap().is_empty());
+        let line = Line::parse(b"G1 (move) X5 (fast) F3000 ; done").unwrap();
+        assert_eq!(
+            line.words(),
+            &[w(b'G', 1, 0), w(b'X', 5, 0), w(b'F', 3000, 0)]
+        );
+    }
+
+    #[test]
+    fn terminators_and_case() {
+        for text in [
+            &b"g1 x90.6 y13.8 e22.4\r\n"[..],
+            b"G1 X90.6 Y13.8 E22.4\n",
+            b"G1X90.6Y13.8E22.4\r",
+        ] {
+            let line = Line::parse(text).unwrap();
+            assert_eq!(encode(&line), b"G1 X90.6 Y13.8 E22.4");
+        }
+    }
+
+    #[test]
+    fn both_or_neither() {
+        assert_eq!(Line::parse(b"N5 G28"), Err(LineError::MissingChecksum));
+        let computed = checksum(b"G28");
+        assert_eq!(
+            Line::parse(b"G28*22"),
+            Err(LineError::ChecksumMismatch {
+                computed,
+                received: 22
+            })
+        );
+        let unnumbered = std::format!("G28*{computed}");
+        assert_eq!(
+            Line::parse(unnumbered.as_bytes()),
+            Err(LineError::MissingLineNumber)
+        );
+        assert_eq!(
+            Line::parse(b"N5 G28*23"),
+            Err(LineError::ChecksumMismatch {
+                computed: 22,
+                received: 23
+            })
+        );
+        assert_eq!(Line::parse(b"N5 G28*"), Err(LineError::BadChecksum));
+        assert_eq!(Line::parse(b"N5 G28*256"), Err(LineError::BadChecksum));
+        assert_eq!(Line::parse(b"N5 G28*22x"), Err(LineError::BadChecksum));
+        assert_eq!(Line::parse(b"N5 G28*22 x"), Err(LineError::BadChecksum));
+        assert!(Line::parse(b"N5 G28*22 (ok) ").is_ok());
+        // A `*` inside a `;` comment is comment text, unless a checksum follows it.
+        assert_eq!(
+            Line::parse(b"N5 G28 ; a*b"),
+            Err(LineError::MissingChecksum)
+        );
+        assert!(Line::parse(b"G28 ; a*b").is_ok());
+        assert!(Line::parse(b"; ***** header *****").unwrap().is_empty());
+        assert_eq!(
+            Line::parse(b";3 T0*57"),
+            Err(LineError::ChecksumMismatch {
+                computed: checksum(b";3 T0"),
+                received: 57
+            })
+        );
+    }
+
+    #[test]
+    fn line_numbers() {
+        assert_eq!(
+            Line::parse(b"N G1*99"),
+            Err(LineError::ChecksumMismatch {
+                computed: checksum(b"N G1"),
+                received: 99
+            })
+        );
+        let mut buf = [0u8; 64];
+        for body in [
+            &b"N1.5 G1"[..],
+            b"N G1",
+            b"N-2 G1",
+            b"N4294967296 G1",
+            b"N-1 G1",
+        ] {
+            let cs = checksum(body);
+            let mut line = body.to_vec();
+            line.push(b'*');
+            line.extend_from_slice(cs.to_string().as_bytes());
+            assert_eq!(
+                Line::parse(&line),
+                Err(LineError::BadLineNumber),
+                "{:?}",
+                std::str::from_utf8(body)
+            );
+        }
+        let n = write_numbered(4_294_967_295, b"G1", &mut buf).unwrap();
+        assert_eq!(Line::parse(&buf[..n]).unwrap().number(), Some(u32::MAX));
+        let n = write_numbered(12, b"G1X5", &mut buf).unwrap();
+        let line = Line::parse(&buf[..n]).unwrap();
+        assert_eq!(line.words(), &[w(b'G', 1, 0), w(b'X', 5, 0)]);
+        // The first word, even after a comment, is the line number.
+        assert_eq!(Line::parse(b"(c) N-9"), Err(LineError::BadLineNumber));
+        assert_eq!(Line::parse(b"(c)N5 G1*79").map(|l| l.number()), Ok(Some(5)));
+        // No space needed after the number.
+        let line = Line::parse(b"N12G1X5*86").unwrap();
+        assert_eq!(line.number(), Some(12));
+    }
+
+    use std::string::ToString;
+
+    #[test]
+    fn words_and_errors() {
+        assert_eq!(
+            Line::parse(b"G1 X"),
+            Err(LineError::MissingValue { line: None })
+        );
+        assert_eq!(
+            Line::parse(b"G1 X-"),
+            Err(LineError::MissingValue { line: None })
+        );
+        assert_eq!(
+            Line::parse(b"G1 #5"),
+            Err(LineError::UnexpectedCharacter { line: None })
+        );
+        assert_eq!(
+            Line::parse(b"G1 X1.2.3"),
+            Err(LineError::UnexpectedCharacter { line: None })
+        );
+        assert_eq!(
+            Line::parse("G1 X1 é".as_bytes()),
+            Err(LineError::UnexpectedCharacter { line: None })
+        );
+        assert!(Line::parse("G1 X1 ; é".as_bytes()).is_ok());
+        assert_eq!(
+            Line::parse(b"G1 (x"),
+            Err(LineError::UnclosedComment { line: None })
+        );
+        assert_eq!(
+            Line::parse(b"G1 X0.0000000000000000001"),
+            Err(LineError::NumberOutOfRange { line: None })
+        );
+        let mut many = StdVec::new();
+        for _ in 0..MAX_WORDS {
+            many.extend_from_slice(b"X1 ");
+        }
+        assert_eq!(Line::parse(&many).unwrap().words().len(), MAX_WORDS);
+        many.extend_from_slice(b"Y2");
+        assert_eq!(
+            Line::parse(&many),
+            Err(LineError::TooManyWords { line: None })
+        );
+        let mut buf = [0u8; 64];
+        let n = write_numbered(9, b"G1 X5 #", &mut buf).unwrap();
+        assert_eq!(
+            Line::parse(&buf[..n]),
+            Err(LineError::UnexpectedCharacter { line: Some(9) })
+        );
+    }
+
+    #[test]
+    fn length_limit() {
+        let mut long = [b' '; MAX_LINE_LEN + 1];
+        long[0] = b'G';
+        long[1] = b'1';
+        assert!(Line::parse(&long[..MAX_LINE_LEN]).is_ok());
+        assert_eq!(Line::parse(&long), Err(LineError::TooLong));
+        // The canonical form of an accepted line may be longer than the limit.
+        let tight = b"X1".repeat(MAX_WORDS);
+        let line = Line::parse(&tight).unwrap();
+        let mut out = [0u8; 512];
+        assert_eq!(line.encode(&mut out), Ok(MAX_WORDS * 3 - 1));
+        let mut small = [0u8; 4];
+        assert_eq!(line.encode(&mut small), Err(EncodeError::BufferTooSmall));
+    }
+
+    #[test]
+    fn text_arguments() {
+        let line = Line::parse(b"M23 filename.gco").unwrap();
+        assert_eq!(line.text_arg(), Some(&b"filename.gco"[..]));
+        assert_eq!(line.words(), &[w(b'M', 23, 0)]);
+        let line = Line::parse(b"M117 Hello (world) X5 ; comment").unwrap();
+        assert_eq!(line.text_arg(), Some(&b"Hello (world) X5"[..]));
+        assert_eq!(encode(&line), b"M117 Hello (world) X5");
+        let mut buf = [0u8; 64];
+        let n = write_numbered(3, b"M28 part.g", &mut buf).unwrap();
+        let line = Line::parse(&buf[..n]).unwrap();
+        assert_eq!(line.text_arg(), Some(&b"part.g"[..]));
+        assert_eq!(encode(&line), &buf[..n]);
+        assert_eq!(Line::parse(b"M117").unwrap().text_arg(), None);
+        assert_eq!(Line::parse(b"M117   ").unwrap().text_arg(), None);
+        assert_eq!(Line::parse(b"G1 M117 x1").unwrap().text_arg(), None);
+        assert_eq!(Line::parse(b"M1170").unwrap().text_arg(), None);
+    }
+
+    #[test]
+    fn from_parts() {
+        let line = Line::from_parts(Some(3), &[w(b'T', 0, 0)], None).unwrap();
+        assert_eq!(encode(&line), b"N3 T0*57");
+        assert_eq!(line.checksum(), Some(57));
+        assert_eq!(line, Line::parse(b"N3 T0*57").unwrap());
+        assert_eq!(
+            Line::from_parts(None, &[w(b'g', 1, 0)], None),
+            Err(EncodeError::OutOfRange)
+        );
+        assert_eq!(
+            Line::from_parts(None, &[w(b'M', 117, 0)], Some(b"a*b")),
+            Err(EncodeError::InvalidText)
+        );
+        assert_eq!(
+            Line::from_parts(None, &[], Some(b"x")),
+            Err(EncodeError::InvalidText)
+        );
+        assert_eq!(
+            Line::from_parts(None, &[w(b'G', 1, 0)], Some(b"x")),
+            Err(EncodeError::InvalidText)
+        );
+        assert_eq!(
+            Line::from_parts(None, &[w(b'N', 1, 0)], None),
+            Err(EncodeError::OutOfRange)
+        );
+        assert_eq!(
+            Line::from_parts(None, &[w(b'M', 117, 0), w(b'X', 1, 0)], None),
+            Err(EncodeError::OutOfRange)
+        );
+        let msg = Line::from_parts(Some(2), &[w(b'M', 117, 0)], Some(b"Hi there")).unwrap();
+        assert_eq!(encode(&msg), b"N2 M117 Hi there*105".to_vec());
+    }
+
+    #[test]
+    fn numbering() {
+        let mut n = LineNumbering::new();
+        assert_eq!(n.expected(), 1);
+        let parse = |t: &'static [u8]| Line::parse(t).unwrap();
+        assert!(n.accept(&parse(b"G28")).is_ok());
+        assert_eq!(n.expected(), 1);
+        // OctoPrint: "M110 N0" then N1, N2...
+        assert!(n.accept(&parse(b"M110 N0")).is_ok());
+        assert_eq!(n.expected(), 1);
+        // Printrun: "N-1 M110" then N0, N1...
+        let line = Line::parse(b"N-1 M110*15").unwrap();
+        assert_eq!(line.number(), None);
+        assert!(n.accept(&line).is_ok());
+        assert_eq!(n.expected(), 0);
+        // The seed: "N123 M110" sets the current line, 124 is next.
+        let mut buf2 = [0u8; 64];
+        let len = write_numbered(123, b"M110", &mut buf2).unwrap();
+        assert!(n.accept(&Line::parse(&buf2[..len]).unwrap()).is_ok());
+        assert_eq!(n.expected(), 124);
+        let len = write_numbered(125, b"G1", &mut buf2).unwrap();
+        let line = Line::parse(&buf2[..len]).unwrap();
+        let err = n.accept(&line).unwrap_err();
+        assert_eq!(
+            err,
+            LineError::OutOfOrder {
+                expected: 124,
+                got: 125
+            }
+        );
+        assert_eq!(err.resend_line(), Some(124));
+        assert_eq!(n.recover(&err), Recovery::Resend(124));
+        assert_eq!(n.expected(), 124);
+        assert_eq!(
+            n.recover(&LineError::ChecksumMismatch {
+                computed: 1,
+                received: 2
+            }),
+            Recovery::Resend(124)
+        );
+        // A body error on the expected line: rejected, and the counter moves past it.
+        assert_eq!(
+            n.recover(&LineError::MissingValue { line: Some(124) }),
+            Recovery::Reject
+        );
+        assert_eq!(n.expected(), 125);
+        assert_eq!(
+            n.recover(&LineError::MissingValue { line: Some(7) }),
+            Recovery::Resend(125)
+        );
+        assert_eq!(
+            n.recover(&LineError::MissingValue { line: None }),
+            Recovery::Reject
+        );
+        assert_eq!(n.recover(&LineError::TooLong), Recovery::Resend(125));
+        assert_eq!(
+            LineNumbering::new().recover(&LineError::TooLong),
+            Recovery::Reject
+        );
+        assert_eq!(n.recover_garbage(), Recovery::Resend(125));
+        assert!(n.is_numbered());
+        assert_eq!(LineNumbering::new().recover_garbage(), Recovery::Reject);
+        // An M110 parameter out of range.
+        assert_eq!(
+            n.accept(&parse(b"M110 N4294967296")),
+            Err(LineError::BadLineNumber)
+        );
+        assert_eq!(
+            n.accept(&parse(b"M110 N1.5")),
+            Err(LineError::BadLineNumber)
+        );
+        n.set_expected(u32::MAX);
+        let len = write_numbered(u32::MAX, b"G1", &mut buf2).unwrap();
+        assert!(n.accept(&Line::parse(&buf2[..len]).unwrap()).is_ok());
+        assert_eq!(n.expected(), 0);
+    }
+
+    #[test]
+    fn printrun_reset_round_trips() {
+        let line = Line::parse(b"N-1 M110*15").unwrap();
+        assert_eq!(encode(&line), b"N-1 M110*15");
+        assert_eq!(line.checksum(), Some(15));
+    }
+}

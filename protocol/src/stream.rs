@@ -1,0 +1,598 @@
+//! One streaming decoder for a link that mixes 53-byte frames and G-code lines.
+//!
+//! Feed it bytes as they arrive, split anywhere; it yields whole records, each once, in order,
+//! and the same records whatever the split (postcard's accumulator shape):
+//!
+//! ```
+//! use forja_protocol::stream::{Decoder, Event};
+//!
+//! let mut decoder = Decoder::new();
+//! let mut lines = 0;
+//! let mut frames = 0;
+//! for chunk in [&b"N5 G28*2"[..], b"2\nN02Zero**********", b"*******************************ZeroF\n"] {
+//!     decoder.feed_all(chunk, |event| match event {
+//!         Event::Line(_) => lines += 1,
+//!         Event::Frame(_) => frames += 1,
+//!         _ => {}
+//!     });
+//! }
+//! assert_eq!((lines, frames), (1, 1));
+//! ```
+//!
+//! ## Rules
+//!
+//! - A record ends at `\n` or `\r` (so CR, LF and CRLF all work); empty records are dropped.
+//! - A record that [is a frame](crate::frame::is_frame) is [`Event::Frame`]; any other is
+//!   [`Event::Line`], the terminator stripped. A frame needs no terminator: one is complete when
+//!   its 53rd byte is followed by a terminator, by `N` (the next frame) or by a control byte;
+//!   [`Decoder::flush`] completes one at the end of the input.
+//! - A record longer than [`MAX_LINE_LEN`](crate::gcode::MAX_LINE_LEN) is discarded to its
+//!   terminator and reported once as [`Event::TooLong`], never truncated.
+//! - A control byte (other than tab, CR, LF) is garbage: the record it falls in is discarded,
+//!   and so is everything up to the next terminator or `N`, where decoding resumes. The run is
+//!   reported once as [`Event::Garbage`] with its length. Bytes before a frame at the end of a
+//!   record (`xyzN02…F`) are garbage too.
+//! - Memory is one [`MAX_LINE_LEN`](crate::gcode::MAX_LINE_LEN) buffer; no input can make it
+//!   grow, loop or panic.
+
+use heapless::Vec;
+
+use crate::frame::{FRAME_LEN, Frame, START, is_frame};
+use crate::gcode::MAX_LINE_LEN;
+
+/// One record, or one report, out of the stream.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[non_exhaustive]
+pub enum Event<'a> {
+    /// A G-code line (or, on a client, a reply line), without terminator, never empty. Parse it
+    /// with [`crate::gcode::Line::parse`] or [`crate::reply::Reply::parse`].
+    Line(&'a [u8]),
+    /// A structurally valid frame. Decode it with [`crate::frame::ClientMessage::parse`] on the
+    /// controller or [`crate::frame::ControllerMessage::parse`] on the client.
+    Frame(Frame<'a>),
+    /// Bytes were dropped (report as [`crate::error::FrameError::Structure`], code 21).
+    Garbage {
+        /// How many.
+        skipped: usize,
+    },
+    /// A line longer than [`MAX_LINE_LEN`](crate::gcode::MAX_LINE_LEN) was dropped (report as
+    /// [`crate::error::LineError::TooLong`], code 1).
+    TooLong {
+        /// Its length, terminator excluded.
+        len: usize,
+    },
+}
+
+/// What one [`Decoder::feed`] call gives.
+#[derive(Debug)]
+pub struct FeedResult<'d, 'i> {
+    /// The next event, or `None` when the input is used up and nothing is pending.
+    pub event: Option<Event<'d>>,
+    /// The input not yet looked at: pass it to the next call.
+    pub remaining: &'i [u8],
+}
+
+/// Counters of what a [`Decoder`] has seen (wrapping).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Stats {
+    /// [`Event::Line`]s given.
+    pub lines: u32,
+    /// [`Event::Frame`]s given.
+    pub frames: u32,
+    /// Bytes dropped as garbage.
+    pub garbage_bytes: u32,
+    /// [`Event::Garbage`]s given (runs of garbage).
+    pub garbage_runs: u32,
+    /// [`Event::TooLong`]s given.
+    pub too_long: u32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum State {
+    /// Accumulating a record into the buffer.
+    Record,
+    /// Dropping garbage until a terminator or `N`.
+    Skip { skipped: usize },
+    /// Dropping a too-long line until its terminator.
+    Overlong { len: usize },
+}
+
+/// What the state machine found; the event is built from it and the buffer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Ready {
+    Line,
+    Frame,
+    Garbage(usize),
+    TooLong(usize),
+}
+
+/// The mixed-link decoder: bounded memory, no allocation, never panics.
+#[derive(Clone, Debug)]
+pub struct Decoder {
+    buf: Vec<u8, MAX_LINE_LEN>,
+    state: State,
+    /// The last event borrowed the buffer: clear it before going on.
+    clear: bool,
+    /// The next record starts with the `N` that ended the previous one.
+    start_with_n: bool,
+    /// A frame at this offset of the buffer is still to be given (after its garbage prefix).
+    pending_frame: Option<usize>,
+    stats: Stats,
+}
+
+impl Default for Decoder {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+fn is_terminator(b: u8) -> bool {
+    b == b'\n' || b == b'\r'
+}
+
+/// Control bytes other than tab, CR and LF, and DEL.
+fn is_garbage(b: u8) -> bool {
+    (b < b' ' && b != b'\t' && !is_terminator(b)) || b == 0x7f
+}
+
+impl Decoder {
+    /// An empty decoder, at the start of a record.
+    pub const fn new() -> Self {
+        Self {
+            buf: Vec::new(),
+            state: State::Record,
+            clear: false,
+            start_with_n: false,
+            pending_frame: None,
+            stats: Stats {
+                lines: 0,
+                frames: 0,
+                garbage_bytes: 0,
+                garbage_runs: 0,
+                too_long: 0,
+            },
+        }
+    }
+
+    /// Forget any partial record (after the link was reset). The counters are kept.
+    pub fn reset(&mut self) {
+        self.buf.clear();
+        self.state = State::Record;
+        self.clear = false;
+        self.start_with_n = false;
+        self.pending_frame = None;
+    }
+
+    /// What has been seen so far.
+    pub fn stats(&self) -> Stats {
+        self.stats
+    }
+
+    /// Bytes dropped as garbage so far (the same as `stats().garbage_bytes`).
+    pub fn skipped(&self) -> u32 {
+        self.stats.garbage_bytes
+    }
+
+    /// Take bytes until one event is complete. Call again with
+    /// [`remaining`](FeedResult::remaining) until `event` is `None`: then all of `input` has
+    /// been taken and nothing is pending.
+    ///
+    /// ```
+    /// # use forja_protocol::stream::Decoder;
+    /// # let mut decoder = Decoder::new();
+    /// let mut window: &[u8] = b"G28\nG1 X5\n";
+    /// loop {
+    ///     let fed = decoder.feed(window);
+    ///     window = fed.remaining;
+    ///     let Some(event) = fed.event else { break };
+    ///     // handle `event`
+    /// }
+    /// ```
+    pub fn feed<'d, 'i>(&'d mut self, input: &'i [u8]) -> FeedResult<'d, 'i> {
+        if let Some(at) = self.pending_frame.take() {
+            return FeedResult {
+                event: self.deliver_frame_at(at),
+                remaining: input,
+            };
+        }
+        self.prepare();
+        let mut i = 0;
+        while let Some(rest) = input.get(i..).filter(|rest| !rest.is_empty()) {
+            let taken = self.take_run(rest);
+            if taken > 0 {
+                i += taken;
+                continue;
+            }
+            let Some(&b) = rest.first() else { break };
+            i += 1;
+            if let Some(ready) = self.step(b) {
+                return FeedResult {
+                    event: Some(self.event(ready)),
+                    remaining: input.get(i..).unwrap_or(&[]),
+                };
+            }
+        }
+        FeedResult {
+            event: None,
+            remaining: &[],
+        }
+    }
+
+    /// Feed all of `input`, calling `on_event` for each event.
+    pub fn feed_all(&mut self, input: &[u8], mut on_event: impl FnMut(Event<'_>)) {
+        let mut window = input;
+        loop {
+            let fed = self.feed(window);
+            window = fed.remaining;
+            match fed.event {
+                Some(event) => on_event(event),
+                None => break,
+            }
+        }
+    }
+
+    /// End of input (or the link went idle): give what is pending as if a terminator had come.
+    /// Call until it returns `None`.
+    pub fn flush(&mut self) -> Option<Event<'_>> {
+        if let Some(at) = self.pending_frame.take() {
+            return self.deliver_frame_at(at);
+        }
+        self.prepare();
+        let ready = match self.state {
+            State::Skip { skipped } => Some(Ready::Garbage(skipped)),
+            State::Overlong { len } => Some(Ready::TooLong(len)),
+            State::Record => self.end_record(),
+        };
+        self.state = State::Record;
+        ready.map(|r| self.event(r))
+    }
+
+    /// Start of a call: finish what the previous event left.
+    fn prepare(&mut self) {
+        if self.clear {
+            self.buf.clear();
+            self.clear = false;
+        }
+        if self.start_with_n {
+            self.start_with_n = false;
+            // The buffer is empty here, so this cannot fail.
+            let _ = self.buf.push(START);
+        }
+    }
+
+    fn deliver_frame_at(&mut self, at: usize) -> Option<Event<'_>> {
+        self.clear = true;
+        let frame = self
+            .buf
+            .get(at..at + FRAME_LEN)
+            .and_then(|bytes| Frame::new_checked(bytes).ok())?;
+        self.stats.frames = self.stats.frames.wrapping_add(1);
+        Some(Event::Frame(frame))
+    }
+
+    /// Take in bulk the bytes at the start of `rest` that cannot complete an event: ordinary
+    /// bytes of a record (stopping before the byte that follows a possible frame, and before a
+    /// full buffer), bytes of a garbage run or of a too-long line. Returns how many; 0 when the
+    /// first byte needs [`step`](Self::step).
+    fn take_run(&mut self, rest: &[u8]) -> usize {
+        match self.state {
+            State::Record => {
+                let len = self.buf.len();
+                let room = match len.cmp(&FRAME_LEN) {
+                    core::cmp::Ordering::Less => FRAME_LEN - len,
+                    core::cmp::Ordering::Equal => 0,
+                    core::cmp::Ordering::Greater => MAX_LINE_LEN - len,
+                };
+                let n = rest
+                    .iter()
+                    .take(room)
+                    .take_while(|&&b| !is_terminator(b) && !is_garbage(b))
+                    .count();
+                // `n` is within the buffer's room, so this cannot fail.
+                let _ = self.buf.extend_from_slice(rest.get(..n).unwrap_or(&[]));
+                n
+            }
+            State::Skip { skipped } => {
+                let n = rest
+                    .iter()
+                    .take_while(|&&b| !is_terminator(b) && b != START)
+                    .count();
+                self.state = State::Skip {
+                    skipped: skipped.saturating_add(n),
+                };
+                n
+            }
+            State::Overlong { len } => {
+                let n = rest.iter().take_while(|&&b| !is_terminator(b)).count();
+                self.state = State::Overlong {
+                    len: len.saturating_add(n),
+                };
+                n
+            }
+        }
+    }
+
+    /// One byte through the state machine.
+    fn step(&mut self, b: u8) -> Option<Ready> {
+        match self.state {
+            State::Skip { skipped } => {
+                if is_terminator(b) || b == START {
+                    self.state = State::Record;
+                    self.start_with_n = b == START;
+                    return Some(Ready::Garbage(skipped));
+                }
+                self.state = State::Skip {
+                    skipped: skipped.saturating_add(1),
+                };
+                None
+            }
+            State::Overlong { len } => {
+                if is_terminator(b) {
+                    self.state = State::Record;
+                    return Some(Ready::TooLong(len));
+                }
+                self.state = State::Overlong {
+                    len: len.saturating_add(1),
+                };
+                None
+            }
+            State::Record => {
+                if is_terminator(b) {
+                    return self.end_record();
+                }
+                let frame_done = is_frame(&self.buf);
+                if is_garbage(b) {
+                    self.state = State::Skip {
+                        skipped: if frame_done { 1 } else { self.buf.len() + 1 },
+                    };
+                    if frame_done {
+                        return Some(Ready::Frame);
+                    }
+                    self.buf.clear();
+                    return None;
+                }
+                if b == START && frame_done {
+                    self.start_with_n = true;
+                    return Some(Ready::Frame);
+                }
+                if self.buf.push(b).is_err() {
+                    self.state = State::Overlong {
+                        len: self.buf.len() + 1,
+                    };
+                    self.buf.clear();
+                }
+                None
+            }
+        }
+    }
+
+    /// A terminator (or a flush) ends the record in the buffer.
+    fn end_record(&mut self) -> Option<Ready> {
+        let len = self.buf.len();
+        if len == 0 {
+            return None;
+        }
+        if is_frame(&self.buf) {
+            return Some(Ready::Frame);
+        }
+        if let Some(at) = len.checked_sub(FRAME_LEN).filter(|&at| at > 0)
+            && self.buf.get(at..).is_some_and(is_frame)
+        {
+            self.pending_frame = Some(at);
+            return Some(Ready::Garbage(at));
+        }
+        Some(Ready::Line)
+    }
+
+    fn event(&mut self, ready: Ready) -> Event<'_> {
+        let stats = &mut self.stats;
+        // The buffer is cleared at the next call unless a frame in it is still to be given.
+        self.clear = self.pending_frame.is_none();
+        match ready {
+            Ready::Line => {
+                stats.lines = stats.lines.wrapping_add(1);
+                Event::Line(&self.buf)
+            }
+            Ready::Frame => match Frame::new_checked(&self.buf) {
+                Ok(frame) => {
+                    stats.frames = stats.frames.wrapping_add(1);
+                    Event::Frame(frame)
+                }
+                // Unreachable: `Ready::Frame` is only given for a buffer that is a frame.
+                Err(_) => Event::Line(&self.buf),
+            },
+            Ready::Garbage(skipped) => {
+                stats.garbage_runs = stats.garbage_runs.wrapping_add(1);
+                stats.garbage_bytes = stats
+                    .garbage_bytes
+                    .wrapping_add(u32::try_from(skipped).unwrap_or(u32::MAX));
+                Event::Garbage { skipped }
+            }
+            Ready::TooLong(len) => {
+                stats.too_long = stats.too_long.wrapping_add(1);
+                Event::TooLong { len }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::panic, clippy::indexing_slicing)]
+mod tests {
+    extern crate std;
+    use std::vec::Vec as StdVec;
+
+    use super::*;
+
+    /// An owned copy of an event, to compare runs.
+    #[derive(Clone, Debug, PartialEq, Eq)]
+    pub(crate) enum Owned {
+        Line(StdVec<u8>),
+        Frame(StdVec<u8>),
+        Garbage(usize),
+        TooLong(usize),
+    }
+
+    pub(crate) fn owned(event: Event<'_>) -> Owned {
+        match event {
+            Event::Line(b) => Owned::Line(b.to_vec()),
+            Event::Frame(f) => Owned::Frame(f.as_bytes().to_vec()),
+            Event::Garbage { skipped } => Owned::Garbage(skipped),
+            Event::TooLong { len } => Owned::TooLong(len),
+        }
+    }
+
+    /// Every event of `input` fed in chunks of `sizes` (cycled), then flushed.
+    pub(crate) fn run(input: &[u8], sizes: &[usize]) -> StdVec<Owned> {
+        let mut decoder = Decoder::new();
+        let mut events = StdVec::new();
+        let mut rest = input;
+        let mut k = 0;
+        while !rest.is_empty() {
+            let n = sizes
+                .get(k % sizes.len().max(1))
+                .copied()
+                .unwrap_or(1)
+                .clamp(1, rest.len());
+            k += 1;
+            let (chunk, after) = rest.split_at(n);
+            rest = after;
+            decoder.feed_all(chunk, |e| events.push(owned(e)));
+        }
+        while let Some(e) = decoder.flush() {
+            events.push(owned(e));
+        }
+        events
+    }
+
+    const ZERO: &[u8] = b"N02Zero*****************************************ZeroF";
+    const STOP: &[u8] = b"N02Stop*****************************************StopF";
+
+    fn line(b: &[u8]) -> Owned {
+        Owned::Line(b.to_vec())
+    }
+
+    fn frame(b: &[u8]) -> Owned {
+        Owned::Frame(b.to_vec())
+    }
+
+    #[test]
+    fn lines_and_frames_with_every_terminator() {
+        let mut input = StdVec::new();
+        input.extend_from_slice(b"N3 T0*57\r\nN4 G92 E0*67\rN5 G28*22\n\n\r\n");
+        input.extend_from_slice(ZERO);
+        input.extend_from_slice(b"\r\n");
+        input.extend_from_slice(STOP);
+        input.extend_from_slice(ZERO);
+        input.extend_from_slice(b"\nG1 X5");
+        let expected = [
+            line(b"N3 T0*57"),
+            line(b"N4 G92 E0*67"),
+            line(b"N5 G28*22"),
+            frame(ZERO),
+            frame(STOP),
+            frame(ZERO),
+            line(b"G1 X5"),
+        ];
+        for sizes in [&[1usize][..], &[2], &[3, 7], &[53], &[1000]] {
+            assert_eq!(run(&input, sizes), expected, "{sizes:?}");
+        }
+    }
+
+    #[test]
+    fn a_frame_without_terminator_waits_for_the_next_byte() {
+        let mut decoder = Decoder::new();
+        let fed = decoder.feed(ZERO);
+        assert!(fed.event.is_none());
+        assert_eq!(decoder.flush().map(owned), Some(frame(ZERO)));
+        assert_eq!(decoder.flush(), None);
+        // A printable byte after the 53rd makes it a (long) G-code line instead.
+        let mut input = ZERO.to_vec();
+        input.extend_from_slice(b"1200*7\n");
+        assert_eq!(run(&input, &[5]), [line(&input[..input.len() - 1])]);
+    }
+
+    #[test]
+    fn garbage_is_skipped_to_the_next_start_and_counted() {
+        let mut input = StdVec::new();
+        input.extend_from_slice(b"\x00\xff\x01junk");
+        input.extend_from_slice(ZERO);
+        input.extend_from_slice(b"\nG1 X\x075 Y3\nG28\n");
+        let expected = [
+            Owned::Garbage(7),
+            frame(ZERO),
+            Owned::Garbage(9),
+            line(b"G28"),
+        ];
+        // 0xff is not garbage by itself, but it falls in the run started by 0x00.
+        for sizes in [&[1usize][..], &[4], &[100]] {
+            assert_eq!(run(&input, sizes), expected, "{sizes:?}");
+        }
+        let mut decoder = Decoder::new();
+        decoder.feed_all(&input, |_| {});
+        assert_eq!(decoder.skipped(), 16);
+        assert_eq!(
+            decoder.stats(),
+            Stats {
+                lines: 1,
+                frames: 1,
+                garbage_bytes: 16,
+                garbage_runs: 2,
+                too_long: 0
+            }
+        );
+    }
+
+    #[test]
+    fn printable_garbage_before_a_frame() {
+        let mut input = b"xyz".to_vec();
+        input.extend_from_slice(ZERO);
+        input.push(b'\n');
+        assert_eq!(run(&input, &[1]), [Owned::Garbage(3), frame(ZERO)]);
+        assert_eq!(
+            run(&input[..input.len() - 1], &[9]),
+            [Owned::Garbage(3), frame(ZERO)]
+        );
+    }
+
+    #[test]
+    fn a_frame_followed_by_a_control_byte() {
+        let mut input = ZERO.to_vec();
+        input.extend_from_slice(b"\x00\x00\nG28\n");
+        assert_eq!(
+            run(&input, &[1]),
+            [frame(ZERO), Owned::Garbage(2), line(b"G28")]
+        );
+    }
+
+    #[test]
+    fn too_long_lines_are_dropped_whole() {
+        let mut input = StdVec::new();
+        input.extend(core::iter::repeat_n(b'X', MAX_LINE_LEN));
+        input.push(b'\n');
+        input.extend(core::iter::repeat_n(b'Y', MAX_LINE_LEN + 10));
+        input.extend_from_slice(b"\x00N\nG28\n");
+        input.extend(core::iter::repeat_n(b'Z', MAX_LINE_LEN + 1));
+        let expected = [
+            line(&[b'X'; MAX_LINE_LEN]),
+            Owned::TooLong(MAX_LINE_LEN + 12),
+            line(b"G28"),
+            Owned::TooLong(MAX_LINE_LEN + 1),
+        ];
+        for sizes in [&[1usize][..], &[255], &[1000]] {
+            assert_eq!(run(&input, sizes), expected, "{sizes:?}");
+        }
+    }
+
+    #[test]
+    fn reset_forgets_the_partial_record() {
+        let mut decoder = Decoder::new();
+        decoder.feed_all(b"G1 X", |_| {});
+        decoder.reset();
+        let mut events = StdVec::new();
+        decoder.feed_all(b"G28\n", |e| events.push(owned(e)));
+        assert_eq!(events, [line(b"G28")]);
+    }
+}
