@@ -19,6 +19,7 @@
 //! | [`pwm`] | [`Fan`](pwm::Fan), [`Spindle`](pwm::Spindle), [`PwmHeater`](pwm::PwmHeater) | `Heater` (for `PwmHeater`) | thread |
 //! | [`storage`] | [`FlashRecordStorage`](storage::FlashRecordStorage), [`Records`](storage::Records) | `RecordStorage` | thread: may block for a flash erase |
 //! | [`ram_flash`] | [`RamNorFlash`](ram_flash::RamNorFlash) | `embedded_storage::nor_flash::NorFlash` | a simulated flash for the host simulator and tests |
+//! | [`peripherals`] | [`DriverPeripherals`](peripherals::DriverPeripherals) | `forja_motion::controller::Peripherals` | thread: the controller's heaters, fans, spindle, motor power and `M119` |
 //!
 //! "Interrupt" methods are integer-only, allocation-free, panic-free and constant-time: a pin
 //! write or read and a few instructions. "Thread" methods may use `f32` (the heater and the
@@ -67,6 +68,7 @@
 pub mod heater;
 pub mod limit;
 pub mod max31855;
+pub mod peripherals;
 pub mod pin;
 pub mod pwm;
 pub mod ram_flash;

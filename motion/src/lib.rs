@@ -39,6 +39,7 @@
 //! | module | what |
 //! |---|---|
 //! | [`config`] | [`MachineConfig`], [`AxisConfig`], validation, `postcard` storage |
+//! | [`controller`] | [`controller::Controller`]: the link (G-code lines and frames), replies, jobs, settings and peripherals around the kernel, for every board |
 //! | [`effect`] | [`Effect`]: commands for other subsystems, returned in stream order |
 //! | [`error`] | the error enums and the table of their wire codes |
 //! | [`job`] | program store, job runner, progress and time estimate |
@@ -52,6 +53,7 @@ extern crate std;
 
 mod arc;
 pub mod config;
+pub mod controller;
 pub mod effect;
 pub mod error;
 mod interp;

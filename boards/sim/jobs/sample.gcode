@@ -3,7 +3,7 @@
 (Stock: 200 x 120 x 20 mm at X50..250 Y50..170, top at Z20: machine coordinates)
 (Tool: 6 mm flat end mill, spindle 12000 rpm)
 
-G21 G90 G17 G94  ; millimetres, absolute, XY plane, feed per minute
+G21 G90 G17  ; millimetres, absolute, XY plane (feeds are per minute)
 G0 Z25
 M3 S12000
 
@@ -333,4 +333,4 @@ G0 Z25
 (Done: spindle off, park)
 M5
 G0 X10 Y280
-M30
+M84  ; motors off: the end of the program

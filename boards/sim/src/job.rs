@@ -126,7 +126,7 @@ mod tests {
         let job = Job::sample();
         let n = job.line_count();
         assert!((200..=600).contains(&n), "{n} lines");
-        for word in ["G0 ", "G1 ", "G2 ", "G3 ", "F", "M3", "M5", "M30", "(", ";"] {
+        for word in ["G0 ", "G1 ", "G2 ", "G3 ", "F", "M3", "M5", "M84", "(", ";"] {
             assert!(job.text().contains(word), "sample lacks {word}");
         }
         assert!(job.text().is_ascii());

@@ -52,12 +52,16 @@
 //! serial host software opens like a UART), [`link::MemoryLink`] (in-process), and
 //! [`link::FaultInjector`], which corrupts and drops bytes from the host at seeded rates.
 //!
-//! ## Plugging in the kernel
+//! ## The firmware
 //!
-//! The board wiring builds the devices from a [`SimMachine`], hands them to the kernel, and
-//! implements [`Firmware`] by forwarding [`Firmware::on_alarm`] to the kernel's step interrupt
-//! entry and [`Firmware::poll`] to its thread side (poll links, feed the protocol decoder,
-//! plan, run heaters). None of the types here change for it.
+//! [`board::SimBoard`] is the Forja firmware on a [`SimMachine`], wired as a firmware board
+//! wires it: the kernel's step interrupt on [`Firmware::on_alarm`] with the `forja-drivers`
+//! step/dir driver and limit inputs on the simulated pins, and `forja_motion::controller` on
+//! [`Firmware::poll`], serving the links. [`run::run_job`] streams a job to it as a host does
+//! ([`host::GcodeSender`]); [`run::listen`] serves hosts on TCP and a pseudo-terminal.
+//!
+//! The loop itself is not tied to the firmware: anything that implements [`Firmware`] runs on
+//! the simulated hardware, as this stand-in for the kernel does:
 //!
 //! ```
 //! use forja_hal_abstraction::clock::{Alarm, Clock};
@@ -109,12 +113,15 @@
 //! ```
 #![deny(unsafe_code)]
 
+pub mod board;
 pub mod config;
+pub mod host;
 pub mod job;
 pub mod limit;
 pub mod link;
 pub mod machine;
 pub mod pwm;
+pub mod run;
 pub mod simulation;
 pub mod stepper;
 pub mod thermal;

@@ -1,10 +1,10 @@
 //! `forja-sim`: the simulator board as a program.
 //!
-//! Loads and checks a machine file and a job, and with `--listen` opens the TCP and
-//! pseudo-terminal links and serves them in real time. The clap doc comments below are its
-//! `--help`.
+//! Runs a job through the firmware (the controller and the motion kernel on the simulated
+//! hardware) and prints the result; with `--listen`, serves hosts on TCP and a
+//! pseudo-terminal instead; with `--check`, only describes the machine file and the job. The
+//! work is in the library (`forja_sim::run`); the clap doc comments below are the `--help`.
 
-use std::io::Write as _;
 use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -12,27 +12,25 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
 use clap::Parser;
-use embedded_io::{Read, ReadReady};
-use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use forja_sim::config::{AxisKind, SwitchPolarity, SwitchSide};
-use forja_sim::link::{FaultConfig, FaultInjector, HostLink, PtyLink, TcpLink};
-use forja_sim::{
-    Flow, Job, MachineConfig, Pacing, SimMachine, Simulation, SimulationConfig, StopReason,
-};
+use forja_sim::link::FaultConfig;
+use forja_sim::run::{JobOptions, ListenOptions};
+use forja_sim::{Job, MachineConfig, Pacing};
 
 /// The line sent to a TCP client that connects while another one is in control.
 const BUSY_MESSAGE: &[u8] = b"error: busy: another host is in control of this machine\n";
 
-/// Exit code of a run that could not happen because the motion kernel is not wired in.
-const EXIT_NOT_WIRED: u8 = 2;
+/// Exit code of a job that did not run cleanly (a refused line, lost or badly timed steps, a
+/// job that did not finish).
+const EXIT_NOT_CLEAN: u8 = 2;
 
 /// Forja's host simulator board: a simulated machine with virtual steppers, limit switches,
-/// heaters and clock, reachable over TCP and a pseudo-terminal.
+/// heaters and clock, running the Forja firmware, reachable over TCP and a pseudo-terminal.
 #[derive(Parser, Debug)]
 #[command(
     name = "forja-sim",
     version,
-    after_help = "Exit status: 0 success, 1 bad input or link failure, 2 the job could not be run."
+    after_help = "Exit status: 0 success, 1 bad input or link failure, 2 the job did not run cleanly."
 )]
 struct Cli {
     /// Machine file (TOML), or `builtin:NAME` for a bundled one: `builtin:default` (the 4-axis
@@ -48,8 +46,14 @@ struct Cli {
     #[arg(long)]
     check: bool,
 
+    /// Do not home (G28) before the job: its coordinates are then relative to where the
+    /// machine starts.
+    #[arg(long)]
+    no_home: bool,
+
     /// Wait for hosts on TCP and on a pseudo-terminal instead of running the job, and print
-    /// where they are. Implies --realtime. Ends at --time-limit or on Ctrl-C.
+    /// where they are. Paced to the wall clock (see --time-scale). Ends at --time-limit or on
+    /// Ctrl-C.
     #[arg(long)]
     listen: bool,
 
@@ -66,9 +70,13 @@ struct Cli {
     #[arg(long, value_name = "PATH")]
     pty_link: Option<PathBuf>,
 
-    /// Hold virtual time to the wall clock instead of running as fast as possible.
+    /// Hold virtual time to the wall clock when running a job (--listen always does).
     #[arg(long)]
     realtime: bool,
+
+    /// Run virtual time K times faster than the wall clock when paced (--listen, --realtime).
+    #[arg(long, value_name = "K", default_value_t = 1.0)]
+    time_scale: f64,
 
     /// Stop after this many seconds of virtual time.
     #[arg(long, value_name = "SECONDS")]
@@ -123,6 +131,17 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
         }
         None => None,
     };
+    if !(cli.time_scale.is_finite() && cli.time_scale > 0.0) {
+        return Err(format!(
+            "--time-scale {}: must be a positive number",
+            cli.time_scale
+        ));
+    }
+    let pacing = if cli.time_scale == 1.0 {
+        Pacing::Realtime
+    } else {
+        Pacing::Scaled(cli.time_scale)
+    };
 
     if cli.check {
         print_machine(&cli.machine, &machine);
@@ -130,21 +149,45 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
         return Ok(ExitCode::SUCCESS);
     }
     if cli.listen {
-        return listen(cli, &machine, faults, time_limit_ticks);
+        let options = ListenOptions {
+            tcp: SocketAddr::new(
+                cli.tcp_bind.unwrap_or(machine.link.tcp_bind),
+                cli.tcp_port.unwrap_or(machine.link.tcp_port),
+            ),
+            pty_link: cli.pty_link.clone(),
+            faults,
+            pacing,
+            time_limit_ticks,
+            trace: cli.trace.clone(),
+            busy_message: BUSY_MESSAGE.to_vec(),
+        };
+        let stop = Arc::new(AtomicBool::new(false));
+        for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+            signal_hook::flag::register(signal, Arc::clone(&stop))
+                .map_err(|e| format!("cannot handle signal {signal}: {e}"))?;
+        }
+        forja_sim::run::listen(&machine, &options, stop)?;
+        return Ok(ExitCode::SUCCESS);
     }
 
-    println!(
-        "machine: {} ({} axes), job: {}, {} lines",
-        machine.name,
-        machine.axes.len(),
-        job.name(),
-        job.line_count()
-    );
-    eprintln!(
-        "forja-sim: the motion kernel is not wired into the simulator board yet: the job was \
-         not run, and there is no result to report"
-    );
-    Ok(ExitCode::from(EXIT_NOT_WIRED))
+    let options = JobOptions {
+        home_first: !cli.no_home,
+        faults,
+        time_limit_ticks,
+        pacing: if cli.realtime {
+            pacing
+        } else {
+            Pacing::AsFastAsPossible
+        },
+        trace: cli.trace.clone(),
+    };
+    let result = forja_sim::run::run_job(&machine, &job, &options)?;
+    println!("{result}");
+    Ok(if result.is_clean() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(EXIT_NOT_CLEAN)
+    })
 }
 
 fn load_machine(arg: &str) -> Result<MachineConfig, String> {
@@ -221,160 +264,4 @@ fn print_machine(source: &str, m: &MachineConfig) {
         println!("  output {}: duty 0..{}", o.name, o.max_duty);
     }
     println!("  link: tcp {}:{}", m.link.tcp_bind, m.link.tcp_port);
-}
-
-/// One served link and what it has seen.
-struct Served<L> {
-    name: &'static str,
-    link: FaultInjector<L>,
-    state: LinkState,
-    received: u64,
-}
-
-impl<L: HostLink<Error = std::io::Error>> Served<L> {
-    fn new(name: &'static str, link: L, faults: FaultConfig) -> Result<Self, String> {
-        Ok(Self {
-            name,
-            link: FaultInjector::new(link, faults).map_err(|e| e.to_string())?,
-            state: LinkState::Disconnected,
-            received: 0,
-        })
-    }
-
-    /// One thread-side turn: service the link, report connection changes, take the bytes.
-    fn turn(&mut self, now_s: f64) -> Result<(), String> {
-        self.link
-            .poll()
-            .map_err(|e| format!("{} link failed: {e}", self.name))?;
-        let state = self.link.state();
-        if state != self.state {
-            let what = match state {
-                LinkState::Connected => "host connected",
-                LinkState::Disconnected => "host disconnected",
-            };
-            eprintln!("forja-sim: [{now_s:.3} s] {}: {what}", self.name);
-            self.state = state;
-        }
-        let mut buf = [0u8; 1024];
-        while self.link.read_ready().map_err(|e| e.to_string())? {
-            let n = self.link.read(&mut buf).map_err(|e| e.to_string())?;
-            self.received += n as u64;
-        }
-        Ok(())
-    }
-
-    fn summary(&self, faults: FaultConfig) {
-        let s = self.link.stats();
-        print!(
-            "{}: {} connections, {} bytes received",
-            self.name,
-            self.link.connections(),
-            self.received
-        );
-        if faults.is_active() {
-            print!(
-                " ({} from the host, {} dropped, {} corrupted)",
-                s.bytes, s.dropped, s.corrupted
-            );
-        }
-        println!();
-    }
-}
-
-fn listen(
-    cli: &Cli,
-    config: &MachineConfig,
-    faults: FaultConfig,
-    time_limit_ticks: Option<u64>,
-) -> Result<ExitCode, String> {
-    let addr = SocketAddr::new(
-        cli.tcp_bind.unwrap_or(config.link.tcp_bind),
-        cli.tcp_port.unwrap_or(config.link.tcp_port),
-    );
-    let tcp = TcpLink::bind(addr, BUSY_MESSAGE).map_err(|e| format!("tcp {addr}: {e}"))?;
-    let tcp_addr = tcp.local_addr().map_err(|e| format!("tcp {addr}: {e}"))?;
-    let pty = PtyLink::open(cli.pty_link.as_deref()).map_err(|e| match &cli.pty_link {
-        Some(p) => format!("pseudo-terminal (link {}): {e}", p.display()),
-        None => format!("pseudo-terminal: {e}"),
-    })?;
-
-    println!("machine: {}", config.name);
-    println!("tcp: {tcp_addr}");
-    println!("pty: {}", pty.slave_path().display());
-    if let Some(link) = pty.symlink_path() {
-        println!(
-            "pty-link: {} -> {}",
-            link.display(),
-            pty.slave_path().display()
-        );
-    }
-    if faults.is_active() {
-        println!(
-            "faults: corrupt {} drop {} seed {} (bytes from hosts only)",
-            faults.corrupt_rate, faults.drop_rate, faults.seed
-        );
-    }
-    let _ = std::io::stdout().flush();
-    eprintln!(
-        "forja-sim: the motion kernel is not wired into the simulator board yet: bytes from \
-         hosts are received and counted, not answered. Ctrl-C ends."
-    );
-
-    let machine = SimMachine::new(config);
-    machine.set_tracing(cli.trace.is_some());
-    let stop = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(signal, Arc::clone(&stop))
-            .map_err(|e| format!("cannot handle signal {signal}: {e}"))?;
-    }
-
-    let mut sim_config = SimulationConfig::new(config.tick_hz);
-    sim_config.pacing = Pacing::Realtime;
-    sim_config.time_limit_ticks = time_limit_ticks;
-    let mut sim = Simulation::new(machine.clone(), sim_config);
-    sim.set_stop_flag(stop);
-
-    let mut tcp = Served::new("tcp", tcp, faults)?;
-    let mut pty = Served::new("pty", pty, faults)?;
-    let mut failure = None;
-    let tick_hz = f64::from(config.tick_hz);
-    let clock = machine.clock();
-    let report = sim
-        .run_with(
-            |_| None,
-            |_| {
-                let now_s = clock.now_ticks() as f64 / tick_hz;
-                match tcp.turn(now_s).and_then(|()| pty.turn(now_s)) {
-                    Ok(()) => Flow::Continue,
-                    Err(e) => {
-                        failure = Some(e);
-                        Flow::Stop
-                    }
-                }
-            },
-        )
-        .map_err(|e| e.to_string())?;
-    if let Some(e) = failure {
-        return Err(e);
-    }
-
-    let why = match report.stop {
-        StopReason::TimeLimit => "time limit",
-        StopReason::Interrupted => "interrupted",
-        StopReason::Firmware => "stopped",
-    };
-    println!(
-        "ended ({why}) after {:.3} s of virtual time",
-        report.virtual_ticks() as f64 / tick_hz
-    );
-    tcp.summary(faults);
-    pty.summary(faults);
-    if let Some(path) = &cli.trace {
-        machine
-            .take_trace()
-            .save(path)
-            .map_err(|e| format!("{}: {e}", path.display()))?;
-        println!("trace: {}", path.display());
-    }
-    Ok(ExitCode::SUCCESS)
 }

@@ -17,7 +17,8 @@
 //! It stops when the firmware says so, at the time limit, or when a stop flag is raised
 //! (Ctrl-C). [`Pacing::AsFastAsPossible`] runs virtual time as fast as the host computes;
 //! [`Pacing::Realtime`] holds virtual time to the wall clock (sleeping whenever it is more than
-//! [`PACING_SLACK`] ahead), for links to real host software.
+//! [`PACING_SLACK`] ahead), for links to real host software; [`Pacing::Scaled`] holds it to a
+//! multiple of the wall clock, so that long jobs run quickly and still in step with a host.
 //!
 //! The loop never touches a device itself: the kernel wiring owns the steppers, switches,
 //! heaters and links and hands them to the firmware object, so the hardware types do not
@@ -90,16 +91,31 @@ where
 }
 
 /// How virtual time relates to the wall clock.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Pacing {
     /// As fast as the host computes.
     AsFastAsPossible,
     /// Held to the wall clock: one virtual second takes one second.
     Realtime,
+    /// Held to the wall clock `K` times faster: one virtual second takes `1/K` second (at
+    /// most; the host may not keep up). `K` must be finite and positive.
+    Scaled(f64),
+}
+
+impl Pacing {
+    /// Virtual seconds per wall second, `None` when unpaced.
+    pub fn speed(self) -> Option<f64> {
+        match self {
+            Self::AsFastAsPossible => None,
+            Self::Realtime => Some(1.0),
+            Self::Scaled(k) if k.is_finite() && k > 0.0 => Some(k),
+            Self::Scaled(_) => None,
+        }
+    }
 }
 
 /// Settings of a [`Simulation`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SimulationConfig {
     /// Fast or paced.
     pub pacing: Pacing,
@@ -272,9 +288,11 @@ impl Simulation {
                 m.advance_to(d);
                 return Ok(finish(report, StopReason::TimeLimit));
             }
-            if self.config.pacing == Pacing::Realtime {
+            if let Some(speed) = self.config.pacing.speed() {
                 let target = wall_start
-                    + std::time::Duration::from_secs_f64((t - start_ticks) as f64 / tick_hz);
+                    + std::time::Duration::from_secs_f64(
+                        (t - start_ticks) as f64 / tick_hz / speed,
+                    );
                 let ahead = target.saturating_duration_since(std::time::Instant::now());
                 if ahead > PACING_SLACK {
                     std::thread::sleep(ahead);
@@ -518,6 +536,20 @@ mod tests {
         let report = fast.run_with(|_| None, |_| Flow::Continue).unwrap();
         assert!(report.wall.as_secs_f64() < 0.1);
         assert_eq!(m.clock().now().ticks(), 300_000);
+    }
+
+    #[test]
+    fn scaled_pacing_runs_faster_than_the_wall_clock() {
+        let m = machine();
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        sim.config_mut().pacing = Pacing::Scaled(10.0);
+        sim.config_mut().time_limit_ticks = Some(1_000_000); // 1 s of virtual time
+        let report = sim.run_with(|_| None, |_| Flow::Continue).unwrap();
+        let wall = report.wall.as_secs_f64();
+        assert!(wall >= 0.098, "{wall} s is faster than 10x");
+        assert!(wall < 0.9, "{wall} s");
+        assert_eq!(Pacing::Scaled(-1.0).speed(), None);
+        assert_eq!(Pacing::Realtime.speed(), Some(1.0));
     }
 
     #[test]

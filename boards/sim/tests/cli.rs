@@ -78,11 +78,35 @@ fn a_bad_machine_file_is_reported_with_its_line_and_field() {
 }
 
 #[test]
-fn running_a_job_says_plainly_that_it_did_not_run() {
+fn running_the_sample_job_prints_the_result() {
     let out = sim().output().unwrap();
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains("result: finished"), "{text}");
+    assert!(
+        text.contains("lines run: 314 of 314 (the opening M110 and G28 included); executed 314"),
+        "{text}"
+    );
+    assert!(text.contains("refused 0, resends 0"), "{text}");
+    assert!(
+        text.contains("final position: X 10.000 Y 280.000 Z 25.000 A 0.000"),
+        "{text}"
+    );
+    assert!(text.contains("timing violations: 0"), "{text}");
+
+    // A job with a refused line runs to its end and says so, with exit status 2.
+    let path = temp_path("refused.gcode");
+    std::fs::write(&path, "G1 X5 F600\nM20\nG1 X6\n").unwrap();
+    let out = sim()
+        .args(["--no-home", "--job"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    std::fs::remove_file(&path).unwrap();
     assert_eq!(out.status.code(), Some(2));
-    let err = String::from_utf8(out.stderr).unwrap();
-    assert!(err.contains("the job was not run"), "{err}");
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.contains("!! E120 unsupported-command M20"), "{text}");
+    assert!(text.contains("final position: X 156.000"), "{text}");
 }
 
 /// Kills the child if the test fails before it ends.

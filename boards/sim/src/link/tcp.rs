@@ -128,6 +128,12 @@ impl TcpLink {
             match self.listener.accept() {
                 Ok((stream, addr)) => {
                     if self.client.is_some() {
+                        // The current client may have closed after the last read, just before
+                        // this one connected (a host that reconnects at once): look again. A
+                        // host closes before it reconnects, so its close is there to be seen.
+                        self.receive();
+                    }
+                    if self.client.is_some() {
                         self.refuse(stream);
                         continue;
                     }
@@ -175,3 +181,32 @@ impl BufferedPort for TcpLink {
 }
 
 buffered_link!(TcpLink);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::link::HostLink;
+
+    /// A host that closes and reconnects at once: its close may arrive after the link's last
+    /// read and before it accepts the new connection, which must not be refused for it.
+    #[test]
+    fn a_host_that_reconnects_at_once_is_not_refused() {
+        let mut link = TcpLink::bind("127.0.0.1:0".parse().unwrap(), b"busy\n".to_vec()).unwrap();
+        let addr = link.local_addr().unwrap();
+        let first = TcpStream::connect(addr).unwrap();
+        while link.connections() == 0 {
+            link.poll().unwrap();
+        }
+        // The close and the new connection both come between two reads.
+        drop(first);
+        let mut second = TcpStream::connect(addr).unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        link.accept().unwrap();
+        assert_eq!(link.refused(), 0);
+        assert_eq!(link.connections(), 2);
+        embedded_io::Write::write_all(&mut link, b"ok\n").unwrap();
+        let mut buf = [0u8; 3];
+        second.read_exact(&mut buf).unwrap();
+        assert_eq!(&buf, b"ok\n");
+    }
+}

@@ -1,0 +1,878 @@
+//! The simulator's firmware: the motion kernel and the controller wired to the simulated
+//! hardware exactly as a firmware board wires them.
+//!
+//! | firmware part | on the simulator |
+//! |---|---|
+//! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`crate::SimStepDirPins`], and `forja_drivers::limit::LimitInput`s on [`crate::SimSwitchPin`]s (the homing switch of each homed axis) |
+//! | thread side | [`Firmware::poll`]: the links, `LinkSession` (frames 54/55), `Controller::poll` |
+//! | peripherals | `forja_drivers::peripherals::DriverPeripherals`: PID `HeaterChannel`s over the simulated heaters, fans and the spindle on the PWM outputs, the drivers' enable lines, the switches read again for `M119` |
+//! | storage | two `FlashRecordStorage`s on `RamNorFlash`es ([`Flash`]): the settings, and the uploaded program (`RecordProgramStore`) |
+//!
+//! The kernel's [`forja_motion::MachineConfig`] is made from the machine file
+//! ([`kernel_config`]), then the settings stored in the flash are applied over it, as a
+//! firmware board does at start-up.
+//!
+//! # Links
+//!
+//! A board has one controller, which serves one host at a time. [`SimBoard::add_port`] adds a
+//! link (TCP with a session, a pseudo-terminal, an in-memory pair); the first port with a
+//! host connected (or bytes waiting) is served until its host has gone and its bytes are read,
+//! then the next. Each new host starts afresh (line 1 expected, no held line); on a port with
+//! a session it is greeted with frame 54 and kept alive with frame 55 every `keep_alive_ms`.
+//! The first host of a port without a session receives `start`.
+//!
+//! # Machine files
+//!
+//! The kernel has one switch per homed axis: the one on its homing side. Other switches of the
+//! file (a hard limit at the far end) are modelled but not wired. Axes without travel limits
+//! (rotary, extruder) get ±100 000 mm. `Z` homes first, then the others in file order. The
+//! heater named `bed` is the bed, the first other heater the hot end; the output named
+//! `spindle` is the spindle (24 000 rpm at full duty), the others are fans 0, 1, … in file
+//! order.
+
+use core::any::Any;
+use core::fmt;
+use std::io;
+
+use embedded_storage::nor_flash::{ErrorType as FlashErrorType, NorFlash, ReadNorFlash};
+use forja_drivers::heater::{HeaterChannel, HeaterConfig, PidGains};
+use forja_drivers::limit::{LimitConfig, LimitInput, Polarity};
+use forja_drivers::peripherals::{DriverPeripherals, MotorEnables, Parts};
+use forja_drivers::pin::NoPin;
+use forja_drivers::pwm::{Fan, FanConfig, Spindle, SpindleConfig};
+use forja_drivers::ram_flash::RamFlashError;
+use forja_drivers::session::{LinkSession, SessionAction};
+use forja_drivers::stepper::{StepDir, StepDirConfig};
+use forja_drivers::storage::FlashRecordStorage;
+use forja_hal_abstraction::clock::Alarm as _;
+use forja_hal_abstraction::link::LinkState;
+use forja_hal_abstraction::stepper::StepTiming;
+use forja_hal_abstraction::time::Instant;
+use forja_motion::controller::{
+    Controller, ControllerConfig, RecordProgramStore, Settings, Stats as ControllerStats,
+};
+use forja_motion::job::{JobState, Progress};
+use forja_motion::{
+    AxisConfig, AxisKind as KernelAxisKind, HomeDirection, HomingConfig, Kernel,
+    MachineConfig as KernelConfig, MachineState, StepGenerator, StepQueue,
+};
+
+use crate::config::{AxisKind, MachineConfig, SwitchPolarity, SwitchSide};
+use crate::limit::SimSwitchPin;
+use crate::link::HostLink;
+use crate::machine::{SimAlarm, SimMachine};
+use crate::pwm::SimPwm;
+use crate::simulation::{Firmware, Flow, RunError, RunReport, Simulation};
+use crate::stepper::SimDriverPin;
+use crate::thermal::{SimHeater, SimTemperatureSensor};
+
+/// Planner blocks of the kernel.
+pub const PLANNER_BLOCKS: usize = 32;
+
+/// Events of the step queue (a power of two).
+pub const QUEUE_EVENTS: usize = 1024;
+
+/// Bytes of the flash that keeps the uploaded program (enough for the 9999 lines frame 03
+/// allows, with room for the flash to reclaim space).
+pub const PROGRAM_FLASH_LEN: usize = 1024 * 1024;
+
+/// Bytes of the flash that keeps the settings.
+pub const SETTINGS_FLASH_LEN: usize = 16 * 1024;
+
+/// Erase page of both flashes.
+pub const FLASH_PAGE: usize = 4096;
+
+/// The spindle's speed at full duty, rpm.
+pub const SPINDLE_MAX_RPM: u32 = 24_000;
+
+/// Fans the board drives at most (outputs beyond are not wired).
+pub const MAX_FANS: usize = 4;
+
+/// Travel given to an axis the machine file leaves unlimited, mm either side of 0.
+pub const UNLIMITED_TRAVEL_MM: f32 = 100_000.0;
+
+/// A NOR flash on the heap, for the board's storage (a megabyte does not belong on a stack).
+///
+/// It keeps the rules of `forja_drivers::ram_flash::RamNorFlash`: erase sets whole pages to
+/// `0xFF`; reads, writes and erases are aligned to their sizes and within the device; a word
+/// is written at most once per erase.
+pub struct HeapFlash<const SIZE: usize> {
+    mem: Vec<u8>,
+}
+
+/// Read and write unit of [`HeapFlash`], bytes.
+pub const FLASH_WORD: usize = 4;
+
+impl<const SIZE: usize> HeapFlash<SIZE> {
+    /// A fully erased flash.
+    pub fn erased() -> Self {
+        Self {
+            mem: vec![0xFF; SIZE],
+        }
+    }
+
+    fn check(offset: u32, len: usize, align: usize) -> Result<usize, RamFlashError> {
+        let start = offset as usize;
+        if !start.is_multiple_of(align) || !len.is_multiple_of(align) {
+            return Err(RamFlashError::NotAligned);
+        }
+        match start.checked_add(len) {
+            Some(end) if end <= SIZE => Ok(start),
+            _ => Err(RamFlashError::OutOfBounds),
+        }
+    }
+}
+
+impl<const SIZE: usize> fmt::Debug for HeapFlash<SIZE> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_tuple("HeapFlash").field(&SIZE).finish()
+    }
+}
+
+impl<const SIZE: usize> FlashErrorType for HeapFlash<SIZE> {
+    type Error = RamFlashError;
+}
+
+impl<const SIZE: usize> ReadNorFlash for HeapFlash<SIZE> {
+    const READ_SIZE: usize = FLASH_WORD;
+
+    fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
+        let start = Self::check(offset, bytes.len(), FLASH_WORD)?;
+        bytes.copy_from_slice(&self.mem[start..start + bytes.len()]);
+        Ok(())
+    }
+
+    fn capacity(&self) -> usize {
+        SIZE
+    }
+}
+
+impl<const SIZE: usize> NorFlash for HeapFlash<SIZE> {
+    const WRITE_SIZE: usize = FLASH_WORD;
+    const ERASE_SIZE: usize = FLASH_PAGE;
+
+    fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
+        let len = (to as usize)
+            .checked_sub(from as usize)
+            .ok_or(RamFlashError::OutOfBounds)?;
+        let start = Self::check(from, len, FLASH_PAGE)?;
+        self.mem[start..start + len].fill(0xFF);
+        Ok(())
+    }
+
+    fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
+        let start = Self::check(offset, bytes.len(), FLASH_WORD)?;
+        let target = &mut self.mem[start..start + bytes.len()];
+        if target.iter().any(|&b| b != 0xFF) {
+            return Err(RamFlashError::WordWrittenTwice);
+        }
+        target.copy_from_slice(bytes);
+        Ok(())
+    }
+}
+
+/// The program's flash.
+pub type ProgramFlash = HeapFlash<PROGRAM_FLASH_LEN>;
+/// The settings' flash.
+pub type SettingsFlash = HeapFlash<SETTINGS_FLASH_LEN>;
+
+/// The board's two flashes: what survives a restart.
+#[derive(Debug)]
+pub struct Flash {
+    /// Keeps the uploaded program.
+    pub program: ProgramFlash,
+    /// Keeps the settings.
+    pub settings: SettingsFlash,
+}
+
+impl Flash {
+    /// Both erased: a board fresh from the factory.
+    pub fn erased() -> Self {
+        Self {
+            program: ProgramFlash::erased(),
+            settings: SettingsFlash::erased(),
+        }
+    }
+}
+
+/// Why the board could not be built.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum BoardError {
+    /// The kernel takes 1 to 8 axes.
+    AxisCount(usize),
+    /// The machine file makes a kernel configuration that does not validate.
+    Config(forja_motion::ConfigError),
+    /// A flash region could not be opened.
+    Storage(String),
+}
+
+impl fmt::Display for BoardError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::AxisCount(n) => write!(f, "the motion kernel takes 1 to 8 axes, not {n}"),
+            Self::Config(e) => write!(f, "the machine file does not suit the kernel: {e}"),
+            Self::Storage(e) => write!(f, "flash: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for BoardError {}
+
+/// A link the board serves. Every [`HostLink`] over `std::io` is one.
+pub trait Port: HostLink<Error = io::Error> + Any {}
+
+impl<T: HostLink<Error = io::Error> + Any> Port for T {}
+
+/// The number of a port, from [`SimBoard::add_port`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct PortId(usize);
+
+struct Served {
+    link: Box<dyn Port>,
+    session: Option<LinkSession>,
+    seen: u64,
+    failure: Option<String>,
+}
+
+/// What the board is doing, whatever its number of axes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BoardStatus {
+    /// The kernel's state.
+    pub state: MachineState,
+    /// Whether every queued move has finished.
+    pub idle: bool,
+    /// The job's state.
+    pub job: JobState,
+    /// The frame-52 figures.
+    pub progress: Progress,
+    /// The controller's counters.
+    pub stats: ControllerStats,
+    /// Whether G-code input is held (a line waits for room, or a heater wait).
+    pub holding: bool,
+    /// The kernel's machine position of each axis, mm.
+    pub machine_mm: Vec<f64>,
+    /// Axes homed (bit `i` = axis `i`).
+    pub homed: u8,
+    /// Lines of the stored program.
+    pub program_lines: u16,
+    /// The served port, if any.
+    pub active_port: Option<PortId>,
+}
+
+/// The firmware of one axis count.
+trait Wiring {
+    fn on_alarm(&mut self, now: Instant) -> Option<Instant>;
+    fn poll(&mut self, now: Instant, ports: &mut [Served], active: &mut Option<usize>);
+    fn status(&self) -> BoardStatus;
+    fn keep_alive_ms(&self) -> u32;
+    fn program_line(&mut self, index: u16) -> Option<String>;
+    fn into_flash(self: Box<Self>) -> Flash;
+}
+
+/// The kernel's configuration for a machine file. See the [module documentation](self) for
+/// how switches, unlimited axes and homing order are mapped.
+///
+/// Errors: [`BoardError::AxisCount`] unless the file has `N` axes.
+pub fn kernel_config<const N: usize>(m: &MachineConfig) -> Result<KernelConfig<N>, BoardError> {
+    if m.axes.len() != N {
+        return Err(BoardError::AxisCount(m.axes.len()));
+    }
+    let mut switch = 0u8;
+    let axes = core::array::from_fn(|i| {
+        let a = &m.axes[i];
+        let (min_mm, max_mm) = a
+            .travel
+            .map_or((-UNLIMITED_TRAVEL_MM, UNLIMITED_TRAVEL_MM), |t| {
+                (t.min_mm as f32, t.max_mm as f32)
+            });
+        let homing = a.homing.map(|h| {
+            let c = HomingConfig {
+                direction: match h.direction {
+                    forja_hal_abstraction::stepper::Direction::Negative => HomeDirection::Min,
+                    forja_hal_abstraction::stepper::Direction::Positive => HomeDirection::Max,
+                },
+                seek_mm_min: h.seek_mm_min as f32,
+                locate_mm_min: h.locate_mm_min as f32,
+                pull_off_mm: h.pull_off_mm as f32,
+                switch,
+                order: u8::from(a.letter != 'Z'),
+            };
+            switch += 1;
+            c
+        });
+        AxisConfig {
+            letter: a.letter as u8,
+            kind: match a.kind {
+                AxisKind::Linear => KernelAxisKind::Linear,
+                AxisKind::Rotary => KernelAxisKind::Rotary,
+                AxisKind::Extruder => KernelAxisKind::Extruder,
+            },
+            steps_per_mm: a.steps_per_mm as f32,
+            max_rate_mm_min: a.max_rate_mm_min as f32,
+            accel_mm_s2: a.accel_mm_s2 as f32,
+            min_mm,
+            max_mm,
+            homing,
+        }
+    });
+    let config = KernelConfig::new(axes);
+    config.validate().map_err(BoardError::Config)?;
+    Ok(config)
+}
+
+/// The slowest driver timing of the machine: what the kernel schedules for.
+pub fn slowest_timing(m: &MachineConfig) -> StepTiming {
+    m.axes.iter().fold(
+        StepTiming {
+            min_pulse_ns: 0,
+            dir_setup_ns: 0,
+        },
+        |t, a| StepTiming {
+            min_pulse_ns: t.min_pulse_ns.max(a.step_timing.min_pulse_ns),
+            dir_setup_ns: t.dir_setup_ns.max(a.step_timing.dir_setup_ns),
+        },
+    )
+}
+
+type Heat = HeaterChannel<SimTemperatureSensor, SimHeater>;
+type EnableLine = StepDir<NoPin, NoPin, SimDriverPin>;
+type Switch = LimitInput<SimSwitchPin>;
+type SimPeripherals<const N: usize> = DriverPeripherals<
+    Heat,
+    Heat,
+    SimPwm,
+    Spindle<SimPwm>,
+    MotorEnables<EnableLine, N>,
+    Switch,
+    N,
+    MAX_FANS,
+>;
+type ProgramStore = RecordProgramStore<FlashRecordStorage<ProgramFlash>>;
+type SettingsStore = FlashRecordStorage<SettingsFlash>;
+type SimController<const N: usize> = Controller<
+    'static,
+    N,
+    PLANNER_BLOCKS,
+    QUEUE_EVENTS,
+    ProgramStore,
+    SimPeripherals<N>,
+    SettingsStore,
+>;
+
+/// PID gains for the simulated heaters (Marlin's defaults, in fractions of full power).
+const HOT_END_GAINS: PidGains = PidGains {
+    kp: 0.087,
+    ki: 0.0042,
+    kd: 0.45,
+};
+const BED_GAINS: PidGains = PidGains {
+    kp: 0.39,
+    ki: 0.002,
+    kd: 4.0,
+};
+
+fn polarity(p: SwitchPolarity) -> Polarity {
+    match p {
+        SwitchPolarity::NormallyOpen => Polarity::NormallyOpen,
+        SwitchPolarity::NormallyClosed => Polarity::NormallyClosed,
+    }
+}
+
+/// The switch on `axis`'s homing side, as the firmware reads it.
+fn homing_switch(machine: &SimMachine, axis: usize) -> Option<Switch> {
+    let a = machine.config().axes.get(axis)?;
+    let side = match a.homing?.direction {
+        forja_hal_abstraction::stepper::Direction::Negative => SwitchSide::Min,
+        forja_hal_abstraction::stepper::Direction::Positive => SwitchSide::Max,
+    };
+    let config = a.switch(side)?;
+    let pin = machine.switch_pin(axis, side).ok()?;
+    Some(LimitInput::new(
+        pin,
+        LimitConfig::new(polarity(config.polarity), 1),
+    ))
+}
+
+struct Wired<const N: usize> {
+    controller: SimController<N>,
+    isr: StepGenerator<'static, N, QUEUE_EVENTS>,
+    steppers: [StepDir<SimDriverPin, SimDriverPin>; N],
+    switches: Vec<Switch>,
+    alarm: SimAlarm,
+    machine: SimMachine,
+    booted: bool,
+}
+
+fn storage_error(e: impl fmt::Debug) -> BoardError {
+    BoardError::Storage(format!("{e:?}"))
+}
+
+impl<const N: usize> Wired<N> {
+    fn new(machine: &SimMachine, flash: Flash, program_lines: u16) -> Result<Self, BoardError> {
+        let file = machine.config();
+        let base = kernel_config::<N>(file)?;
+        let timing = slowest_timing(file);
+        let mut settings_store =
+            FlashRecordStorage::new(flash.settings, 0..SETTINGS_FLASH_LEN as u32)
+                .map_err(storage_error)?;
+        let (settings, _) = Settings::load(base, &mut settings_store);
+        let queue: &'static mut StepQueue<N, QUEUE_EVENTS> = Box::leak(Box::new(StepQueue::new()));
+        let (kernel, isr): (Kernel<'static, N, PLANNER_BLOCKS, QUEUE_EVENTS>, _) =
+            forja_motion::split(queue, settings.machine().clone(), machine.tick_hz(), timing)
+                .map_err(BoardError::Config)?;
+
+        let pins = |axis: usize| {
+            machine
+                .step_dir_pins(axis)
+                .map_err(|e| BoardError::Storage(e.to_string()))
+        };
+        let mut steppers = Vec::with_capacity(N);
+        let mut enables = Vec::with_capacity(N);
+        for (axis, a) in file.axes.iter().enumerate() {
+            let p = pins(axis)?;
+            let config = StepDirConfig::new(a.step_timing);
+            steppers.push(StepDir::new(p.step, p.dir, config).map_err(storage_error)?);
+            enables
+                .push(StepDir::with_enable(NoPin, NoPin, p.enable, config).map_err(storage_error)?);
+        }
+        let steppers: [_; N] = steppers
+            .try_into()
+            .map_err(|_| BoardError::AxisCount(file.axes.len()))?;
+        let enables: [_; N] = enables
+            .try_into()
+            .map_err(|_| BoardError::AxisCount(file.axes.len()))?;
+        let switches: Vec<Switch> = (0..N)
+            .filter_map(|axis| homing_switch(machine, axis))
+            .collect();
+        let limits: [Option<Switch>; N] = core::array::from_fn(|axis| homing_switch(machine, axis));
+
+        let heater = |i: usize, config: HeaterConfig| -> Option<Heat> {
+            Some(HeaterChannel::new(
+                machine.temperature_sensor(i).ok()?,
+                machine.heater(i).ok()?,
+                config,
+            ))
+        };
+        let bed_index = file.heaters.iter().position(|h| h.name == "bed");
+        let hot_index = file.heaters.iter().position(|h| h.name != "bed");
+        let mut fans: [Option<Fan<SimPwm>>; MAX_FANS] = Default::default();
+        let mut spindle = None;
+        let mut next_fan = 0;
+        for (i, o) in file.outputs.iter().enumerate() {
+            let Ok(pwm) = machine.pwm(i) else { continue };
+            if o.name == "spindle" {
+                spindle = Spindle::new(pwm, SpindleConfig::new(SPINDLE_MAX_RPM)).ok();
+            } else if let Some(slot) = fans.get_mut(next_fan) {
+                *slot = Fan::new(pwm, FanConfig::DIRECT).ok();
+                next_fan += 1;
+            }
+        }
+        let peripherals = DriverPeripherals::new(Parts {
+            hot_end: hot_index.and_then(|i| heater(i, HeaterConfig::hot_end(HOT_END_GAINS))),
+            bed: bed_index.and_then(|i| heater(i, HeaterConfig::bed(BED_GAINS))),
+            fans,
+            spindle,
+            motors: MotorEnables(enables),
+            limits,
+            tolerance_mc: 2_000,
+        });
+
+        let program_storage = FlashRecordStorage::new(flash.program, 0..PROGRAM_FLASH_LEN as u32)
+            .map_err(storage_error)?;
+        let program =
+            RecordProgramStore::open(program_storage, program_lines).map_err(storage_error)?;
+        let mut config = ControllerConfig::new(machine_type(file), timing);
+        config.extruders = u8::from(file.axes.iter().any(|a| a.kind == AxisKind::Extruder));
+        let controller = Controller::new(kernel, program, peripherals, config)
+            .with_settings(settings, settings_store);
+        Ok(Self {
+            controller,
+            isr,
+            steppers,
+            switches,
+            alarm: machine.alarm(),
+            machine: machine.clone(),
+            booted: false,
+        })
+    }
+
+    /// Choose the port to serve, greet a new host.
+    fn serve(&mut self, ports: &mut [Served], active: &mut Option<usize>, now_ms: u32) {
+        if let Some(i) = *active
+            && let Some(p) = ports.get_mut(i)
+        {
+            let seen = p.link.connections();
+            let connected = p.link.state() == LinkState::Connected;
+            if seen != p.seen {
+                p.seen = seen;
+                self.greet(p, now_ms);
+            } else if !connected && !p.link.read_ready().unwrap_or(false) {
+                if let Some(s) = p.session.as_mut() {
+                    s.on_disconnect();
+                }
+                *active = None;
+            }
+        }
+        if active.is_none() {
+            for (i, p) in ports.iter_mut().enumerate() {
+                let connected = p.link.state() == LinkState::Connected;
+                if connected || p.link.read_ready().unwrap_or(false) {
+                    p.seen = p.link.connections();
+                    *active = Some(i);
+                    self.greet(p, now_ms);
+                    break;
+                }
+            }
+        }
+    }
+
+    fn greet(&mut self, p: &mut Served, now_ms: u32) {
+        match p.session.as_mut() {
+            Some(s) => {
+                s.on_disconnect();
+                if s.on_connect(now_ms) == SessionAction::SendConnected {
+                    self.controller.on_connect(&mut p.link);
+                }
+            }
+            None => {
+                self.controller.reset_link();
+                if !self.booted {
+                    self.booted = true;
+                    self.controller.boot(&mut p.link);
+                }
+            }
+        }
+    }
+}
+
+/// A link that has nothing to say and hears nothing: the controller's link while no host is
+/// served.
+struct Silent;
+
+impl embedded_io::ErrorType for Silent {
+    type Error = core::convert::Infallible;
+}
+
+impl embedded_io::Read for Silent {
+    fn read(&mut self, _: &mut [u8]) -> Result<usize, Self::Error> {
+        Ok(0)
+    }
+}
+
+impl embedded_io::ReadReady for Silent {
+    fn read_ready(&mut self) -> Result<bool, Self::Error> {
+        Ok(false)
+    }
+}
+
+impl embedded_io::Write for Silent {
+    fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> Result<(), Self::Error> {
+        Ok(())
+    }
+}
+
+fn machine_type(file: &MachineConfig) -> &'static str {
+    if file.heaters.is_empty() {
+        "cnc"
+    } else {
+        "printer"
+    }
+}
+
+impl<const N: usize> Wiring for Wired<N> {
+    fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
+        self.isr
+            .on_alarm(now, &mut self.steppers, &mut self.switches)
+    }
+
+    fn poll(&mut self, now: Instant, ports: &mut [Served], active: &mut Option<usize>) {
+        let now_ms = (u128::from(self.machine.now_ticks()) * 1000
+            / u128::from(self.machine.tick_hz())) as u32;
+        for p in ports.iter_mut() {
+            if let Err(e) = p.link.poll() {
+                p.failure.get_or_insert(e.to_string());
+            }
+        }
+        self.serve(ports, active, now_ms);
+        let outcome = match active.and_then(|i| ports.get_mut(i)) {
+            Some(p) => {
+                if let Some(s) = p.session.as_mut() {
+                    while let Some(SessionAction::SendKeepAlive(n)) = s.poll(now_ms) {
+                        self.controller.keep_alive(n, &mut p.link);
+                    }
+                }
+                self.controller.poll(now, &mut p.link)
+            }
+            None => self.controller.poll(now, &mut Silent),
+        };
+        if let Some(at) = outcome.arm_alarm {
+            let _ = self.alarm.set_alarm(at);
+        }
+    }
+
+    fn status(&self) -> BoardStatus {
+        let k = self.controller.kernel();
+        BoardStatus {
+            state: k.state(),
+            idle: k.is_idle() && k.state() != MachineState::Homing,
+            job: self.controller.job().state(),
+            progress: self.controller.progress(),
+            stats: self.controller.stats(),
+            holding: self.controller.is_holding(),
+            machine_mm: k.position().machine_mm.to_vec(),
+            homed: k.homed_axes(),
+            program_lines: forja_motion::job::ProgramStore::len(self.controller.program()),
+            active_port: None,
+        }
+    }
+
+    fn keep_alive_ms(&self) -> u32 {
+        self.controller.settings().keep_alive_ms()
+    }
+
+    fn program_line(&mut self, index: u16) -> Option<String> {
+        let mut buf = [0u8; forja_motion::job::MAX_LINE_LEN];
+        let store = self.controller.program_mut();
+        let len = forja_motion::job::ProgramStore::read(store, index, &mut buf).ok()?;
+        Some(String::from_utf8_lossy(buf.get(..len)?).into_owned())
+    }
+
+    fn into_flash(self: Box<Self>) -> Flash {
+        let (_, program, _, settings) = self.controller.release();
+        Flash {
+            program: program.into_inner().into_flash(),
+            settings: settings.into_flash(),
+        }
+    }
+}
+
+/// Settings of a [`SimBoard`].
+#[derive(Debug)]
+pub struct BoardConfig {
+    /// Most lines the program store takes (at most 9999).
+    pub program_lines: u16,
+    /// The flash to start from: erased for a new board, or [`SimBoard::into_flash`] of a
+    /// previous one (a restart keeps the settings and the program).
+    pub flash: Flash,
+}
+
+impl Default for BoardConfig {
+    fn default() -> Self {
+        Self {
+            program_lines: forja_motion::job::MAX_LINES,
+            flash: Flash::erased(),
+        }
+    }
+}
+
+/// The simulator board: the firmware on a [`SimMachine`]. Implements [`Firmware`] for
+/// [`Simulation::run`]; [`SimBoard::run`] adds a host hook.
+pub struct SimBoard {
+    wiring: Box<dyn Wiring>,
+    ports: Vec<Served>,
+    active: Option<usize>,
+    machine: SimMachine,
+}
+
+impl fmt::Debug for SimBoard {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("SimBoard")
+            .field("machine", &self.machine)
+            .field("ports", &self.ports.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl SimBoard {
+    /// The firmware on `machine`: its kernel built from the machine file and the settings in
+    /// `config.flash`.
+    ///
+    /// Errors: a machine of more than 8 axes, a machine file the kernel refuses, a flash that
+    /// cannot be opened.
+    pub fn new(machine: &SimMachine, config: BoardConfig) -> Result<Self, BoardError> {
+        let f = config.flash;
+        let l = config.program_lines;
+        let wiring: Box<dyn Wiring> = match machine.axis_count() {
+            1 => Box::new(Wired::<1>::new(machine, f, l)?),
+            2 => Box::new(Wired::<2>::new(machine, f, l)?),
+            3 => Box::new(Wired::<3>::new(machine, f, l)?),
+            4 => Box::new(Wired::<4>::new(machine, f, l)?),
+            5 => Box::new(Wired::<5>::new(machine, f, l)?),
+            6 => Box::new(Wired::<6>::new(machine, f, l)?),
+            7 => Box::new(Wired::<7>::new(machine, f, l)?),
+            8 => Box::new(Wired::<8>::new(machine, f, l)?),
+            n => return Err(BoardError::AxisCount(n)),
+        };
+        Ok(Self {
+            wiring,
+            ports: Vec::new(),
+            active: None,
+            machine: machine.clone(),
+        })
+    }
+
+    /// Serve `link`; `session`: greet each host with frame 54 and keep it alive with frame 55
+    /// (TCP, like the ESP32's WiFi).
+    pub fn add_port(&mut self, link: impl Port, session: bool) -> PortId {
+        let keep_alive = self.wiring.keep_alive_ms();
+        self.ports.push(Served {
+            link: Box::new(link),
+            session: session.then(|| LinkSession::new(keep_alive)),
+            seen: 0,
+            failure: None,
+        });
+        PortId(self.ports.len() - 1)
+    }
+
+    /// The link of a port, as its own type.
+    pub fn port<T: Port>(&self, id: PortId) -> Option<&T> {
+        let link: &dyn Any = &*self.ports.get(id.0)?.link;
+        link.downcast_ref()
+    }
+
+    /// The link of a port, as its own type, mutably.
+    pub fn port_mut<T: Port>(&mut self, id: PortId) -> Option<&mut T> {
+        let link: &mut dyn Any = &mut *self.ports.get_mut(id.0)?.link;
+        link.downcast_mut()
+    }
+
+    /// The first failure of a port's link (the listening socket or the terminal failed).
+    pub fn port_failure(&self, id: PortId) -> Option<&str> {
+        self.ports.get(id.0)?.failure.as_deref()
+    }
+
+    /// The machine.
+    pub fn machine(&self) -> &SimMachine {
+        &self.machine
+    }
+
+    /// What the firmware is doing.
+    pub fn status(&self) -> BoardStatus {
+        let mut s = self.wiring.status();
+        s.active_port = self.active.map(PortId);
+        s
+    }
+
+    /// Line `index` (1-based) of the stored program.
+    pub fn program_line(&mut self, index: u16) -> Option<String> {
+        self.wiring.program_line(index)
+    }
+
+    /// Stop the board and take its flash, to start another on it (a restart).
+    pub fn into_flash(self) -> Flash {
+        self.wiring.into_flash()
+    }
+
+    /// Run under `sim`, calling `host` after every thread-side poll (the host's turn: read
+    /// replies, send lines). The run ends when `host` returns [`Flow::Stop`], at the time
+    /// limit, or on the stop flag.
+    ///
+    /// Errors: [`RunError`].
+    pub fn run<H: FnMut(&mut SimBoard, Instant) -> Flow>(
+        &mut self,
+        sim: &mut Simulation,
+        host: H,
+    ) -> Result<RunReport, RunError> {
+        sim.run(&mut Hooked { board: self, host })
+    }
+}
+
+impl Firmware for SimBoard {
+    fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
+        self.wiring.on_alarm(now)
+    }
+
+    fn poll(&mut self, now: Instant) -> Flow {
+        self.wiring.poll(now, &mut self.ports, &mut self.active);
+        Flow::Continue
+    }
+}
+
+struct Hooked<'a, H> {
+    board: &'a mut SimBoard,
+    host: H,
+}
+
+impl<H: FnMut(&mut SimBoard, Instant) -> Flow> Firmware for Hooked<'_, H> {
+    fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
+        self.board.on_alarm(now)
+    }
+
+    fn poll(&mut self, now: Instant) -> Flow {
+        Firmware::poll(self.board, now);
+        (self.host)(self.board, now)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_router_file_makes_a_kernel_configuration() {
+        let file = MachineConfig::default_router();
+        let k = kernel_config::<4>(&file).unwrap();
+        let letters: Vec<u8> = k.axes.iter().map(|a| a.letter).collect();
+        assert_eq!(letters, b"XYZA");
+        let homing: Vec<_> = k.axes.iter().map(|a| a.homing).collect();
+        // Switches numbered in axis order; Z first; A does not home and turns freely.
+        assert_eq!(
+            homing
+                .iter()
+                .map(|h| h.map(|h| (h.switch, h.order)))
+                .collect::<Vec<_>>(),
+            [Some((0, 1)), Some((1, 1)), Some((2, 0)), None]
+        );
+        assert_eq!(homing[2].map(|h| h.direction), Some(HomeDirection::Max));
+        assert_eq!(
+            (k.axes[3].min_mm, k.axes[3].max_mm),
+            (-100_000.0, 100_000.0)
+        );
+        assert_eq!(k.axes[3].kind, KernelAxisKind::Rotary);
+        assert_eq!(kernel_config::<3>(&file), Err(BoardError::AxisCount(4)));
+        assert_eq!(slowest_timing(&file), StepTiming::CONSERVATIVE);
+    }
+
+    #[test]
+    fn a_restart_keeps_the_flash() {
+        let machine = SimMachine::new(&MachineConfig::default_router());
+        let board = SimBoard::new(&machine, BoardConfig::default()).unwrap();
+        assert_eq!(board.status().program_lines, 0);
+        assert_eq!(board.status().state, MachineState::Idle);
+        let flash = board.into_flash();
+        let board = SimBoard::new(
+            &machine,
+            BoardConfig {
+                flash,
+                ..BoardConfig::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(board.status().active_port, None);
+    }
+
+    #[test]
+    fn the_heap_flash_keeps_nor_rules() {
+        let mut f = SettingsFlash::erased();
+        assert_eq!(f.write(2, &[0; 4]), Err(RamFlashError::NotAligned));
+        f.write(4, &[1, 2, 3, 4]).unwrap();
+        assert_eq!(
+            f.write(4, &[1, 2, 3, 4]),
+            Err(RamFlashError::WordWrittenTwice)
+        );
+        let mut b = [0; 4];
+        f.read(4, &mut b).unwrap();
+        assert_eq!(b, [1, 2, 3, 4]);
+        f.erase(0, FLASH_PAGE as u32).unwrap();
+        f.read(4, &mut b).unwrap();
+        assert_eq!(b, [0xFF; 4]);
+        assert_eq!(
+            f.erase(0, SETTINGS_FLASH_LEN as u32 + FLASH_PAGE as u32),
+            Err(RamFlashError::OutOfBounds)
+        );
+    }
+}

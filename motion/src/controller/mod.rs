@@ -1,0 +1,853 @@
+//! The controller: the one code path from a host link to the motion kernel, on every board.
+//!
+//! A [`Controller`] owns the thread side of a machine: the stream [`Decoder`] of the link, its
+//! [`LineNumbering`], the [`Kernel`], the [`Job`] with its [`ProgramStore`], the [`Settings`]
+//! and their [`RecordStorage`], and the board's [`Peripherals`] (heaters, fans, spindle, motor
+//! power, end-stops). It speaks both protocols of the link at once — RepRap G-code lines and
+//! the 53-byte frames — and answers every line and frame as `docs/protocol.md` ("Controller
+//! replies") describes.
+//!
+//! It is sans-IO and portable: `no_std`, no allocation, no panics, no clock. The board calls
+//! [`Controller::poll`] from its thread context (a task or the main loop) with the time and the
+//! link (`embedded-io` `Read + ReadReady + Write`), arms the step alarm at what it returns, and
+//! calls it again at the latest at [`PollOutcome::wake_at`] — and at least every half
+//! `queue_lead_ms` while the machine moves.
+//!
+//! ```text
+//!  board thread                                    controller
+//!  ───────────                                     ──────────
+//!  boot(link)                                  ──► "start"
+//!  on_connect(link)   (links with a session)   ──► frame 54
+//!  keep_alive(n, link) (LinkSession)           ──► frame 55
+//!  loop {
+//!    out = poll(clock.now(), link)              ──► kernel.poll, job, heaters, waits,
+//!    if let Some(at) = out.arm_alarm {              read the link, answer lines and frames
+//!        alarm.set_alarm(at) }
+//!    sleep until out.wake_at or the link has bytes
+//!  }
+//! ```
+//!
+//! # Flow control
+//!
+//! Input is read only while it can be handled: when the kernel answers
+//! [`Reply::Busy`](crate::Reply::Busy) (the planner is full, or an effect waits for the motion
+//! before it), the line is copied aside and offered again at each poll, and its `ok` is delayed
+//! until it is taken. Frames that arrive meanwhile are still handled (they are the realtime
+//! channel: pause, stop, positions); the next G-code line is kept aside too, and then nothing
+//! more is read until both are taken. `M112` is the exception: it is carried out as soon as it
+//! is read. `G28` holds further lines the same way until the homing cycle ends, `M109` and
+//! `M116` until the heaters are at target, with a `// T:… B:…` line every
+//! [`ControllerConfig::report_period_ms`].
+//!
+//! # Wire codes
+//!
+//! The controller's own refusals use these codes (the motion block, 100–199):
+//!
+//! | code | name | meaning |
+//! |---|---|---|
+//! | 190 | `unknown-setting` | [`SettingError::UnknownKey`]: frame 00 named no setting |
+//! | 191 | `bad-setting` | [`SettingError::BadValue`]: the value does not parse or is out of range |
+//! | 192 | `bad-request` | [`ControllerError::BadRequest`]: frame 04 asked for a message not sent on request |
+//! | 193 | `load-total` | [`ControllerError::LoadTotal`]: a 03 line's total differs from the program's |
+//! | 194 | `no-device` | [`PeripheralError::NoDevice`] |
+//! | 195 | `device-range` | [`PeripheralError::OutOfRange`] |
+//! | 196 | `device-fault` | [`PeripheralError::Hardware`] |
+//!
+//! Everything else carries the code of the layer that refused it: the protocol (1–99), the
+//! kernel and jobs (100–189), the drivers (200–299).
+
+mod frames;
+mod gcode;
+pub mod peripherals;
+pub mod settings;
+pub mod store;
+mod text;
+mod wire;
+
+#[cfg(test)]
+mod tests;
+
+use core::fmt;
+
+use embedded_io::{Read, ReadReady, Write};
+use forja_hal_abstraction::stepper::StepTiming;
+use forja_hal_abstraction::storage::RecordStorage;
+use forja_hal_abstraction::time::{Duration, Instant};
+use forja_protocol::error::WireError;
+use forja_protocol::frame::{ControllerMessage, FRAME_LEN, is_frame};
+use forja_protocol::gcode::{LineNumbering, MAX_LINE_LEN};
+use forja_protocol::reply::Reply;
+use forja_protocol::stream::{Decoder, Event, FeedResult};
+
+pub use peripherals::{NoPeripherals, PeripheralError, Peripherals, Reading, Temperatures};
+pub use settings::{
+    AXIS_RECORDS, AxisField, DEFAULT_KEEP_ALIVE_MS, GLOBAL_RECORDS, Key, LoadReport,
+    MAX_PASSWORD_LEN, MAX_SSID_LEN, NoStorage, SettingError, Settings,
+};
+pub use store::{HEADER_RECORD, LINE_RECORDS, RecordProgramStore};
+
+use crate::error::Alarm;
+use crate::job::{Job, JobState, ProgramStore};
+use crate::kernel::{Kernel, MachineState};
+
+/// A refusal of the controller itself (not of the kernel, a store or a peripheral).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[non_exhaustive]
+pub enum ControllerError {
+    /// Frame 04 asked for a message type that is not sent on request (only 51 and 52 are).
+    /// Code 192.
+    BadRequest,
+    /// A frame 03 line whose total is not the total of line 1 of the program being loaded.
+    /// Code 193.
+    LoadTotal,
+}
+
+impl WireError for ControllerError {
+    fn code(&self) -> u16 {
+        match self {
+            Self::BadRequest => 192,
+            Self::LoadTotal => 193,
+        }
+    }
+
+    fn name(&self) -> &'static str {
+        match self {
+            Self::BadRequest => "bad-request",
+            Self::LoadTotal => "load-total",
+        }
+    }
+}
+
+impl fmt::Display for ControllerError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// What the controller needs to know of its board, besides the kernel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ControllerConfig {
+    /// `MACHINE_TYPE` in the `M115` answer: printable ASCII without spaces.
+    pub machine_type: &'static str,
+    /// `EXTRUDER_COUNT` in the `M115` answer; `T<n>` is accepted for `n` below it (or `T0`
+    /// when 0).
+    pub extruders: u8,
+    /// The drivers' step timing the kernel was split with: settings that would need faster
+    /// steps than it allows are refused.
+    pub timing: StepTiming,
+    /// How often [`Peripherals::poll`] runs (the temperature loops), ms.
+    pub peripheral_period_ms: u32,
+    /// How often an `M109`/`M116` wait reports the temperatures, ms.
+    pub report_period_ms: u32,
+    /// A frame that arrived without a terminator is taken after the link has been quiet this
+    /// long, ms.
+    pub frame_flush_ms: u32,
+}
+
+impl ControllerConfig {
+    /// `machine_type`, no extruder, `timing`; heaters every 100 ms, temperature reports every
+    /// second, unterminated frames taken after 20 ms of quiet.
+    pub const fn new(machine_type: &'static str, timing: StepTiming) -> Self {
+        Self {
+            machine_type,
+            extruders: 0,
+            timing,
+            peripheral_period_ms: 100,
+            report_period_ms: 1000,
+            frame_flush_ms: 20,
+        }
+    }
+}
+
+/// What one [`Controller::poll`] asks of the board.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct PollOutcome {
+    /// Arm the step alarm at this instant (an instant already past fires at once).
+    pub arm_alarm: Option<Instant>,
+    /// Poll again at the latest at this instant (sooner when the link has bytes); `None` when
+    /// only new bytes need a poll.
+    pub wake_at: Option<Instant>,
+}
+
+/// Counters of what the controller did, wrapping.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Stats {
+    /// G-code lines answered with `ok` (taken, done, or refused with `!!` first).
+    pub oks: u32,
+    /// G-code lines taken by the kernel (carried out or queued).
+    pub executed: u32,
+    /// `rs` replies sent.
+    pub resends: u32,
+    /// G-code lines refused (`!!` then `ok`).
+    pub refused: u32,
+    /// Frames received.
+    pub frames: u32,
+    /// Frame 56 sent.
+    pub errors: u32,
+    /// Runs of garbage skipped on the link.
+    pub garbage_runs: u32,
+    /// Stored program lines fed to the kernel by the job.
+    pub program_lines: u32,
+    /// Faults reported unsolicited (`!!` or 56): alarms, thermal faults, `M112`.
+    pub faults: u32,
+}
+
+/// A wrapping millisecond clock derived from the instants of [`Controller::poll`].
+#[derive(Debug, Clone, Copy)]
+struct MsClock {
+    last: Instant,
+    ms: u32,
+    rem_ticks: u32,
+    ticks_per_ms: u32,
+}
+
+impl MsClock {
+    fn new(tick_hz: u32) -> Self {
+        Self {
+            last: Instant::from_ticks(0),
+            ms: 0,
+            rem_ticks: 0,
+            ticks_per_ms: (tick_hz / 1000).max(1),
+        }
+    }
+
+    /// Move to `now`. An instant before the last one (or one more than 2³¹ ticks later)
+    /// counts as no time: the clock never stalls and never runs backwards.
+    fn update(&mut self, now: Instant) {
+        let d = now.signed_ticks_since(self.last);
+        self.last = now;
+        if d <= 0 {
+            return;
+        }
+        let total = u64::from(self.rem_ticks) + d as u64;
+        let tpm = u64::from(self.ticks_per_ms);
+        self.ms = self.ms.wrapping_add((total / tpm) as u32);
+        self.rem_ticks = (total % tpm) as u32;
+    }
+
+    /// The instant `ms` milliseconds after the last update.
+    fn after(&self, ms: u32) -> Instant {
+        let ticks = u64::from(ms) * u64::from(self.ticks_per_ms);
+        self.last
+            .wrapping_add(Duration::from_ticks(ticks.min(i32::MAX as u64) as u32))
+    }
+
+    /// Milliseconds from now to `at_ms` on the wrapping clock, 0 when past.
+    fn until(&self, at_ms: u32) -> u32 {
+        let d = at_ms.wrapping_sub(self.ms) as i32;
+        d.max(0) as u32
+    }
+
+    fn reached(&self, at_ms: u32) -> bool {
+        (self.ms.wrapping_sub(at_ms) as i32) >= 0
+    }
+}
+
+/// Bytes read from the link and not yet given to the decoder.
+const RX_LEN: usize = 128;
+
+/// The link's input: a small receive buffer, and the tail of what the decoder has taken
+/// since its last event (to see a frame that waits for a byte after it).
+struct Input {
+    buf: [u8; RX_LEN],
+    start: usize,
+    end: usize,
+    tail: [u8; FRAME_LEN],
+    since_event: usize,
+    last_rx_ms: u32,
+}
+
+impl Input {
+    const fn new() -> Self {
+        Self {
+            buf: [0; RX_LEN],
+            start: 0,
+            end: 0,
+            tail: [0; FRAME_LEN],
+            since_event: 0,
+            last_rx_ms: 0,
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        self.start >= self.end
+    }
+
+    fn pending(&self) -> &[u8] {
+        self.buf.get(self.start..self.end).unwrap_or(&[])
+    }
+
+    fn consume(&mut self, n: usize) {
+        let taken = self
+            .buf
+            .get(self.start..self.start.saturating_add(n).min(self.end))
+            .unwrap_or(&[]);
+        if taken.len() >= FRAME_LEN {
+            if let Some(last) = taken.get(taken.len() - FRAME_LEN..) {
+                self.tail.copy_from_slice(last);
+            }
+        } else if !taken.is_empty() {
+            self.tail.copy_within(taken.len().., 0);
+            if let Some(dst) = self.tail.get_mut(FRAME_LEN - taken.len()..) {
+                dst.copy_from_slice(taken);
+            }
+        }
+        self.since_event = self.since_event.saturating_add(taken.len());
+        self.start += taken.len();
+        if self.start >= self.end {
+            self.start = 0;
+            self.end = 0;
+        }
+    }
+
+    /// Read what the link has, without blocking. Returns whether bytes came.
+    fn fill<L: Read + ReadReady>(&mut self, link: &mut L, now_ms: u32) -> bool {
+        if !self.is_empty() || !matches!(link.read_ready(), Ok(true)) {
+            return false;
+        }
+        match link.read(&mut self.buf) {
+            Ok(n) if n > 0 => {
+                self.start = 0;
+                self.end = n.min(RX_LEN);
+                self.last_rx_ms = now_ms;
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Whether a complete frame may be waiting in the decoder for a byte after it.
+    fn frame_waiting(&self) -> bool {
+        self.is_empty() && self.since_event >= FRAME_LEN - 1 && is_frame(&self.tail)
+    }
+
+    fn event_seen(&mut self) {
+        self.since_event = 0;
+    }
+
+    fn clear(&mut self) {
+        *self = Self::new();
+    }
+}
+
+/// A G-code line kept aside (its bytes, as received).
+#[derive(Clone, Copy)]
+struct LineBuf {
+    buf: [u8; MAX_LINE_LEN],
+    len: usize,
+}
+
+impl LineBuf {
+    const EMPTY: Self = Self {
+        buf: [0; MAX_LINE_LEN],
+        len: 0,
+    };
+
+    fn new(bytes: &[u8]) -> Self {
+        let mut buf = [0u8; MAX_LINE_LEN];
+        let len = bytes.len().min(MAX_LINE_LEN);
+        if let (Some(dst), Some(src)) = (buf.get_mut(..len), bytes.get(..len)) {
+            dst.copy_from_slice(src);
+        }
+        Self { buf, len }
+    }
+
+    fn bytes(&self) -> &[u8] {
+        self.buf.get(..self.len).unwrap_or(&[])
+    }
+}
+
+/// Why the link's G-code lines are held.
+#[derive(Clone, Copy)]
+enum Held {
+    /// The line in `Link::held_line` (already checked for numbering) waits for the kernel to
+    /// take it.
+    Line,
+    /// A `G28` runs the homing cycle; its `ok` is sent when the cycle ends, as a RepRap host
+    /// expects (an `M114` after it then reports the homed position).
+    Homing,
+    /// An `M109`/`M116` waits for the heaters; its `ok` is sent when they are at target.
+    Heat {
+        /// When to send the next `// T:…` line.
+        next_report_ms: u32,
+    },
+}
+
+/// The state of the link's session.
+struct Link {
+    numbering: LineNumbering,
+    held: Option<Held>,
+    held_line: LineBuf,
+    queued: Option<LineBuf>,
+    /// The numbered line already asked for again after it arrived intact but not G-code.
+    asked_again: Option<u32>,
+    gcode_seen: bool,
+    frames_seen: bool,
+    session: bool,
+    started: bool,
+}
+
+impl Link {
+    const fn new() -> Self {
+        Self {
+            numbering: LineNumbering::new(),
+            held: None,
+            held_line: LineBuf::EMPTY,
+            queued: None,
+            asked_again: None,
+            gcode_seen: false,
+            frames_seen: false,
+            session: false,
+            started: false,
+        }
+    }
+
+    /// Whether the next G-code line must be kept aside rather than handled.
+    fn lines_held(&self) -> bool {
+        self.held.is_some()
+    }
+
+    /// Whether nothing more can be read until a held line is taken.
+    fn input_blocked(&self) -> bool {
+        self.held.is_some() && self.queued.is_some()
+    }
+}
+
+/// Everything but the decoder and the receive buffer, so that a decoded event (which borrows
+/// the decoder) can be handled with `&mut self`.
+struct Core<'q, const N: usize, const B: usize, const Q: usize, P, X, S> {
+    kernel: Kernel<'q, N, B, Q>,
+    job: Job,
+    program: P,
+    peripherals: X,
+    storage: S,
+    settings: Settings<N>,
+    config: ControllerConfig,
+    link: Link,
+    clock: MsClock,
+    now: Instant,
+    reported_alarm: Option<Alarm>,
+    thermal: Option<PeripheralError>,
+    motors_on: bool,
+    job_heat: bool,
+    next_peripherals_ms: u32,
+    load_total: Option<u16>,
+    /// Something was given to the kernel during this poll: poll it again before returning.
+    taken: bool,
+    stats: Stats,
+}
+
+/// The portable controller. See the [module documentation](self).
+///
+/// `N` axes, a planner of `B` blocks and a step queue of `Q` events (as the [`Kernel`]); `P`
+/// keeps the uploaded program, `X` drives the peripherals, `S` keeps the settings
+/// ([`NoStorage`] when the board has none).
+///
+/// Context: thread. No method blocks, except where the program store or the settings storage
+/// block on a flash write (only on a frame 00 set or a frame 03, refused while the machine
+/// moves).
+pub struct Controller<'q, const N: usize, const B: usize, const Q: usize, P, X, S = NoStorage> {
+    decoder: Decoder,
+    input: Input,
+    core: Core<'q, N, B, Q, P, X, S>,
+}
+
+impl<'q, const N: usize, const B: usize, const Q: usize, P, X>
+    Controller<'q, N, B, Q, P, X, NoStorage>
+where
+    P: ProgramStore,
+    X: Peripherals<N>,
+{
+    /// A controller over `kernel`, keeping the program in `program`, driving `peripherals`,
+    /// with the settings of the kernel's configuration kept in RAM only (see
+    /// [`Controller::with_settings`]).
+    pub fn new(
+        kernel: Kernel<'q, N, B, Q>,
+        program: P,
+        peripherals: X,
+        config: ControllerConfig,
+    ) -> Self {
+        let settings = Settings::new(kernel.config().clone());
+        let clock = MsClock::new(kernel.tick_hz());
+        Self {
+            decoder: Decoder::new(),
+            input: Input::new(),
+            core: Core {
+                kernel,
+                job: Job::new(),
+                program,
+                peripherals,
+                storage: NoStorage,
+                settings,
+                config,
+                link: Link::new(),
+                clock,
+                now: Instant::from_ticks(0),
+                reported_alarm: None,
+                thermal: None,
+                motors_on: false,
+                job_heat: false,
+                next_peripherals_ms: 0,
+                load_total: None,
+                taken: false,
+                stats: Stats::default(),
+            },
+        }
+    }
+}
+
+impl<'q, const N: usize, const B: usize, const Q: usize, P, X, S> Controller<'q, N, B, Q, P, X, S>
+where
+    P: ProgramStore,
+    X: Peripherals<N>,
+    S: RecordStorage,
+{
+    /// The same controller with `settings` (normally from [`Settings::load`], the kernel having
+    /// been built from [`Settings::machine`]) kept in `storage`: frame 00 writes go there.
+    pub fn with_settings<S2: RecordStorage>(
+        self,
+        settings: Settings<N>,
+        storage: S2,
+    ) -> Controller<'q, N, B, Q, P, X, S2> {
+        let c = self.core;
+        Controller {
+            decoder: self.decoder,
+            input: self.input,
+            core: Core {
+                kernel: c.kernel,
+                job: c.job,
+                program: c.program,
+                peripherals: c.peripherals,
+                storage,
+                settings,
+                config: c.config,
+                link: c.link,
+                clock: c.clock,
+                now: c.now,
+                reported_alarm: c.reported_alarm,
+                thermal: c.thermal,
+                motors_on: c.motors_on,
+                job_heat: c.job_heat,
+                next_peripherals_ms: c.next_peripherals_ms,
+                load_total: c.load_total,
+                taken: c.taken,
+                stats: c.stats,
+            },
+        }
+    }
+
+    /// Write `start` (once: later calls write nothing). Call it when the board has started,
+    /// before the first [`Controller::poll`].
+    pub fn boot<W: Write>(&mut self, out: &mut W) {
+        if !self.core.link.started {
+            self.core.link.started = true;
+            let _ = wire::reply(out, &Reply::Start);
+        }
+    }
+
+    /// A new host is on the link (a link with sessions: TCP, WiFi): forget the previous host's
+    /// partial input, line numbering and held lines, and write frame 54.
+    pub fn on_connect<W: Write>(&mut self, out: &mut W) {
+        self.reset_link();
+        self.core.link.session = true;
+        wire::frame(out, &ControllerMessage::Connected);
+    }
+
+    /// Write frame 55 with `counter` (from the board's `LinkSession`).
+    pub fn keep_alive<W: Write>(&mut self, counter: u32, out: &mut W) {
+        wire::frame(out, &ControllerMessage::KeepAlive { counter });
+    }
+
+    /// Another host now speaks on the link (a link without sessions changed hands): forget the
+    /// partial input, the line numbering (line 1 is expected next) and any held line, whose
+    /// replies would go to the new host.
+    pub fn reset_link(&mut self) {
+        self.decoder.reset();
+        self.input.clear();
+        let started = self.core.link.started;
+        self.core.link = Link::new();
+        self.core.link.started = started;
+    }
+
+    /// Thread-side work at `now`: run the kernel's thread side, watch for alarms and thermal
+    /// faults, run the temperature loops, feed the stored program, end waits, then read the
+    /// link and answer what it brings, as far as it can be handled now.
+    ///
+    /// Context: thread. Never blocks on the link (it reads only what `read_ready` announces).
+    /// Call it at least every half `queue_lead_ms` while the machine moves.
+    pub fn poll<L: Read + ReadReady + Write>(&mut self, now: Instant, link: &mut L) -> PollOutcome {
+        let core = &mut self.core;
+        core.clock.update(now);
+        core.now = now;
+        core.taken = false;
+        core.enable_motors_if_needed();
+        let mut arm = core.kernel.poll(now);
+        core.supervise(link);
+        core.feed_job(link);
+        core.release_held(link);
+
+        loop {
+            if self.core.link.input_blocked() {
+                break;
+            }
+            if self.input.is_empty() && !self.input.fill(link, self.core.clock.ms) {
+                break;
+            }
+            let window = self.input.pending();
+            let FeedResult { event, remaining } = self.decoder.feed(window);
+            let consumed = window.len() - remaining.len();
+            self.input.consume(consumed);
+            if let Some(event) = event {
+                self.core.on_event(event, link);
+                self.input.event_seen();
+            }
+        }
+        let quiet = self.core.clock.ms.wrapping_sub(self.input.last_rx_ms);
+        if !self.core.link.input_blocked()
+            && self.input.frame_waiting()
+            && quiet >= self.core.config.frame_flush_ms
+        {
+            while let Some(event) = self.decoder.flush() {
+                self.core.on_event(event, link);
+            }
+            self.input.event_seen();
+        }
+
+        let core = &mut self.core;
+        if core.taken {
+            core.enable_motors_if_needed();
+            arm = arm.or(core.kernel.poll(now));
+        }
+        let frame_wait = self
+            .input
+            .frame_waiting()
+            .then_some(self.core.config.frame_flush_ms);
+        PollOutcome {
+            arm_alarm: arm,
+            wake_at: self.core.wake_at(frame_wait),
+        }
+    }
+
+    /// Take the controller apart: the kernel, the program store, the peripherals and the
+    /// settings storage (a board that restarts, a test that inspects the flash).
+    pub fn release(self) -> (Kernel<'q, N, B, Q>, P, X, S) {
+        let c = self.core;
+        (c.kernel, c.program, c.peripherals, c.storage)
+    }
+
+    /// The kernel.
+    pub fn kernel(&self) -> &Kernel<'q, N, B, Q> {
+        &self.core.kernel
+    }
+
+    /// The kernel, to drive it directly (tests, board bring-up).
+    pub fn kernel_mut(&mut self) -> &mut Kernel<'q, N, B, Q> {
+        &mut self.core.kernel
+    }
+
+    /// The job running the stored program.
+    pub fn job(&self) -> &Job {
+        &self.core.job
+    }
+
+    /// The frame-52 figures of the job now.
+    pub fn progress(&self) -> crate::job::Progress {
+        self.core
+            .job
+            .progress(&self.core.kernel, &self.core.program)
+    }
+
+    /// The program store.
+    pub fn program(&self) -> &P {
+        &self.core.program
+    }
+
+    /// The program store, mutably.
+    pub fn program_mut(&mut self) -> &mut P {
+        &mut self.core.program
+    }
+
+    /// The peripherals.
+    pub fn peripherals(&self) -> &X {
+        &self.core.peripherals
+    }
+
+    /// The peripherals, mutably.
+    pub fn peripherals_mut(&mut self) -> &mut X {
+        &mut self.core.peripherals
+    }
+
+    /// The settings.
+    pub fn settings(&self) -> &Settings<N> {
+        &self.core.settings
+    }
+
+    /// The settings storage.
+    pub fn storage_mut(&mut self) -> &mut S {
+        &mut self.core.storage
+    }
+
+    /// What the controller has done so far.
+    pub fn stats(&self) -> Stats {
+        self.core.stats
+    }
+
+    /// The decoder's counters of the link.
+    pub fn link_stats(&self) -> forja_protocol::stream::Stats {
+        self.decoder.stats()
+    }
+
+    /// The thermal fault that stopped the machine, until a reset.
+    pub fn thermal_fault(&self) -> Option<PeripheralError> {
+        self.core.thermal
+    }
+
+    /// Whether the link's G-code input waits (a line for room in the planner, or `M109`/`M116`
+    /// for the heaters).
+    pub fn is_holding(&self) -> bool {
+        self.core.link.held.is_some()
+    }
+}
+
+impl<'q, const N: usize, const B: usize, const Q: usize, P, X, S> Core<'q, N, B, Q, P, X, S>
+where
+    P: ProgramStore,
+    X: Peripherals<N>,
+    S: RecordStorage,
+{
+    fn on_event<W: Write>(&mut self, event: Event<'_>, out: &mut W) {
+        match event {
+            Event::Line(bytes) => self.on_line(bytes, out),
+            Event::Frame(frame) => self.on_frame(&frame, out),
+            Event::Garbage { .. } => self.on_garbage(out),
+            Event::TooLong { .. } => {
+                self.link.gcode_seen = true;
+                self.on_line_error(&forja_protocol::gcode::LineError::TooLong, out);
+            }
+            _ => {}
+        }
+    }
+
+    fn job_active(&self) -> bool {
+        matches!(self.job.state(), JobState::Running | JobState::Paused)
+    }
+
+    fn letters(&self) -> [u8; N] {
+        core::array::from_fn(|i| self.kernel.config().axes[i].letter)
+    }
+
+    /// Energise the drivers before the kernel steps them.
+    fn enable_motors_if_needed(&mut self) {
+        if self.motors_on {
+            return;
+        }
+        let moving = matches!(
+            self.kernel.state(),
+            MachineState::Running | MachineState::Homing
+        );
+        if moving && self.peripherals.set_motors(true).is_ok() {
+            self.motors_on = true;
+        }
+    }
+
+    /// Alarms, thermal faults, the temperature loops and the heater waits.
+    fn supervise<W: Write>(&mut self, out: &mut W) {
+        if self.clock.reached(self.next_peripherals_ms) {
+            self.next_peripherals_ms = self
+                .clock
+                .ms
+                .wrapping_add(self.config.peripheral_period_ms.max(1));
+            if let Err(e) = self.peripherals.poll(self.clock.ms)
+                && self.thermal.is_none()
+            {
+                self.thermal = Some(e);
+                self.kernel.emergency_stop();
+                self.reported_alarm = Some(Alarm::EmergencyStop);
+                self.job.stop(&mut self.kernel);
+                self.peripherals.shutdown();
+                self.job_heat = false;
+                self.end_heat_wait(out);
+                self.report_fault(&text::Refusal::new(&e), out);
+            }
+        }
+        match self.kernel.state() {
+            MachineState::Alarm(a) => {
+                if self.reported_alarm != Some(a) {
+                    self.reported_alarm = Some(a);
+                    self.peripherals.shutdown();
+                    self.job_heat = false;
+                    self.end_heat_wait(out);
+                    let r = text::alarm_refusal(&a, &self.letters());
+                    self.report_fault(&r, out);
+                }
+            }
+            _ => self.reported_alarm = None,
+        }
+        if self.job_heat && self.peripherals.heaters_at_target() {
+            self.job_heat = false;
+        }
+        if matches!(self.link.held, Some(Held::Homing))
+            && self.kernel.state() != MachineState::Homing
+        {
+            self.link.held = None;
+            self.ok(out);
+        }
+        if let Some(Held::Heat { next_report_ms }) = self.link.held {
+            if self.peripherals.heaters_at_target() {
+                self.end_heat_wait(out);
+            } else if self.clock.reached(next_report_ms) {
+                self.link.held = Some(Held::Heat {
+                    next_report_ms: self
+                        .clock
+                        .ms
+                        .wrapping_add(self.config.report_period_ms.max(1)),
+                });
+                self.report_temperatures(out);
+            }
+        }
+    }
+
+    /// End an `M109`/`M116` of the link: its `ok` goes out.
+    fn end_heat_wait<W: Write>(&mut self, out: &mut W) {
+        if let Some(Held::Heat { .. }) = self.link.held {
+            self.link.held = None;
+            self.ok(out);
+        }
+    }
+
+    /// A fault that stopped the machine, not the answer to a line: `!!` for a G-code host,
+    /// 56 for a frame client (both when it cannot tell).
+    fn report_fault<W: Write>(&mut self, r: &text::Refusal, out: &mut W) {
+        self.stats.faults = self.stats.faults.wrapping_add(1);
+        let frames = self.link.frames_seen || self.link.session;
+        if self.link.gcode_seen || !frames {
+            wire::fault(out, r);
+        }
+        if frames {
+            self.error_frame(r, out);
+        }
+    }
+
+    fn error_frame<W: Write>(&mut self, r: &text::Refusal, out: &mut W) {
+        self.stats.errors = self.stats.errors.wrapping_add(1);
+        wire::error_frame(out, r);
+    }
+
+    /// When the board should poll again at the latest.
+    fn wake_at(&self, frame_flush_ms: Option<u32>) -> Option<Instant> {
+        let mut ms = self.clock.until(self.next_peripherals_ms);
+        if let Some(Held::Heat { next_report_ms }) = self.link.held {
+            ms = ms.min(self.clock.until(next_report_ms));
+        }
+        if let Some(f) = frame_flush_ms {
+            ms = ms.min(f);
+        }
+        if !self.kernel.is_idle()
+            || matches!(self.kernel.state(), MachineState::Homing)
+            || self.link.held.is_some()
+        {
+            ms = ms.min(u32::from(self.kernel.config().queue_lead_ms / 2).max(1));
+        }
+        Some(self.clock.after(ms))
+    }
+}

@@ -1,0 +1,1065 @@
+//! Host tests of the controller: a kernel on the simulated interrupt side, an in-memory link,
+//! fake peripherals and a virtual clock. Every rule of the reply policy has a test here.
+
+use std::boxed::Box;
+use std::cell::RefCell;
+use std::collections::VecDeque;
+use std::format;
+use std::rc::Rc;
+use std::string::{String, ToString};
+use std::vec::Vec;
+
+use forja_hal_abstraction::limit::LimitSwitch;
+use forja_hal_abstraction::stepper::StepTiming;
+use forja_hal_abstraction::time::Instant;
+use forja_protocol::frame::{Action, ClientMessage, ControllerMessage, FRAME_LEN};
+use forja_protocol::gcode::{Decimal, checksum, write_numbered};
+
+use super::settings::tests::VecStorage;
+use super::*;
+use crate::config::{AxisConfig, HomeDirection, HomingConfig, MachineConfig};
+use crate::effect::{Heater, Spindle};
+use crate::job::{JobState, RamStore};
+use crate::kernel::{MachineState, split};
+use crate::queue::StepQueue;
+use crate::sim::{Recorder, SimStepper, SimSwitch, Simulation};
+use crate::stepgen::StepGenerator;
+
+const TICK_HZ: u32 = 1_000_000;
+
+/// An in-memory link: what the host sent, what the controller wrote.
+#[derive(Default)]
+struct MemLink {
+    rx: VecDeque<u8>,
+    tx: Vec<u8>,
+}
+
+impl embedded_io::ErrorType for MemLink {
+    type Error = core::convert::Infallible;
+}
+
+impl embedded_io::Read for MemLink {
+    fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        let n = buf.len().min(self.rx.len());
+        for (d, s) in buf.iter_mut().zip(self.rx.drain(..n)) {
+            *d = s;
+        }
+        Ok(n)
+    }
+}
+
+impl embedded_io::ReadReady for MemLink {
+    fn read_ready(&mut self) -> Result<bool, Self::Error> {
+        Ok(!self.rx.is_empty())
+    }
+}
+
+impl embedded_io::Write for MemLink {
+    fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+        self.tx.extend_from_slice(buf);
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> Result<(), Self::Error> {
+        Ok(())
+    }
+}
+
+/// Heaters that move 20 °C a second towards their target, fans and a spindle that record
+/// what they are told, end-stops read from the simulated switches.
+struct Fake {
+    hot: Reading,
+    bed: Reading,
+    fans: [u8; 2],
+    spindle: Option<Spindle>,
+    motors: bool,
+    motor_calls: u32,
+    switches: Vec<SimSwitch<3>>,
+    fault: Option<PeripheralError>,
+    latched: Option<PeripheralError>,
+    last_ms: Option<u32>,
+    shutdowns: u32,
+}
+
+impl Fake {
+    fn new(switches: Vec<SimSwitch<3>>) -> Self {
+        let ambient = Reading {
+            current_mc: 20_000,
+            target_mc: 0,
+        };
+        Self {
+            hot: ambient,
+            bed: ambient,
+            fans: [0; 2],
+            spindle: None,
+            motors: false,
+            motor_calls: 0,
+            switches,
+            fault: None,
+            latched: None,
+            last_ms: None,
+            shutdowns: 0,
+        }
+    }
+}
+
+impl Peripherals<3> for Fake {
+    fn set_temperature(&mut self, heater: Heater, mc: i32) -> Result<(), PeripheralError> {
+        if let Some(e) = self.latched {
+            return Err(e);
+        }
+        if mc > 280_000 {
+            return Err(PeripheralError::OutOfRange);
+        }
+        match heater {
+            Heater::Extruder(None | Some(0)) => self.hot.target_mc = mc,
+            Heater::Bed => self.bed.target_mc = mc,
+            Heater::Extruder(_) => return Err(PeripheralError::NoDevice),
+        }
+        Ok(())
+    }
+    fn temperatures(&mut self) -> Temperatures {
+        Temperatures {
+            hot_end: Some(self.hot),
+            bed: Some(self.bed),
+        }
+    }
+    fn heaters_at_target(&mut self) -> bool {
+        [self.hot, self.bed]
+            .iter()
+            .all(|r| r.target_mc == 0 || (r.current_mc - r.target_mc).abs() <= 1_000)
+    }
+    fn set_fan(&mut self, index: u8, duty: u8) -> Result<(), PeripheralError> {
+        let fan = self
+            .fans
+            .get_mut(usize::from(index))
+            .ok_or(PeripheralError::NoDevice)?;
+        *fan = duty;
+        Ok(())
+    }
+    fn set_spindle(&mut self, spindle: Spindle) -> Result<(), PeripheralError> {
+        self.spindle = Some(spindle);
+        Ok(())
+    }
+    fn set_motors(&mut self, enabled: bool) -> Result<(), PeripheralError> {
+        self.motors = enabled;
+        self.motor_calls += 1;
+        Ok(())
+    }
+    fn endstops(&mut self) -> [Option<bool>; 3] {
+        let mut s = [None; 3];
+        for (slot, sw) in s.iter_mut().zip(self.switches.iter_mut()) {
+            *slot = sw.is_triggered().ok();
+        }
+        s
+    }
+    fn poll(&mut self, now_ms: u32) -> Result<(), PeripheralError> {
+        let dt = self.last_ms.map_or(0, |l| now_ms.wrapping_sub(l)) as i32;
+        self.last_ms = Some(now_ms);
+        for r in [&mut self.hot, &mut self.bed] {
+            let goal = r.target_mc.max(20_000);
+            let step = (20 * dt).min((goal - r.current_mc).abs());
+            r.current_mc += step * (goal - r.current_mc).signum();
+        }
+        if let Some(e) = self.fault.take() {
+            self.latched = Some(e);
+        }
+        match self.latched {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+    fn shutdown(&mut self) {
+        self.shutdowns += 1;
+        self.hot.target_mc = 0;
+        self.bed.target_mc = 0;
+        self.fans = [0; 2];
+        self.spindle = Some(Spindle::Off);
+    }
+    fn reset(&mut self) {
+        self.latched = None;
+    }
+}
+
+type Ctl = Controller<'static, 3, 32, 256, RamStore<8>, Fake, VecStorage>;
+
+/// The controller on a simulated machine, polled every millisecond of virtual time.
+struct Bench {
+    ctl: Ctl,
+    isr: StepGenerator<'static, 3, 256>,
+    steppers: [SimStepper<3>; 3],
+    switches: Vec<SimSwitch<3>>,
+    rec: Rc<RefCell<Recorder<3>>>,
+    alarm: Option<u64>,
+    next_poll: u64,
+    link: MemLink,
+    /// Everything the controller wrote, as text.
+    out: String,
+}
+
+fn machine() -> MachineConfig<3> {
+    let homing = |switch| HomingConfig {
+        direction: HomeDirection::Min,
+        seek_mm_min: 3000.0,
+        locate_mm_min: 300.0,
+        pull_off_mm: 1.0,
+        switch,
+        order: switch,
+    };
+    MachineConfig::new([
+        AxisConfig::linear(b'X', 80.0, 6000.0, 1000.0, 200.0).with_homing(homing(0)),
+        AxisConfig::linear(b'Y', 80.0, 6000.0, 1000.0, 200.0).with_homing(homing(1)),
+        AxisConfig::linear(b'Z', 400.0, 900.0, 200.0, 100.0),
+    ])
+}
+
+impl Bench {
+    fn new() -> Self {
+        Self::with_machine(machine())
+    }
+
+    fn with_machine(config: MachineConfig<3>) -> Self {
+        let queue: &'static mut StepQueue<3, 256> = Box::leak(Box::new(StepQueue::new()));
+        let timing = StepTiming::CONSERVATIVE;
+        let (kernel, isr) = split::<3, 32, 256>(queue, config.clone(), TICK_HZ, timing).unwrap();
+        let mut sim = Simulation::new(kernel, isr, timing);
+        // Switches 10 mm below the start, at the low end of X and Y.
+        sim.add_switch(0, -800, true);
+        sim.add_switch(1, -800, true);
+        let kernel = sim.kernel;
+        let isr = sim.isr;
+        let steppers = sim.steppers;
+        let switches = sim.switches;
+        let rec = sim.rec;
+        let fake = Fake::new(switches.clone());
+        let mut cfg = ControllerConfig::new("test-bench", timing);
+        cfg.extruders = 1;
+        let settings = Settings::new(config);
+        let ctl = Controller::new(kernel, RamStore::<8>::new(), fake, cfg)
+            .with_settings(settings, VecStorage::default());
+        let mut b = Self {
+            ctl,
+            isr,
+            steppers,
+            switches,
+            rec,
+            alarm: None,
+            next_poll: 0,
+            link: MemLink::default(),
+            out: String::new(),
+        };
+        b.ctl.boot(&mut b.link);
+        b
+    }
+
+    fn now(&self) -> u64 {
+        self.rec.borrow().now
+    }
+
+    fn instant(&self) -> Instant {
+        Instant::from_ticks(self.now() as u32)
+    }
+
+    fn abs(&self, at: Instant) -> u64 {
+        let now = self.now();
+        now + at
+            .signed_ticks_since(Instant::from_ticks(now as u32))
+            .max(0) as u64
+    }
+
+    fn set_now(&mut self, t: u64) {
+        let mut r = self.rec.borrow_mut();
+        r.now = r.now.max(t);
+    }
+
+    /// Run virtual time forward `ms` milliseconds.
+    fn run_ms(&mut self, ms: u64) {
+        let until = self.now() + ms * 1000;
+        loop {
+            let t_alarm = self.alarm.unwrap_or(u64::MAX);
+            let t = t_alarm.min(self.next_poll);
+            if t > until {
+                self.set_now(until);
+                break;
+            }
+            self.set_now(t);
+            if t_alarm <= self.next_poll {
+                self.alarm = None;
+                let at = self
+                    .isr
+                    .on_alarm(self.instant(), &mut self.steppers, &mut self.switches);
+                self.alarm = at.map(|i| self.abs(i));
+            } else {
+                self.next_poll = t + 1000;
+                let out = self.ctl.poll(self.instant(), &mut self.link);
+                if let Some(at) = out.arm_alarm {
+                    let a = self.abs(at);
+                    self.alarm = Some(self.alarm.map_or(a, |x| x.min(a)));
+                }
+            }
+        }
+        self.collect();
+    }
+
+    fn collect(&mut self) {
+        let bytes = core::mem::take(&mut self.link.tx);
+        self.out.push_str(&String::from_utf8(bytes).unwrap());
+    }
+
+    /// Take the output so far, as lines.
+    fn take(&mut self) -> Vec<String> {
+        self.collect();
+        let text = core::mem::take(&mut self.out);
+        text.lines().map(str::to_string).collect()
+    }
+
+    fn send(&mut self, text: &str) {
+        self.link.rx.extend(text.as_bytes());
+        self.link.rx.push_back(b'\n');
+    }
+
+    fn send_raw(&mut self, bytes: &[u8]) {
+        self.link.rx.extend(bytes);
+    }
+
+    fn send_numbered(&mut self, n: u32, body: &str) {
+        let mut buf = [0u8; 300];
+        let len = write_numbered(n, body.as_bytes(), &mut buf).unwrap();
+        self.send(core::str::from_utf8(&buf[..len]).unwrap());
+    }
+
+    fn send_frame(&mut self, msg: &ClientMessage<'_>) {
+        let mut f = [0u8; FRAME_LEN];
+        msg.encode(&mut f).unwrap();
+        self.send_raw(&f);
+        self.send_raw(b"\n");
+    }
+
+    /// Send `text`, run until it is answered (at most `ms`), and return the reply lines.
+    fn ask(&mut self, text: &str) -> Vec<String> {
+        self.send(text);
+        self.run_ms(5);
+        self.take()
+    }
+
+    fn run_until(&mut self, max_ms: u64, mut done: impl FnMut(&mut Bench) -> bool) {
+        for _ in 0..max_ms {
+            if done(self) {
+                return;
+            }
+            self.run_ms(1);
+        }
+        panic!("not done after {max_ms} ms; output: {:?}", self.out);
+    }
+
+    /// Stream moves as a host that waits for each `ok` does, until one is held for room in
+    /// the planner. Returns how many lines were sent.
+    fn fill_planner(&mut self) -> u32 {
+        self.take();
+        for i in 0..100u32 {
+            let x = if i % 2 == 0 { 30 } else { 0 };
+            self.send(&format!("G1 X{x} F3000"));
+            self.run_ms(1);
+            if self.take().is_empty() {
+                assert!(self.ctl.is_holding());
+                return i + 1;
+            }
+        }
+        panic!("the planner never filled");
+    }
+
+    fn idle(&mut self) {
+        self.run_ms(2);
+        self.run_until(60_000, |b| {
+            b.ctl.kernel().is_idle() && b.ctl.kernel().state() != MachineState::Homing
+        });
+    }
+
+    fn position_mm(&self) -> [f64; 3] {
+        self.ctl.kernel().position().machine_mm
+    }
+
+    fn violations(&self) -> usize {
+        self.rec.borrow().violations.len()
+    }
+}
+
+fn frames_of(lines: &[String]) -> Vec<ControllerMessage<'_>> {
+    lines
+        .iter()
+        .filter(|l| l.len() == FRAME_LEN && l.starts_with('N'))
+        .map(|l| ControllerMessage::decode(l.as_bytes()).unwrap())
+        .collect()
+}
+
+fn error_codes(lines: &[String]) -> Vec<u16> {
+    frames_of(lines)
+        .iter()
+        .filter_map(|m| match m {
+            ControllerMessage::Error { code, .. } => Some(*code),
+            _ => None,
+        })
+        .collect()
+}
+
+fn numbered(n: i64, body: &str) -> String {
+    let head = format!("N{n} {body}");
+    format!("{head}*{}", checksum(head.as_bytes()))
+}
+
+#[test]
+fn boot_says_start_once() {
+    let mut b = Bench::new();
+    b.ctl.boot(&mut b.link);
+    assert_eq!(b.take(), ["start"]);
+}
+
+#[test]
+fn every_line_gets_exactly_one_terminal_reply() {
+    let mut b = Bench::new();
+    b.take();
+    let lines = [
+        "G21 G90",
+        "G1 X10 Y5 F3000",
+        "; a comment only",
+        "(another)",
+        "   ",
+        "G1 X12",
+        "M114",
+        "M105",
+        "M115",
+        "M119",
+        "G4 P10",
+    ];
+    for (i, l) in lines.iter().enumerate() {
+        b.send_numbered(i as u32 + 1, l);
+    }
+    b.run_ms(2000);
+    let out = b.take();
+    let terminal: Vec<&String> = out
+        .iter()
+        .filter(|l| l.starts_with("ok") || l.starts_with("rs"))
+        .collect();
+    assert_eq!(terminal.len(), lines.len(), "{out:?}");
+    assert!(
+        out.iter()
+            .all(|l| !l.starts_with("rs") && !l.starts_with("!!"))
+    );
+    assert!(
+        out.contains(&"ok C: X:12.000 Y:5.000 Z:0.000".to_string()),
+        "{out:?}"
+    );
+    assert!(out.contains(&"ok T:20.0 B:20.0".to_string()), "{out:?}");
+    assert!(
+        out.iter().any(|l| l.starts_with("ok FIRMWARE_NAME:Forja ")
+            && l.contains("MACHINE_TYPE:test-bench")
+            && l.contains("EXTRUDER_COUNT:1")),
+        "{out:?}"
+    );
+    assert!(
+        out.contains(&"ok x_min:open y_min:open".to_string()),
+        "{out:?}"
+    );
+    assert_eq!(b.position_mm(), [12.0, 5.0, 0.0]);
+    assert_eq!(b.ctl.stats().oks, lines.len() as u32);
+    assert_eq!(b.violations(), 0);
+}
+
+#[test]
+fn printrun_opening_with_line_minus_one() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask(&numbered(-1, "M110 N-1")), ["ok"]);
+    assert_eq!(b.ask(&numbered(0, "G1 X1")), ["ok"]);
+    assert_eq!(b.ask(&numbered(1, "G1 X2")), ["ok"]);
+    assert_eq!(b.ask(&numbered(5, "G1 X3")), ["rs 2"]);
+}
+
+#[test]
+fn transport_failures_get_rs_alone() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask(&numbered(1, "G1 X1")), ["ok"]);
+    // Checksum mismatch.
+    let good = numbered(2, "G1 X2");
+    let bad = good.replace("X2", "X3");
+    assert_eq!(b.ask(&bad), ["rs 2"]);
+    // N without *, * without N.
+    assert_eq!(b.ask("N2 G1 X2"), ["rs 2"]);
+    assert_eq!(b.ask(&format!("G1 X2*{}", checksum(b"G1 X2"))), ["rs 2"]);
+    // Not the line expected; each out-of-order line gets its own rs.
+    b.send(&numbered(3, "G1 X3"));
+    b.send(&numbered(4, "G1 X4"));
+    b.run_ms(5);
+    assert_eq!(b.take(), ["rs 2", "rs 2"]);
+    // An over-long numbered line.
+    let long = numbered(2, &format!("G1 X2 ({})", "x".repeat(300)));
+    assert_eq!(b.ask(&long), ["rs 2"]);
+    // A damaged line number.
+    assert_eq!(b.ask("N2x G1*99"), ["rs 2"]);
+    // The resent line is taken, once.
+    assert_eq!(b.ask(&good), ["ok"]);
+    assert_eq!(b.ask(&good), ["rs 3"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 2.0);
+    assert_eq!(b.ctl.stats().executed, 2);
+}
+
+#[test]
+fn a_numbered_line_that_arrived_intact_but_is_not_gcode_is_refused_and_used_up() {
+    let mut b = Bench::new();
+    b.take();
+    // Asked again once (the checksum misses some double faults), then refused and its
+    // number used up: resending it again would repeat forever.
+    assert_eq!(b.ask(&numbered(1, "G1 X#1")), ["rs 1"]);
+    assert_eq!(b.ask(&numbered(1, "G1 X#1")), ["!! E9 no-value", "ok"]);
+    assert_eq!(b.ask(&numbered(2, "G1 X1")), ["ok"]);
+}
+
+#[test]
+fn unnumbered_lines_run_without_numbering_checks() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask(&numbered(1, "G1 X1")), ["ok"]);
+    assert_eq!(b.ask("G1 X5"), ["ok"]);
+    assert_eq!(b.ask(&numbered(2, "G1 X6")), ["ok"]);
+    // Unnumbered over-long lines are refused, not resent.
+    let mut c = Bench::new();
+    c.take();
+    assert_eq!(
+        c.ask(&format!("G1 X1 ({})", "x".repeat(300))),
+        ["!! E1 line-too-long", "ok"]
+    );
+}
+
+#[test]
+fn refused_commands_get_a_fault_line_and_ok_and_change_nothing() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("M20"), ["!! E120 unsupported-command M20", "ok"]);
+    assert_eq!(b.ask("G38.2 X1"), ["!! E120 unsupported-command G", "ok"]);
+    assert_eq!(b.ask("M106 P7 S100"), ["!! E194 no-device fan 7", "ok"]);
+    assert_eq!(b.ask("T3"), ["!! E121 bad-value T3", "ok"]);
+    assert_eq!(b.ask("M104 S900"), ["!! E195 device-range", "ok"]);
+    // Soft limits, once homed.
+    b.send_frame(&ClientMessage::Action(Action::HomeAll));
+    b.idle();
+    b.take();
+    assert_eq!(b.ask("G1 X250"), ["!! E124 soft-limit X", "ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[..2], [1.0, 1.0]);
+    assert_eq!(b.ctl.stats().refused, 6);
+}
+
+#[test]
+fn a_full_planner_delays_the_ok_and_stops_reading() {
+    let mut b = Bench::new();
+    b.take();
+    for i in 0..80u32 {
+        let x = if i % 2 == 0 { 20 } else { 0 };
+        b.send_numbered(i + 1, &format!("G1 X{x} F6000"));
+    }
+    b.run_ms(20);
+    let oks = b.take().len();
+    assert!(oks < 60, "{oks} oks while the planner holds 32 blocks");
+    assert!(b.ctl.is_holding());
+    assert!(!b.link.rx.is_empty(), "input is left unread");
+    let mut total = oks;
+    b.run_until(60_000, |b| {
+        total += b.take().iter().filter(|l| *l == "ok").count();
+        total == 80
+    });
+    b.idle();
+    assert_eq!(b.ctl.stats().executed, 80);
+    assert_eq!(b.position_mm()[0], 0.0);
+    assert_eq!(b.violations(), 0);
+}
+
+#[test]
+fn frames_get_through_while_a_line_waits_for_room() {
+    let mut b = Bench::new();
+    b.take();
+    let sent = b.fill_planner();
+    // Pause (feed hold) and a position request get through; Start resumes.
+    b.send_frame(&ClientMessage::Action(Action::Pause));
+    b.send_frame(&ClientMessage::Request { message_type: 51 });
+    b.run_ms(500);
+    let out = b.take();
+    assert_eq!(
+        frames_of(&out)
+            .iter()
+            .filter(|m| matches!(m, ControllerMessage::Positions(_)))
+            .count(),
+        1,
+        "{out:?}"
+    );
+    assert!(matches!(
+        b.ctl.kernel().state(),
+        MachineState::Hold { stopped: true }
+    ));
+    let held_at = b.position_mm();
+    b.run_ms(200);
+    assert_eq!(b.position_mm(), held_at);
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_until(60_000, |b| {
+        b.ctl.stats().oks == sent && b.ctl.kernel().is_idle()
+    });
+    assert_eq!(
+        b.position_mm()[0],
+        if sent.is_multiple_of(2) { 0.0 } else { 30.0 }
+    );
+}
+
+#[test]
+fn m109_holds_lines_and_reports_progress_until_at_temperature() {
+    let mut b = Bench::new();
+    b.take();
+    b.send("M109 S200");
+    b.send("M105");
+    b.run_ms(3000);
+    let out = b.take();
+    assert!(out.iter().all(|l| !l.starts_with("ok")), "{out:?}");
+    let progress: Vec<&String> = out.iter().filter(|l| l.starts_with("// T:")).collect();
+    assert!((2..=4).contains(&progress.len()), "{out:?}");
+    assert!(progress[0].contains(" /200.0 B:"), "{out:?}");
+    b.run_until(20_000, |b| b.ctl.stats().oks == 2);
+    let out = b.take();
+    assert_eq!(out.iter().filter(|l| l.starts_with("ok")).count(), 2);
+    assert!(
+        out.iter()
+            .any(|l| l.starts_with("ok T:19") || l.starts_with("ok T:20"))
+    );
+    // M116 waits for every heater.
+    b.send("M140 S60");
+    b.send("M116");
+    b.run_ms(100);
+    assert!(b.ctl.is_holding());
+    b.run_until(10_000, |b| !b.ctl.is_holding());
+}
+
+#[test]
+fn garbage_gets_one_error_frame_per_run_and_a_resend_when_numbered() {
+    let mut b = Bench::new();
+    b.take();
+    b.send_raw(b"\x01\x02\x03junk\n\x7f\n");
+    b.run_ms(5);
+    let out = b.take();
+    assert_eq!(error_codes(&out), [21, 21], "{out:?}");
+    assert_eq!(out.len(), 2);
+    assert_eq!(b.ask(&numbered(1, "G1 X1")), ["ok"]);
+    b.send_raw(b"N2 G1\x01X2*1\n");
+    b.run_ms(5);
+    let out = b.take();
+    assert_eq!(error_codes(&out), [21]);
+    assert_eq!(out.last().unwrap(), "rs 2");
+}
+
+#[test]
+fn settings_are_read_set_stored_and_refused() {
+    let mut b = Bench::new();
+    b.take();
+    b.send_frame(&ClientMessage::SetSetting {
+        key: "x.steps_per_mm",
+        value: "100",
+    });
+    b.send_frame(&ClientMessage::ReadSetting { key: "Y.MAX" });
+    b.send_frame(&ClientMessage::SetSetting {
+        key: "link.password",
+        value: "hunter2",
+    });
+    b.send_frame(&ClientMessage::SetSetting {
+        key: "q.max",
+        value: "1",
+    });
+    b.send_frame(&ClientMessage::SetSetting {
+        key: "x.max",
+        value: "-3",
+    });
+    b.send_frame(&ClientMessage::SetSetting {
+        key: "x.max_rate",
+        value: "600000",
+    });
+    b.run_ms(5);
+    let out = b.take();
+    let f = frames_of(&out);
+    assert_eq!(
+        f[..3],
+        [
+            ControllerMessage::Setting {
+                key: "x.steps_per_mm",
+                value: "100"
+            },
+            ControllerMessage::Setting {
+                key: "y.max",
+                value: "200"
+            },
+            ControllerMessage::Setting {
+                key: "link.password",
+                value: "<hidden>"
+            },
+        ]
+    );
+    assert_eq!(error_codes(&out), [190, 105, 110]);
+    assert_eq!(b.ctl.settings().machine().axes[0].steps_per_mm, 100.0);
+    assert_eq!(b.ctl.settings().password(), "hunter2");
+    // Stored: a restart would find them.
+    let (loaded, report) = Settings::load(machine(), b.ctl.storage_mut());
+    assert_eq!(report.applied, 2);
+    assert_eq!(loaded.machine().axes[0].steps_per_mm, 100.0);
+    // The running kernel keeps its configuration until the next start.
+    assert_eq!(b.ctl.kernel().config().axes[0].steps_per_mm, 80.0);
+}
+
+#[test]
+fn jog_moves_without_reply_and_bad_jogs_are_refused() {
+    let mut b = Bench::new();
+    b.take();
+    b.send_frame(&ClientMessage::Jog {
+        step: Decimal::new(1, 1),
+        axis: b'X',
+        count: 25,
+    });
+    b.send_frame(&ClientMessage::Jog {
+        step: Decimal::new(1, 0),
+        axis: b'Q',
+        count: 1,
+    });
+    b.idle();
+    let out = b.take();
+    assert_eq!(error_codes(&out), [127]);
+    assert_eq!(out.len(), 1);
+    assert_eq!(b.position_mm()[0], 2.5);
+    // A broken mirror is a framing error; nothing moves.
+    let mut frame = [0u8; FRAME_LEN];
+    ClientMessage::Action(Action::Stop)
+        .encode(&mut frame)
+        .unwrap();
+    frame[FRAME_LEN - 2] = b'q';
+    b.send_raw(&frame);
+    b.send_raw(b"\n");
+    b.run_ms(5);
+    assert_eq!(error_codes(&b.take()), [23]);
+}
+
+#[test]
+fn homing_with_switches_and_positions_report() {
+    let mut b = Bench::new();
+    b.take();
+    b.send_frame(&ClientMessage::Action(Action::Home(b'X')));
+    b.idle();
+    b.send_frame(&ClientMessage::Action(Action::HomeAll));
+    b.idle();
+    b.send_frame(&ClientMessage::Request { message_type: 51 });
+    b.send_frame(&ClientMessage::Action(Action::Home(b'Z')));
+    b.run_ms(5);
+    let out = b.take();
+    let f = frames_of(&out);
+    let ControllerMessage::Positions(p) = &f[0] else {
+        panic!("{out:?}")
+    };
+    assert_eq!(p.get(b'X'), Some(10_000));
+    assert_eq!(p.get(b'Y'), Some(10_000));
+    assert_eq!(error_codes(&out), [121], "Z has no switch");
+    assert_eq!(b.ctl.kernel().homed_axes(), 0b011);
+    assert!(b.ctl.peripherals().motors);
+    assert_eq!(b.violations(), 0);
+    assert_eq!(b.ask("G1 X50"), ["ok"]);
+    // Homing waits for the move before it: its ok comes when the cycle has started.
+    assert!(b.ask("G28 X0").is_empty());
+    b.idle();
+    assert_eq!(b.take(), ["ok"]);
+    assert_eq!(b.position_mm()[0], 1.0);
+}
+
+#[test]
+fn program_upload_run_pause_resume_stop_rewind() {
+    let mut b = Bench::new();
+    b.take();
+    let program = ["G1 X20 F6000", "G1 Y20", "G1 X0", "G1 Y0", "G1 X40 F600"];
+    for (i, text) in program.iter().enumerate() {
+        b.send_frame(&ClientMessage::LoadLine {
+            index: i as u16 + 1,
+            text,
+            total: program.len() as u16,
+        });
+    }
+    b.run_ms(5);
+    let out = b.take();
+    assert_eq!(
+        frames_of(&out),
+        [ControllerMessage::Confirm { what: "Gcode-load" }]
+    );
+    assert_eq!(b.ctl.program().len(), 5);
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_until(20_000, |b| b.ctl.progress().current_line == 5);
+    b.run_ms(500);
+    // While it runs, moves from the link are refused; reports still work.
+    assert_eq!(b.ask("G1 Z5"), ["!! E182 job-busy", "ok"]);
+    assert!(b.ask("M114")[0].starts_with("ok C: X:40.000"));
+    b.send_frame(&ClientMessage::Action(Action::Pause));
+    b.run_ms(300);
+    let paused = b.position_mm();
+    b.run_ms(300);
+    assert_eq!(b.position_mm(), paused);
+    assert_eq!(b.ctl.job().state(), JobState::Paused);
+    b.send_frame(&ClientMessage::Request { message_type: 52 });
+    b.send_frame(&ClientMessage::Action(Action::Rewind));
+    b.run_ms(5);
+    let out = b.take();
+    let f = frames_of(&out);
+    let ControllerMessage::Progress(p) = &f[0] else {
+        panic!("{out:?}")
+    };
+    assert_eq!((p.total_lines, p.current_line), (5, 5));
+    assert_eq!(error_codes(&out), [182], "no rewind while paused");
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_ms(300);
+    assert!(b.position_mm()[0] > paused[0]);
+    b.send_frame(&ClientMessage::Action(Action::Stop));
+    b.idle();
+    assert_eq!(b.ctl.job().state(), JobState::Idle);
+    assert!(b.position_mm()[0] < 40.0);
+    b.send_frame(&ClientMessage::Action(Action::Rewind));
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_until(60_000, |b| b.ctl.job().state() == JobState::Finished);
+    assert_eq!(b.position_mm(), [40.0, 0.0, 0.0]);
+    assert!(b.take().iter().all(|l| !l.starts_with('N')));
+    assert_eq!(b.violations(), 0);
+}
+
+#[test]
+fn bad_program_lines_leave_the_store_as_it_was() {
+    let mut b = Bench::new();
+    b.take();
+    let load = |b: &mut Bench, index, text, total| {
+        b.send_frame(&ClientMessage::LoadLine { index, text, total });
+    };
+    load(&mut b, 1, "G1 X1", 9);
+    load(&mut b, 3, "G1 X3", 9);
+    load(&mut b, 2, "G1 X#", 9);
+    load(&mut b, 2, "G1 X2", 7);
+    for i in 2..=8 {
+        load(&mut b, i, "G1 X2", 9);
+    }
+    load(&mut b, 9, "G1 X9", 9);
+    b.run_ms(5);
+    let out = b.take();
+    assert_eq!(error_codes(&out), [170, 9, 193, 171], "{out:?}");
+    let f = frames_of(&out);
+    assert!(matches!(
+        f[0],
+        ControllerMessage::Error {
+            code: 170,
+            detail: "line-order 0003 expected 0002"
+        }
+    ));
+    assert_eq!(b.ctl.program().len(), 8);
+    // Start with the store as it is: the eight lines run.
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_until(20_000, |b| b.ctl.job().state() == JobState::Finished);
+    assert_eq!(b.ctl.stats().program_lines, 8);
+}
+
+#[test]
+fn a_hard_limit_is_reported_unsolicited_and_lines_in_alarm_are_refused() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("G1 X-20 F3000"), ["ok"]);
+    b.run_ms(1000);
+    let out = b.take();
+    assert_eq!(out, ["!! E150 hard-limit X"]);
+    assert_eq!(b.ctl.peripherals().shutdowns, 1);
+    assert_eq!(b.ask("M119"), ["ok x_min:TRIGGERED y_min:open"]);
+    assert_eq!(b.ask("G1 X5"), ["!! E125 alarm-locked", "ok"]);
+    assert!(b.ask("M105")[0].starts_with("ok T:"));
+    // Homing clears it; its ok comes when the cycle is done, and the position follows it.
+    b.send("G28");
+    b.send("M114");
+    b.run_ms(5);
+    assert!(b.take().is_empty());
+    b.idle();
+    b.run_ms(5);
+    assert_eq!(b.take(), ["ok", "ok C: X:1.000 Y:1.000 Z:0.000"]);
+    assert_eq!(b.ask("G1 X5"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 5.0);
+}
+
+#[test]
+fn m112_stops_everything_until_a_reset() {
+    let mut b = Bench::new();
+    b.take();
+    b.send("M3 S1000");
+    b.send("G1 X100 F3000");
+    b.run_ms(300);
+    b.send("M112");
+    b.run_ms(300);
+    let out = b.take();
+    assert_eq!(out, ["ok", "ok", "!! E153 emergency-stop", "ok"]);
+    assert!(!b.ctl.peripherals().motors);
+    assert_eq!(b.ctl.peripherals().spindle, Some(Spindle::Off));
+    let stopped = b.position_mm();
+    b.run_ms(300);
+    assert_eq!(b.position_mm(), stopped);
+    assert_eq!(b.ask("G28"), ["!! E125 alarm-locked", "ok"]);
+    assert_eq!(b.ask("M104 S200"), ["!! E125 alarm-locked", "ok"]);
+    assert_eq!(b.ask("M999"), ["ok"]);
+    assert_eq!(b.ask("G1 X0"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 0.0);
+    assert!(b.ctl.peripherals().motors);
+}
+
+#[test]
+fn m112_is_carried_out_even_behind_a_held_line() {
+    let mut b = Bench::new();
+    b.take();
+    b.fill_planner();
+    b.send("M112");
+    b.run_ms(5);
+    // The held line is answered too, refused.
+    assert_eq!(
+        b.take(),
+        ["!! E153 emergency-stop", "ok", "!! E125 alarm-locked", "ok"]
+    );
+}
+
+#[test]
+fn a_thermal_fault_raises_an_alarm_and_shuts_down() {
+    let mut b = Bench::new();
+    b.take();
+    b.send_frame(&ClientMessage::Request { message_type: 52 });
+    assert_eq!(
+        b.ask("M104 S200"),
+        [
+            "N52EL00:00ES00:00NL0000LA0000***********************F",
+            "ok"
+        ]
+    );
+    b.send("G1 X50 F3000");
+    b.run_ms(50);
+    b.ctl.peripherals_mut().fault = Some(PeripheralError::Thermal {
+        code: 212,
+        name: "thermal-runaway",
+    });
+    b.run_ms(200);
+    let out = b.take();
+    assert!(
+        out.contains(&"!! E212 thermal-runaway".to_string()),
+        "{out:?}"
+    );
+    assert_eq!(error_codes(&out), [212]);
+    assert!(matches!(
+        b.ctl.kernel().state(),
+        MachineState::Alarm(crate::error::Alarm::EmergencyStop)
+    ));
+    assert_eq!(b.ctl.peripherals().hot.target_mc, 0);
+    assert_eq!(b.ask("M104 S200"), ["!! E125 alarm-locked", "ok"]);
+    b.send_frame(&ClientMessage::Action(Action::Reset));
+    b.run_ms(200);
+    assert!(b.take().is_empty());
+    assert_eq!(b.ctl.thermal_fault(), None);
+    assert_eq!(b.ask("M104 S200"), ["ok"]);
+}
+
+#[test]
+fn a_frame_without_terminator_is_taken_when_the_link_goes_quiet() {
+    let mut b = Bench::new();
+    b.take();
+    let mut frame = [0u8; FRAME_LEN];
+    ClientMessage::Request { message_type: 52 }
+        .encode(&mut frame)
+        .unwrap();
+    b.send_raw(&frame);
+    b.run_ms(5);
+    assert!(b.take().is_empty());
+    b.run_ms(30);
+    assert_eq!(frames_of(&b.take()).len(), 1);
+    // Back to back, the first is taken at once, the second after the quiet time.
+    b.send_raw(&frame);
+    b.send_raw(&frame);
+    b.run_ms(2);
+    assert_eq!(frames_of(&b.take()).len(), 1);
+    b.run_ms(30);
+    assert_eq!(frames_of(&b.take()).len(), 1);
+}
+
+#[test]
+fn requests_and_actions_that_cannot_be_done_are_refused() {
+    let mut b = Bench::new();
+    b.take();
+    b.send_frame(&ClientMessage::Request { message_type: 53 });
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.send_frame(&ClientMessage::Action(Action::Pause));
+    b.send(&format!("N99{}F", "*".repeat(49)));
+    b.run_ms(5);
+    let out = b.take();
+    assert_eq!(error_codes(&out), [192, 180, 181, 22], "{out:?}");
+}
+
+#[test]
+fn connect_and_keep_alive_frames() {
+    let mut b = Bench::new();
+    b.take();
+    b.send(&numbered(1, "G1 X1"));
+    b.run_ms(5);
+    b.ctl.on_connect(&mut b.link);
+    b.ctl.keep_alive(7, &mut b.link);
+    let out = b.take();
+    assert_eq!(
+        out[1],
+        "N54Conected*****************************************F"
+    );
+    assert_eq!(
+        out[2],
+        "N55Vivo0000007**************************************F"
+    );
+    // A new host starts numbering afresh.
+    assert_eq!(b.ask(&numbered(1, "G1 X2")), ["ok"]);
+}
+
+#[test]
+fn effects_reach_the_peripherals_in_stream_order() {
+    let mut b = Bench::new();
+    b.take();
+    b.send("G1 X30 F3000");
+    b.send("M106 P1 S128");
+    b.send("M4 S500");
+    b.send("M84");
+    b.run_ms(10);
+    assert_eq!(b.ctl.peripherals().fans[1], 0, "the fan waits for the move");
+    b.idle();
+    b.run_ms(10);
+    assert_eq!(b.ctl.peripherals().fans[1], 128);
+    assert!(matches!(
+        b.ctl.peripherals().spindle,
+        Some(Spindle::CounterClockwise { .. })
+    ));
+    assert!(!b.ctl.peripherals().motors);
+    assert_eq!(b.take().len(), 4);
+    // The next move energises the motors again.
+    assert_eq!(b.ask("G1 X0"), ["ok"]);
+    b.idle();
+    assert!(b.ctl.peripherals().motors);
+    assert_eq!(b.position_mm()[0], 0.0);
+}
+
+#[test]
+fn a_program_line_that_fails_stops_the_job_with_an_error_frame() {
+    let mut b = Bench::new();
+    b.take();
+    for (i, text) in ["G1 X5 F3000", "M20", "G1 X9"].iter().enumerate() {
+        b.send_frame(&ClientMessage::LoadLine {
+            index: i as u16 + 1,
+            text,
+            total: 3,
+        });
+    }
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_ms(2000);
+    let out = b.take();
+    assert_eq!(error_codes(&out), [120], "{out:?}");
+    // The job stops at the refused line, and so does the motion.
+    assert_eq!(b.ctl.job().state(), JobState::Idle);
+    assert!(b.position_mm()[0] <= 5.0);
+    assert_eq!(b.ctl.stats().program_lines, 2);
+}
