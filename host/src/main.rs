@@ -1,3 +1,529 @@
-//! The forja command-line client.
+//! `forja`: the command the person at the machine runs. Parsing and printing only; the work is
+//! in the `forja_host` library. The clap doc comments below are the `--help`.
 
-fn main() {}
+use std::io::{self, BufRead, IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{Context, Result, anyhow, bail};
+use clap::{Args, Parser, Subcommand};
+use forja_host::client::{self, Observer};
+use forja_host::frames::{self, FrameClient, UploadOptions};
+use forja_host::link::{Connection, LinkSpec};
+use forja_host::machine::MachineInfo;
+use forja_host::plot::{self, Executed, Toolpath};
+use forja_host::program::Program;
+use forja_host::streamer::{self, Window};
+use forja_protocol::frame::{Action, Decimal};
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Forja's client: stream G-code to a controller, store and run programs, jog, watch the
+/// machine, and plot toolpaths.
+#[derive(Parser, Debug)]
+#[command(
+    name = "forja",
+    version,
+    after_help = "The controller is reached with --port (a serial port) or --tcp (a network \
+                  address).\nExit status: 0 success, 1 failure, 2 bad command line."
+)]
+struct Cli {
+    #[command(flatten)]
+    link: LinkArgs,
+
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Args, Debug)]
+struct LinkArgs {
+    /// Serial port of the controller, e.g. /dev/ttyUSB0, /dev/ttyACM0 or COM3.
+    #[arg(long, global = true, value_name = "PATH", conflicts_with = "tcp")]
+    port: Option<String>,
+
+    /// Baud rate of the serial port.
+    #[arg(long, global = true, value_name = "N", default_value_t = 115_200)]
+    baud: u32,
+
+    /// Network address of the controller, HOST:PORT (e.g. 192.168.1.50:2323).
+    #[arg(long, global = true, value_name = "HOST:PORT")]
+    tcp: Option<String>,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Stream a G-code file: numbered, checksummed lines, resent when damaged, several in
+    /// flight at once; a progress bar, and a summary at the end.
+    Send(SendArgs),
+    /// Store a G-code file in the controller (frame protocol) to run it later with `run`.
+    Upload {
+        /// The G-code file.
+        file: PathBuf,
+        /// Lines sent between two checks of what the controller stored.
+        #[arg(long, value_name = "N", default_value_t = 3)]
+        batch: usize,
+    },
+    /// Run the stored program from its current line, or resume after `pause`.
+    Run,
+    /// Hold the motion (decelerating, without losing steps); `run` resumes.
+    Pause,
+    /// Abort the motion and the program (the position is kept).
+    Stop,
+    /// Set the stored program back to its first line.
+    Rewind,
+    /// Soft reset: clear alarms and modal state; the stored program is kept.
+    Reset,
+    /// Home every axis, or only AXIS.
+    Home {
+        /// The axis to home (X, Y, Z, A, …).
+        axis: Option<char>,
+    },
+    /// Move axes by relative distances in mm at the jog feed rate, e.g. `forja jog X+0.1 Y-2`.
+    Jog {
+        /// Moves: an axis letter and a signed distance in mm.
+        #[arg(required = true, value_name = "AXIS±MM")]
+        moves: Vec<String>,
+    },
+    /// Show the positions and the program's progress, live.
+    Status {
+        /// Show once and exit.
+        #[arg(long)]
+        once: bool,
+        /// Time between two updates, in milliseconds.
+        #[arg(long, value_name = "MS", default_value_t = 250)]
+        interval: u64,
+        /// Stop after this many updates.
+        #[arg(long, value_name = "N")]
+        count: Option<u64>,
+    },
+    /// An interactive terminal: type G-code, read the controller's replies. Ctrl-D ends.
+    Console {
+        /// Show every line sent and received, resend requests included.
+        #[arg(long)]
+        verbose: bool,
+    },
+    /// Draw a G-code file's toolpath to a PNG or SVG image; with a step trace from the
+    /// simulator, overlay the path the machine really took.
+    Plot {
+        /// The G-code file.
+        file: PathBuf,
+        /// The image to write: .png or .svg.
+        #[arg(short, long, value_name = "OUT")]
+        output: PathBuf,
+        /// A step trace written by the simulator (`forja-sim --trace FILE`).
+        #[arg(long, value_name = "FILE")]
+        trace: Option<PathBuf>,
+        /// The machine file: axes' steps per mm and start positions.
+        #[arg(long, value_name = "FILE")]
+        machine: Option<PathBuf>,
+    },
+}
+
+#[derive(Args, Debug)]
+struct SendArgs {
+    /// The G-code file.
+    file: PathBuf,
+    /// Most bytes in flight (the controller's receive buffer) [default: 256 on a serial
+    /// port, 2048 over TCP].
+    #[arg(long, value_name = "BYTES")]
+    window: Option<usize>,
+    /// Most lines in flight [default: 32 on a serial port, 128 over TCP].
+    #[arg(long, value_name = "N")]
+    window_lines: Option<usize>,
+    /// Seconds without an answer before lines are sent again.
+    #[arg(long, value_name = "S", default_value_t = 10.0)]
+    reply_timeout: f64,
+    /// No progress bar (the summary is still printed).
+    #[arg(long)]
+    quiet: bool,
+}
+
+/// `println!` that does not fail when standard output is closed (`forja … | head`).
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        let _ = writeln!(io::stdout(), $($arg)*);
+    }};
+}
+
+/// `print!` that does not fail when standard output is closed.
+macro_rules! say_part {
+    ($($arg:tt)*) => {{
+        let _ = write!(io::stdout(), $($arg)*);
+    }};
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("forja: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+impl LinkArgs {
+    fn spec(&self) -> Result<LinkSpec> {
+        match (&self.port, &self.tcp) {
+            (Some(path), None) => Ok(LinkSpec::Serial {
+                path: path.clone(),
+                baud: self.baud,
+            }),
+            (None, Some(address)) => Ok(LinkSpec::Tcp {
+                address: address.clone(),
+            }),
+            _ => bail!(
+                "say where the controller is: --port /dev/ttyUSB0 (a serial port) or --tcp \
+                 HOST:PORT (a network address)"
+            ),
+        }
+    }
+
+    fn connect(&self) -> Result<(LinkSpec, Connection)> {
+        let spec = self.spec()?;
+        let conn = Connection::open(&spec)?;
+        Ok((spec, conn))
+    }
+}
+
+fn run(cli: Cli) -> Result<ExitCode> {
+    match cli.command {
+        Command::Send(args) => send(&cli.link, &args),
+        Command::Upload { file, batch } => upload(&cli.link, &file, batch),
+        Command::Run => action(&cli.link, Action::Start, "running the stored program"),
+        Command::Pause => action(&cli.link, Action::Pause, "paused"),
+        Command::Stop => action(&cli.link, Action::Stop, "stopped"),
+        Command::Rewind => action(&cli.link, Action::Rewind, "the program is back at line 1"),
+        Command::Reset => action(&cli.link, Action::Reset, "reset"),
+        Command::Home { axis: None } => action(&cli.link, Action::HomeAll, "homing all axes"),
+        Command::Home { axis: Some(a) } => {
+            let a = a.to_ascii_uppercase();
+            if !a.is_ascii_uppercase() {
+                bail!("'{a}' is not an axis letter");
+            }
+            action(&cli.link, Action::Home(a as u8), &format!("homing {a}"))
+        }
+        Command::Jog { moves } => jog(&cli.link, &moves),
+        Command::Status {
+            once,
+            interval,
+            count,
+        } => status(&cli.link, if once { Some(1) } else { count }, interval),
+        Command::Console { verbose } => console(&cli.link, verbose),
+        Command::Plot {
+            file,
+            output,
+            trace,
+            machine,
+        } => plot(&file, &output, trace.as_deref(), machine.as_deref()),
+    }
+}
+
+/// The progress bar of `send`, and the notices above it.
+struct Progress {
+    bar: ProgressBar,
+}
+
+impl Observer for Progress {
+    fn progress(&mut self, accepted: u32, total: u32) {
+        self.bar.set_length(u64::from(total));
+        self.bar.set_position(u64::from(accepted));
+    }
+
+    fn notice(&mut self, text: &str) {
+        self.bar.println(text);
+    }
+}
+
+fn send(link: &LinkArgs, args: &SendArgs) -> Result<ExitCode> {
+    let program = Program::load(&args.file)?;
+    let (spec, mut conn) = link.connect()?;
+    let base = if spec.is_tcp() {
+        Window::TCP
+    } else {
+        Window::UART
+    };
+    if !(args.reply_timeout.is_finite() && args.reply_timeout > 0.0) {
+        bail!("--reply-timeout must be a positive number of seconds");
+    }
+    let config = streamer::Config {
+        window: Window {
+            bytes: args.window.unwrap_or(base.bytes).max(1),
+            lines: args.window_lines.unwrap_or(base.lines).max(1),
+        },
+        reply_timeout: Duration::from_secs_f64(args.reply_timeout),
+        ..streamer::Config::default()
+    };
+    let bar = if args.quiet || !io::stderr().is_terminal() {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(program.lines.len() as u64)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{bar:40}] {pos}/{len} lines {percent:>3}% {elapsed_precise} ETA {eta}",
+        )
+        .map_err(|e| anyhow!("{e}"))?
+        .progress_chars("=> "),
+    );
+    client::drain(&mut conn, Duration::from_millis(500))
+        .with_context(|| format!("reading from {spec}"))?;
+    let mut observer = Progress { bar: bar.clone() };
+    let result = client::send_program(&mut conn, &program, config, &mut observer);
+    bar.finish_and_clear();
+    let report = result?;
+    let name = args.file.display();
+    let kb = report.stats.bytes_sent as f64 / 1000.0;
+    say!(
+        "sent {name}: {} lines in {:.1} s ({:.0} lines/s, {kb:.1} kB)",
+        report.lines,
+        report.elapsed.as_secs_f64(),
+        report.lines_per_second()
+    );
+    let s = report.stats;
+    say!(
+        "resends: {} ({} lines sent again), time-outs: {}, refused: {}",
+        s.rewinds,
+        s.lines_resent,
+        s.stalls,
+        report.refused.len()
+    );
+    match (report.link_use(), report.bit_rate) {
+        (Some(share), Some(rate)) if share <= 1.05 => {
+            say!("link use: {:.0} % of {rate} baud", share * 100.0);
+        }
+        (Some(share), Some(rate)) => say!(
+            "link: {:.0} bits/s, faster than its nominal {rate} baud (a USB or virtual port)",
+            share * f64::from(rate)
+        ),
+        _ => {}
+    }
+    if report.refused.is_empty() {
+        Ok(ExitCode::SUCCESS)
+    } else {
+        for r in &report.refused {
+            eprintln!("forja: {r}");
+        }
+        eprintln!(
+            "forja: the job ran, but {} line(s) of it were refused and had no effect",
+            report.refused.len()
+        );
+        Ok(ExitCode::FAILURE)
+    }
+}
+
+fn upload(link: &LinkArgs, file: &Path, batch: usize) -> Result<ExitCode> {
+    let program = Program::load(file)?;
+    let texts = program.frame_texts()?;
+    let shortened = program
+        .lines
+        .iter()
+        .zip(&texts)
+        .filter(|(l, t)| l.text != **t)
+        .count();
+    let (spec, mut conn) = link.connect()?;
+    client::drain(&mut conn, Duration::from_millis(300))
+        .with_context(|| format!("reading from {spec}"))?;
+    let bar = if io::stderr().is_terminal() {
+        ProgressBar::new(texts.len() as u64)
+    } else {
+        ProgressBar::hidden()
+    };
+    let mut frames = FrameClient::new(&mut conn, Duration::from_secs(2));
+    let options = UploadOptions {
+        batch: batch.max(1),
+        ..UploadOptions::default()
+    };
+    let report = frames.upload(&texts, options, |n| bar.set_position(n as u64));
+    bar.finish_and_clear();
+    let report = report?;
+    say_part!("uploaded {}: {} lines stored", file.display(), report.lines);
+    if shortened > 0 {
+        say_part!(", {shortened} shortened to fit 39 bytes (same meaning)");
+    }
+    if report.resent > 0 {
+        say_part!(", {} sent again", report.resent);
+    }
+    say!();
+    if !report.confirmed {
+        bail!("every line is stored, but the controller did not confirm the program");
+    }
+    say!("the controller confirmed the program: 'forja run' starts it");
+    Ok(ExitCode::SUCCESS)
+}
+
+fn action(link: &LinkArgs, action: Action, done: &str) -> Result<ExitCode> {
+    let (spec, mut conn) = link.connect()?;
+    client::drain(&mut conn, Duration::from_millis(200))
+        .with_context(|| format!("reading from {spec}"))?;
+    let mut frames = FrameClient::new(&mut conn, Duration::from_secs(2));
+    let progress = frames.action(action)?;
+    say_part!("{done}");
+    if matches!(
+        action,
+        Action::Start | Action::Rewind | Action::Pause | Action::Stop
+    ) && progress.total_lines > 0
+    {
+        say_part!(
+            " (line {} of {})",
+            progress.current_line,
+            progress.total_lines
+        );
+    }
+    say!();
+    Ok(ExitCode::SUCCESS)
+}
+
+fn parse_jog(text: &str) -> Result<(u8, Decimal)> {
+    let mut chars = text.chars();
+    let axis = chars
+        .next()
+        .filter(char::is_ascii_alphabetic)
+        .ok_or_else(|| anyhow!("\"{text}\": a jog is an axis letter and a distance, e.g. X+0.1"))?;
+    let rest = chars.as_str();
+    let distance = Decimal::parse(rest.as_bytes())
+        .filter(|_| !rest.is_empty())
+        .ok_or_else(|| {
+            anyhow!("\"{text}\": \"{rest}\" is not a distance in mm (e.g. X+0.1, Y-2, Z5)")
+        })?;
+    Ok((axis.to_ascii_uppercase() as u8, distance))
+}
+
+fn jog(link: &LinkArgs, moves: &[String]) -> Result<ExitCode> {
+    let moves = moves
+        .iter()
+        .map(|m| parse_jog(m))
+        .collect::<Result<Vec<_>>>()?;
+    let (spec, mut conn) = link.connect()?;
+    client::drain(&mut conn, Duration::from_millis(200))
+        .with_context(|| format!("reading from {spec}"))?;
+    let mut frames = FrameClient::new(&mut conn, Duration::from_secs(2));
+    for (axis, distance) in moves {
+        frames.jog(axis, distance)?;
+        say!("jogging {} by {distance} mm", char::from(axis));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn status(link: &LinkArgs, count: Option<u64>, interval_ms: u64) -> Result<ExitCode> {
+    let (spec, mut conn) = link.connect()?;
+    client::drain(&mut conn, Duration::from_millis(200))
+        .with_context(|| format!("reading from {spec}"))?;
+    let live = io::stdout().is_terminal() && count != Some(1);
+    let mut frames = FrameClient::new(&mut conn, Duration::from_secs(2));
+    let mut shown = 0u64;
+    let mut stdout = io::stdout();
+    loop {
+        let positions = frames.positions()?;
+        let progress = frames.progress()?;
+        for notice in frames.take_notices() {
+            if live {
+                writeln!(stdout)?;
+            }
+            writeln!(stdout, "controller: {notice}")?;
+        }
+        let line = frames::status_line(&positions, &progress);
+        if live {
+            write!(stdout, "\r\x1b[2K{line}")?;
+        } else {
+            writeln!(stdout, "{line}")?;
+        }
+        stdout.flush()?;
+        shown += 1;
+        if count.is_some_and(|c| shown >= c) {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(interval_ms));
+    }
+    if live {
+        writeln!(stdout)?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn console(link: &LinkArgs, verbose: bool) -> Result<ExitCode> {
+    let (spec, mut conn) = link.connect()?;
+    if io::stdin().is_terminal() {
+        eprintln!("connected to {spec}; type G-code, Ctrl-D ends");
+    }
+    client::drain(&mut conn, Duration::from_millis(300))
+        .with_context(|| format!("reading from {spec}"))?;
+    if verbose {
+        conn.record();
+    }
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in io::stdin().lock().lines() {
+            let Ok(line) = line else { break };
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let mut stdout = io::stdout();
+    let result = client::console(&mut conn, &rx, &mut stdout, streamer::Config::default());
+    if verbose {
+        for (sent, bytes) in conn.transcript() {
+            let arrow = if *sent { ">" } else { "<" };
+            for l in String::from_utf8_lossy(bytes).split(['\r', '\n']) {
+                if !l.is_empty() {
+                    eprintln!("{arrow} {l}");
+                }
+            }
+        }
+    }
+    result?;
+    Ok(ExitCode::SUCCESS)
+}
+
+fn plot(
+    file: &Path,
+    output: &Path,
+    trace: Option<&Path>,
+    machine: Option<&Path>,
+) -> Result<ExitCode> {
+    let program = Program::load(file)?;
+    let machine = machine.map(MachineInfo::load).transpose()?;
+    let start = |l: char| {
+        machine
+            .as_ref()
+            .and_then(|m| m.axis(l))
+            .map_or(0.0, |a| a.start_mm)
+    };
+    let path = Toolpath::from_program(&program, [start('X'), start('Y'), start('Z')])?;
+    let executed = match trace {
+        Some(t) => {
+            let text = std::fs::read_to_string(t)
+                .with_context(|| format!("cannot read the step trace {}", t.display()))?;
+            Some(
+                Executed::from_trace(&text, machine.as_ref())
+                    .map_err(|e| anyhow!("{}: {e}", t.display()))?,
+            )
+        }
+        None => None,
+    };
+    let title = file.file_name().map_or_else(
+        || file.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    );
+    plot::render(output, &title, &path, executed.as_ref())?;
+    say!(
+        "plotted {} to {}: {:.1} mm at feed, {:.1} mm rapid",
+        file.display(),
+        output.display(),
+        path.feed_mm,
+        path.rapid_mm
+    );
+    if let Some(ex) = &executed {
+        let off = ((ex.end[0] - path.end[0]).powi(2) + (ex.end[1] - path.end[1]).powi(2)).sqrt();
+        say!(
+            "executed: {:.1} mm in XY from {} steps over {:.1} s; ends {off:.3} mm from the \
+             program's end",
+            ex.length_mm,
+            ex.steps,
+            ex.duration_s
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
