@@ -8,6 +8,7 @@ use std::process::{Command, ExitCode};
 
 use clap::{Parser, Subcommand};
 
+mod bench;
 mod firmware;
 mod qemu;
 
@@ -41,27 +42,37 @@ enum Task {
         #[arg(long)]
         target: Option<String>,
     },
-    /// Run the criterion benchmarks of the portable crates.
+    /// Run the criterion benchmarks of the portable crates on the host, then count the motion
+    /// kernel's instructions as Cortex-M4 machine code (an STM32F4 bench image in the Unicorn
+    /// emulator, installed into target/bench-venv) and check them against the kernel's
+    /// budgets (fails when one is exceeded).
     Bench {
+        /// Only the host benchmarks.
+        #[arg(long, conflicts_with = "target_only")]
+        host_only: bool,
+        /// Only the on-target instruction count.
+        #[arg(long)]
+        target_only: bool,
         /// Extra arguments passed to criterion (for example a benchmark name filter).
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
-    /// Build a firmware board's release images (every pin-map variant, or one) into
-    /// target/firmware/<board>-<variant>.elf.
+    /// Build a firmware board's release images (its default variants, or one) into
+    /// target/firmware/<board>-<variant>.elf; an ESP32 image also as a merged
+    /// <board>-<variant>.bin to write at flash offset 0 (installs espflash when it is missing).
     Build {
-        /// The board: stm32f4.
+        /// The board: stm32f4 or esp32.
         board: String,
-        /// Only this pin-map variant (Cargo feature), e.g. blackpill or qemu.
+        /// Only this variant (Cargo feature), e.g. blackpill, qemu, esp32c3 or esp32c6.
         #[arg(long)]
         variant: Option<String>,
     },
-    /// Build a board's hardware image and write it with probe-rs through a debug probe
-    /// (installs probe-rs-tools when it is missing).
+    /// Build a board's hardware image and write it: with probe-rs through a debug probe
+    /// (STM32), or with espflash over USB (ESP32); installs the tool when it is missing.
     Flash {
-        /// The board: stm32f4.
+        /// The board: stm32f4 or esp32.
         board: String,
-        /// The pin-map variant (default: the board's first hardware one).
+        /// The variant (default: the board's first hardware one).
         #[arg(long)]
         variant: Option<String>,
     },
@@ -78,8 +89,8 @@ enum Task {
         #[arg(long)]
         check: bool,
     },
-    /// Build every firmware release image and print its flash and RAM use against the
-    /// smallest chip it must fit (fails when one does not).
+    /// Build every default firmware release image and print its flash and RAM use against
+    /// the smallest chip it must fit (fails when one does not).
     Size,
 }
 
@@ -103,7 +114,17 @@ fn main() -> ExitCode {
         Task::Test => test(),
         Task::Sim { args } => sim(&args),
         Task::Fuzz { seconds, target } => fuzz(seconds, target.as_deref()),
-        Task::Bench { args } => bench(&args),
+        Task::Bench {
+            host_only,
+            target_only,
+            args,
+        } => (if target_only { Ok(()) } else { bench(&args) }).and_then(|()| {
+            if host_only {
+                Ok(())
+            } else {
+                bench::on_target()
+            }
+        }),
         Task::Build { board, variant } => firmware::build(&board, variant.as_deref()),
         Task::Flash { board, variant } => firmware::flash(&board, variant.as_deref()),
         Task::Qemu { board, port, check } => firmware::run_qemu(&board, port, check),

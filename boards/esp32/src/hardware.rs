@@ -1,0 +1,166 @@
+//! Board bring-up: clocks, the heap, esp-rtos, pins, the step timer, the store, the WiFi
+//! driver and the watchdog, from the pin map of [`crate::board`]. `main` calls [`init`] and
+//! hands the parts to its tasks.
+
+use core::fmt;
+
+use embedded_hal::digital::PinState;
+use esp_hal::clock::CpuClock;
+use esp_hal::gpio::{Input, Output};
+use esp_hal::interrupt::InterruptHandler;
+use esp_hal::peripherals::{Peripherals, TIMG0};
+use esp_hal::rng::Rng;
+use esp_hal::time::Duration;
+use esp_hal::timer::timg::{MwdtStage, TimerGroup, Wdt};
+use esp_radio::wifi::{ControllerConfig, Interface, WifiController};
+use forja_drivers::limit::{LimitConfig, LimitInput};
+use forja_drivers::stepper::StepDir;
+
+use crate::board::{self, AXES, DRIVERS, LIMIT_POLARITY, LIMITS};
+use crate::enable::{self, SharedEnable};
+use crate::link::WifiLink;
+use crate::step::StepContext;
+use crate::storage::{self, Store};
+use crate::timer::{StepClock, StepTimer};
+
+/// One motor driver: STEP and DIR pins, and its share of the enable line.
+pub type Stepper = StepDir<Output<'static>, Output<'static>, SharedEnable>;
+
+/// One limit switch.
+pub type Limit = LimitInput<Input<'static>>;
+
+/// Samples that must agree before a switch changes state.
+pub const DEBOUNCE_SAMPLES: u8 = 3;
+
+/// Milliseconds without feeding after which the watchdog resets the chip: more than the
+/// longest flash erase (see [`crate::storage`]).
+pub const WATCHDOG_TIMEOUT_MS: u64 = 2_000;
+
+/// Heap for the WiFi driver: in the RAM the ROM bootloader used (free once the app runs),
+/// and in main RAM.
+const HEAP_RECLAIMED: usize = 64 * 1024;
+const HEAP_MAIN: usize = 48 * 1024;
+
+/// Why the board could not start. The firmware resets (see [`crate::fault`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum SetupError {
+    /// A motor driver pin could not be driven.
+    Stepper,
+    /// The step alarm did not fire in the boot check.
+    StepAlarm,
+    /// The partition table could not be read.
+    PartitionTable,
+    /// The partition table has no `forja` data partition (flashed with another table).
+    NoStore,
+    /// The store rejected its partition.
+    Storage,
+    /// The WiFi driver did not start.
+    Wifi,
+    /// The network stacks or the link were already set up.
+    Network,
+}
+
+impl fmt::Display for SetupError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::Stepper => "motor driver pin failed",
+            Self::StepAlarm => "step alarm did not fire",
+            Self::PartitionTable => "partition table unreadable",
+            Self::NoStore => "no `forja` data partition",
+            Self::Storage => "store partition rejected",
+            Self::Wifi => "WiFi driver did not start",
+            Self::Network => "network already set up",
+        })
+    }
+}
+
+/// The watchdog, fed by the controller task.
+pub type Watchdog = Wdt<TIMG0<'static>>;
+
+/// Everything [`init`] sets up.
+pub struct Hardware {
+    /// What the step interrupt owns: the step alarm and the motor drivers (released).
+    pub step: StepContext,
+    /// The step clock, for any context.
+    pub clock: StepClock,
+    /// The limit switches, in axis order.
+    pub limits: [Limit; LIMITS],
+    /// The settings and program store.
+    pub store: Store,
+    /// The WiFi driver.
+    pub wifi: WifiController<'static>,
+    /// The station interface.
+    pub station: Interface,
+    /// The access point interface.
+    pub access_point: Interface,
+    /// A random seed for the network stacks.
+    pub seed: u64,
+    /// The controller's end of the host link.
+    pub link: WifiLink,
+    /// The running watchdog.
+    pub watchdog: Watchdog,
+}
+
+/// Bring the board up from reset; `step_interrupt` is bound to the step alarm.
+///
+/// Context: the start of `main`, before any task runs. Errors: see [`SetupError`].
+pub fn init(step_interrupt: InterruptHandler) -> Result<Hardware, SetupError> {
+    let p: Peripherals = esp_hal::init(esp_hal::Config::default().with_cpu_clock(CpuClock::max()));
+
+    esp_alloc::heap_allocator!(#[esp_hal::ram(reclaimed)] size: HEAP_RECLAIMED);
+    esp_alloc::heap_allocator!(size: HEAP_MAIN);
+
+    let pins = board::pins!(p);
+
+    let timg0 = TimerGroup::new(p.TIMG0);
+    esp_rtos::start(timg0.timer0, p.FROM_CPU_INTR0);
+    let mut watchdog = timg0.wdt;
+
+    #[cfg(feature = "esp32")]
+    let timer = StepTimer::new(p.TIMG1, step_interrupt);
+    #[cfg(not(feature = "esp32"))]
+    let timer = StepTimer::new(p.SYSTIMER, step_interrupt);
+    let clock = timer.clock();
+
+    let enables: [SharedEnable; AXES] = enable::split(pins.enable, PinState::Low);
+    let mut steppers = pins.step.into_iter().zip(pins.dir).zip(enables);
+    let mut stepper = || {
+        let ((step, dir), enable) = steppers.next().ok_or(SetupError::Stepper)?;
+        StepDir::with_enable(step, dir, enable, DRIVERS).map_err(|_| SetupError::Stepper)
+    };
+    let steppers: [Stepper; AXES] = [stepper()?, stepper()?, stepper()?];
+
+    let limit_config = LimitConfig::new(LIMIT_POLARITY, DEBOUNCE_SAMPLES);
+    let limits = pins.limits.map(|pin| LimitInput::new(pin, limit_config));
+
+    let store = storage::open(p.FLASH)?;
+
+    let wifi =
+        WifiController::new(p.WIFI, ControllerConfig::default()).map_err(|_| SetupError::Wifi)?;
+    let station = Interface::station();
+    let access_point = Interface::access_point();
+
+    let rng = Rng::new();
+    let seed = (u64::from(rng.random()) << 32) | u64::from(rng.random());
+
+    // Last: from here on the controller task must run at least every WATCHDOG_TIMEOUT_MS.
+    watchdog.set_timeout(
+        MwdtStage::Stage0,
+        Duration::from_millis(WATCHDOG_TIMEOUT_MS),
+    );
+    watchdog.enable();
+
+    Ok(Hardware {
+        step: StepContext { timer, steppers },
+        clock,
+        limits,
+        store,
+        wifi,
+        station,
+        access_point,
+        seed,
+        link: WifiLink::take().ok_or(SetupError::Network)?,
+        watchdog,
+    })
+}

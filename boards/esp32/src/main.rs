@@ -1,0 +1,123 @@
+//! # Forja on the ESP32 family
+//!
+//! The firmware of the ESP32 boards: esp-hal 1.2 with esp-rtos tasks, the host link over WiFi.
+//! This module is wiring only: which interrupt runs the step context at which priority, and
+//! which task owns which part. The plumbing lives in the modules below it, the pin maps in
+//! [`board`].
+//!
+//! | context | bound to | priority | does |
+//! |---|---|---|---|
+//! | `step_interrupt` | the step alarm (SYSTIMER comparator 0; TIMG1 on the ESP32) | `Priority::max()` | step alarm ([`step`]) |
+//! | WiFi driver, esp-rtos scheduler | their own interrupts | esp-radio's | the radio |
+//! | `wifi_task` | esp-rtos executor | thread | joins the network, falls back to an access point ([`wifi`]) |
+//! | `net_task` (×2) | esp-rtos executor | thread | the station and access point IP stacks ([`net`]) |
+//! | `dhcp_task` | esp-rtos executor | thread | DHCP server of the access point ([`net`]) |
+//! | `link_task` (×4) | esp-rtos executor | thread | TCP listeners, session, 54/55 ([`link`]) |
+//! | `controller_task` | esp-rtos executor | thread | the session's 54/55 and the link's input ([`link::bring_up`]), feeds the watchdog |
+//!
+//! RTIC's ESP32-C3 backend does not work with esp-hal 1.x, so the step interrupt is a plain
+//! esp-hal interrupt handler at the highest priority, and everything else is an async task
+//! of esp-rtos's executor, which never preempts the step interrupt.
+#![no_std]
+#![no_main]
+
+pub mod board;
+pub mod enable;
+pub mod fault;
+pub mod hardware;
+pub mod link;
+pub mod net;
+pub mod settings;
+pub mod step;
+pub mod storage;
+pub mod timer;
+pub mod wifi;
+
+use embassy_executor::Spawner;
+use embassy_net::Stack;
+use embassy_time::{Duration, Ticker};
+use esp_radio::wifi::{Interface, WifiController};
+use forja_motion::controller::Settings;
+use forja_protocol::stream::Decoder;
+use heapless::String;
+
+use crate::hardware::Watchdog;
+use crate::link::WifiLink;
+use crate::settings::Credentials;
+
+esp_bootloader_esp_idf::esp_app_desc!();
+
+/// Rate at which the controller task polls the link.
+const CONTROLLER_HZ: u64 = 1_000;
+
+/// The step interrupt.
+#[esp_hal::handler(priority = esp_hal::interrupt::Priority::max())]
+fn step_interrupt() {
+    step::on_interrupt();
+}
+
+#[esp_rtos::main]
+async fn main(spawner: Spawner) -> ! {
+    let hw = hardware::init(step_interrupt).unwrap_or_else(|_| fault::reset());
+    let clock = hw.clock;
+    step::install(hw.step);
+    if step::self_test(clock).await.is_err() {
+        fault::reset();
+    }
+
+    // The settings as the controller keeps them; the kernel is built from them too.
+    let mut store = hw.store;
+    let (stored, _report) = Settings::load(board::MACHINE, &mut store);
+    link::configure(stored.keep_alive_ms());
+    let credentials = settings::credentials(stored.ssid(), stored.password());
+    let ap_ssid = wifi::ap_ssid(hw.access_point.mac_address());
+    let stacks =
+        net::stacks(hw.station, hw.access_point, hw.seed).unwrap_or_else(|| fault::reset());
+
+    spawner.spawn(wifi_task(hw.wifi, credentials, ap_ssid).unwrap_or_else(|_| fault::reset()));
+    spawner.spawn(net_task(stacks.station_runner).unwrap_or_else(|_| fault::reset()));
+    spawner.spawn(net_task(stacks.access_point_runner).unwrap_or_else(|_| fault::reset()));
+    spawner.spawn(dhcp_task(stacks.access_point).unwrap_or_else(|_| fault::reset()));
+    for stack in [stacks.station, stacks.access_point] {
+        for _ in 0..link::LISTENERS {
+            spawner.spawn(link_task(stack).unwrap_or_else(|_| fault::reset()));
+        }
+    }
+    spawner.spawn(controller_task(hw.link, hw.watchdog).unwrap_or_else(|_| fault::reset()));
+    core::future::pending().await
+}
+
+#[embassy_executor::task]
+async fn wifi_task(
+    controller: WifiController<'static>,
+    credentials: Option<Credentials>,
+    ap_ssid: String<32>,
+) -> ! {
+    wifi::run(controller, credentials, ap_ssid).await
+}
+
+#[embassy_executor::task(pool_size = 2)]
+async fn net_task(runner: embassy_net::Runner<'static, Interface>) -> ! {
+    net::run(runner).await
+}
+
+#[embassy_executor::task]
+async fn dhcp_task(stack: Stack<'static>) -> ! {
+    net::serve_dhcp(stack).await
+}
+
+#[embassy_executor::task(pool_size = 4)]
+async fn link_task(stack: Stack<'static>) -> ! {
+    link::listen(stack).await
+}
+
+#[embassy_executor::task]
+async fn controller_task(mut link: WifiLink, mut watchdog: Watchdog) -> ! {
+    let mut decoder = Decoder::new();
+    let mut ticker = Ticker::every(Duration::from_hz(CONTROLLER_HZ));
+    loop {
+        link::bring_up(&mut link, &mut decoder);
+        watchdog.feed();
+        ticker.next().await;
+    }
+}

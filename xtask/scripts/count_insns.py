@@ -1,0 +1,232 @@
+"""Count the instructions a Cortex-M4 image executes in its marker functions.
+
+Usage: count_insns.py IMAGE.elf [--exact]
+
+Runs the ELF image in the Unicorn emulator (Cortex-M4 with FPU, Thumb-2) from its reset
+vector until it reaches the symbol `bench_done`, and counts the instructions executed inside
+each marker function: from the function's first instruction up to and including its return,
+every callee included. Instructions whose condition fails (in an IT block) count as executed,
+as on the core. The image is `boards/stm32f4/examples/kernel_bench.rs`; its markers are:
+
+- `bench_isr`, `bench_prep`, `bench_line`: the measured calls;
+- `bench_phase(phase)`: the following measured calls belong to `phase`;
+- `bench_result(phase, step_events, lines)`: the phase's own counts, printed as they are;
+- `bench_done`: the end; `bench_failed`: the image gave up (a panic), an error here.
+
+Counting is by translated block: Unicorn reports each block it executes with its start and
+byte length, and the block's instructions are counted once by decoding Thumb-2 lengths from
+the image. `--exact` counts with a hook on every instruction instead, adding the instructions
+of IT blocks that Unicorn skips without a hook when their condition fails (much slower;
+a cross-check that must give the same figures).
+The count depends only on the image: two runs give the same figures.
+
+Output, one record a line, fields separated by spaces:
+
+    marker PHASE NAME CALLS TOTAL MIN MAX
+    result PHASE STEP_EVENTS LINES
+    total INSTRUCTIONS
+
+Exit status 0 when the image reached `bench_done`, 1 otherwise (with the reason on stderr).
+"""
+
+import struct
+import sys
+
+from unicorn import UC_ARCH_ARM, UC_HOOK_BLOCK, UC_HOOK_CODE, UC_MODE_MCLASS, UC_MODE_THUMB
+from unicorn import Uc, UcError
+from unicorn.arm_const import (
+    UC_ARM_REG_LR,
+    UC_ARM_REG_PC,
+    UC_ARM_REG_R0,
+    UC_ARM_REG_R1,
+    UC_ARM_REG_R2,
+    UC_ARM_REG_SP,
+    UC_CPU_ARM_CORTEX_M4,
+)
+
+MEASURED = ("bench_isr", "bench_prep", "bench_line")
+
+# The STM32F4's memories (the largest of the family, so that every pin map's image fits) and
+# the System Control Space, where the reset code enables the FPU (the write lands in RAM; the
+# emulated core runs FPU instructions without it).
+MEMORY = (
+    (0x0800_0000, 2 << 20),  # flash
+    (0x1000_0000, 64 << 10),  # core-coupled RAM
+    (0x2000_0000, 192 << 10),  # SRAM
+    (0xE000_E000, 4 << 10),  # System Control Space
+)
+
+
+def fail(message):
+    print(f"count_insns: {message}", file=sys.stderr)
+    sys.exit(1)
+
+
+def read_elf(data):
+    """The loadable segments (load address, bytes) and the symbol table (name -> address)."""
+    if data[:4] != b"\x7fELF" or data[4] != 1 or data[5] != 1:
+        fail("not a 32-bit little-endian ELF file")
+    (phoff, shoff) = struct.unpack_from("<II", data, 0x1C)
+    (phentsize, phnum, shentsize, shnum) = struct.unpack_from("<HHHH", data, 0x2A)
+    segments = []
+    for i in range(phnum):
+        (p_type, offset, _vaddr, paddr, filesz) = struct.unpack_from(
+            "<5I", data, phoff + i * phentsize
+        )
+        if p_type == 1 and filesz > 0:  # PT_LOAD, at its load (physical) address
+            segments.append((paddr, data[offset : offset + filesz]))
+    sections = [
+        struct.unpack_from("<10I", data, shoff + i * shentsize) for i in range(shnum)
+    ]
+    symbols = {}
+    for sh in sections:
+        if sh[1] != 2:  # SHT_SYMTAB
+            continue
+        strtab = sections[sh[6]]  # sh_link
+        str_off = strtab[4]
+        for k in range(sh[5] // 16):
+            (name, value, _size, _info) = struct.unpack_from(
+                "<IIIB", data, sh[4] + 16 * k
+            )
+            end = data.index(b"\0", str_off + name)
+            symbols[data[str_off + name : end].decode("utf-8", "replace")] = value
+    return segments, symbols
+
+
+class Counter:
+    """Per (phase, marker): calls, total, min and max instructions; the phases' results."""
+
+    def __init__(self, uc, symbols):
+        self.uc = uc
+        need = MEASURED + ("bench_phase", "bench_result", "bench_done", "bench_failed")
+        missing = [n for n in need if n not in symbols]
+        if missing:
+            fail("symbols missing from the image: " + ", ".join(missing))
+        self.addr = {n: symbols[n] & ~1 for n in need}
+        self.measured = {self.addr[n]: n for n in MEASURED}
+        self.phase_at = self.addr["bench_phase"]
+        self.result_at = self.addr["bench_result"]
+        self.failed_at = self.addr["bench_failed"]
+        self.lengths = {}
+        self.it_pending = []  # addresses of the current IT block's instructions not yet run
+        self.phase = 0
+        self.active = None  # (name, return address, stack pointer at entry)
+        self.current = 0
+        self.stats = {}
+        self.results = []
+        self.total = 0
+        self.failed = False
+
+    def block_length(self, address, size):
+        """Instructions in the Thumb-2 block at `address` of `size` bytes."""
+        key = (address, size)
+        n = self.lengths.get(key)
+        if n is None:
+            n, at = 0, address
+            while at < address + size:
+                at += self.length_at(at)
+                n += 1
+            self.lengths[key] = n
+        return n
+
+    def on_block(self, uc, address, size, _data):
+        self.at(address, self.block_length(address, size))
+
+    def on_instruction(self, uc, address, size, _data):
+        # Unicorn calls no hook for an instruction of an IT block whose condition fails: count
+        # those once execution has passed them, where they were.
+        if self.it_pending:
+            if address in self.it_pending:
+                self.it_pending.remove(address)
+            else:
+                skipped = len(self.it_pending)
+                self.it_pending = []
+                if self.active is not None:
+                    self.current += skipped
+                self.total += skipped
+        self.at(address, 1)
+        if size == 2:
+            first, second = self.uc.mem_read(address, 2)
+            if second == 0xBF and first & 0x0F:  # IT (a zero mask is a hint such as NOP)
+                mask = first & 0x0F
+                at = address + 2
+                for _ in range(5 - (mask & -mask).bit_length()):
+                    self.it_pending.append(at)
+                    at += self.length_at(at)
+
+    def length_at(self, address):
+        """Bytes of the Thumb-2 instruction at `address`."""
+        half = self.uc.mem_read(address + 1, 1)[0]
+        return 4 if (half >> 3) in (0b11101, 0b11110, 0b11111) else 2
+
+    def at(self, address, n):
+        """Execution reaches `address` and runs `n` instructions from there."""
+        if self.active is not None:
+            (name, ret, sp) = self.active
+            if address == ret and self.uc.reg_read(UC_ARM_REG_SP) == sp:
+                self.close(name)
+        if address in self.measured and self.active is None:
+            ret = self.uc.reg_read(UC_ARM_REG_LR) & ~1
+            self.active = (self.measured[address], ret, self.uc.reg_read(UC_ARM_REG_SP))
+            self.current = 0
+        elif address == self.phase_at:
+            self.phase = self.uc.reg_read(UC_ARM_REG_R0)
+        elif address == self.result_at:
+            r = [self.uc.reg_read(x) for x in (UC_ARM_REG_R0, UC_ARM_REG_R1, UC_ARM_REG_R2)]
+            self.results.append(r)
+        elif address == self.failed_at:
+            self.failed = True
+            self.uc.emu_stop()
+        if self.active is not None:
+            self.current += n
+        self.total += n
+
+    def close(self, name):
+        key = (self.phase, name)
+        calls, total, lo, hi = self.stats.get(key, (0, 0, None, 0))
+        c = self.current
+        self.stats[key] = (calls + 1, total + c, c if lo is None else min(lo, c), max(hi, c))
+        self.active = None
+
+
+def main(argv):
+    args = [a for a in argv[1:] if not a.startswith("--")]
+    exact = "--exact" in argv[1:]
+    if len(args) != 1:
+        fail("usage: count_insns.py IMAGE.elf [--exact]")
+    with open(args[0], "rb") as f:
+        segments, symbols = read_elf(f.read())
+
+    uc = Uc(UC_ARCH_ARM, UC_MODE_THUMB | UC_MODE_MCLASS)
+    uc.ctl_set_cpu_model(UC_CPU_ARM_CORTEX_M4)
+    for base, size in MEMORY:
+        uc.mem_map(base, size)
+    for address, data in segments:
+        uc.mem_write(address, data)
+    # The vector table at the start of flash: initial stack pointer, reset vector.
+    sp, reset = struct.unpack("<II", uc.mem_read(MEMORY[0][0], 8))
+    uc.reg_write(UC_ARM_REG_SP, sp)
+
+    counter = Counter(uc, symbols)
+    if exact:
+        uc.hook_add(UC_HOOK_CODE, counter.on_instruction)
+    else:
+        uc.hook_add(UC_HOOK_BLOCK, counter.on_block)
+    try:
+        uc.emu_start(reset | 1, counter.addr["bench_done"])
+    except UcError as e:
+        fail(f"emulation stopped at {uc.reg_read(UC_ARM_REG_PC):#010x}: {e}")
+    if counter.failed:
+        fail("the image reached bench_failed (a panic, or a refused set-up)")
+    if uc.reg_read(UC_ARM_REG_PC) != counter.addr["bench_done"]:
+        fail(f"emulation ended at {uc.reg_read(UC_ARM_REG_PC):#010x}, not at bench_done")
+
+    for (phase, name), (calls, total, lo, hi) in sorted(counter.stats.items()):
+        print(f"marker {phase} {name} {calls} {total} {lo} {hi}")
+    for phase, steps, lines in counter.results:
+        print(f"result {phase} {steps} {lines}")
+    print(f"total {counter.total}")
+
+
+if __name__ == "__main__":
+    main(sys.argv)
