@@ -473,8 +473,9 @@ fn parse_text(rest: &[u8], line: Option<u32>) -> Result<Option<&[u8]>, LineError
 pub enum Recovery {
     /// Ask for this line again: reply `rs <line>` (see [`crate::reply::Reply::Resend`]).
     Resend(u32),
-    /// The line arrived but cannot be run: report the error and reply `ok`, so that the host
-    /// goes on (see [`crate::reply::Reply::Notice`]). Resending it would not help.
+    /// The line arrived but cannot be run: report the error (`!! E<code> …`, see
+    /// [`crate::reply::Reply::Fault`]) and reply `ok`, so that the host goes on. Resending it
+    /// would not help.
     Reject,
 }
 

@@ -137,14 +137,15 @@ pub enum Reply<'a> {
     OkWith(&'a str),
     /// `rs <line>`: send line `<line>` again, and those after it.
     Resend(u32),
-    /// `!! E<code> <text>` (`!! <text>` when `code` is 0): a fault; the machine has stopped.
+    /// `!! E<code> <text>` (`!! <text>` when `code` is 0): an error. Followed by `ok` when it
+    /// refuses a line (the line had no effect); sent alone when a fault stopped the machine.
     Fault {
         /// The error's stable code; 0 when none is given.
         code: u16,
         /// The error's name and any detail.
         text: &'a str,
     },
-    /// `// E<code> <text>`: a line or command was refused; the machine goes on (an `ok` follows).
+    /// `// E<code> <text>`: coded information that needs no action from the host.
     Notice {
         /// The error's stable code, at least 1.
         code: u16,
@@ -191,7 +192,7 @@ fn split_code(text: &str) -> Option<(u16, &str)> {
 }
 
 impl<'a> Reply<'a> {
-    /// `!! E<code> <name>` for a fault that stopped the machine.
+    /// `!! E<code> <name>`: a refused line (an `ok` follows) or a fault that stopped the machine.
     pub fn fault(error: &impl WireError) -> Reply<'static> {
         Reply::Fault {
             code: error.code(),
@@ -199,7 +200,7 @@ impl<'a> Reply<'a> {
         }
     }
 
-    /// `// E<code> <name>` for a line or command refused while the machine goes on.
+    /// `// E<code> <name>`: coded information that needs no action from the host.
     pub fn notice(error: &impl WireError) -> Reply<'static> {
         Reply::Notice {
             code: error.code(),
