@@ -11,8 +11,8 @@
 //!   storage commands, motors on;
 //! - an effect that is [`Sync::AfterMotion`] is returned only once every move before it has
 //!   finished: until then `execute` answers [`crate::Reply::Busy`] for that line. Spindle, fan,
-//!   tool change, motors off, program stop and pause thus happen exactly between the moves
-//!   around them, as grbl does for its spindle.
+//!   tool change, motors off, program stop, pause and program end thus happen exactly between
+//!   the moves around them, as grbl does for its spindle.
 //!
 //! The controller executes each effect when it receives it, then acknowledges the line.
 //! Waiting effects (`M109`, `M116`) are the controller's to wait for: it offers no further line
@@ -137,6 +137,10 @@ pub enum Effect<'l> {
     /// `M226`: the program pauses here (motion before it is done); [`crate::Kernel::resume`]
     /// continues.
     Paused,
+    /// `M2`, `M30`: end of program, once the motion before it is done. The kernel has reset
+    /// its modal state (`G1`, `G17`, `G90`, `G94`); the controller stops the spindle and ends
+    /// the stored program that ran it.
+    ProgramEnd,
 }
 
 impl Effect<'_> {
@@ -148,7 +152,8 @@ impl Effect<'_> {
             | Self::SelectTool(_)
             | Self::Motors { enabled: false }
             | Self::Stopped(StopKind::Program)
-            | Self::Paused => Sync::AfterMotion,
+            | Self::Paused
+            | Self::ProgramEnd => Sync::AfterMotion,
             _ => Sync::Now,
         }
     }
@@ -197,6 +202,7 @@ impl Effect<'_> {
             Effect::Motors { enabled } => Effect::Motors { enabled },
             Effect::Stopped(k) => Effect::Stopped(k),
             Effect::Paused => Effect::Paused,
+            Effect::ProgramEnd => Effect::ProgramEnd,
         }
     }
 }

@@ -14,6 +14,8 @@
 //! | `G28` | home all axes, or those named (their values are ignored) |
 //! | `G90`, `G91` | absolute, relative |
 //! | `G92` | set the current position (all axes to 0 without words) |
+//! | `G94` | feed in units per minute (the only feed mode; `G93` and `G95` are refused) |
+//! | `M2`, `M30` | end of program: after the motion before it, `G1`, `G17`, `G90`, `G94` and the spindle off (`M30` with a file name is RepRap's delete file, unsupported) |
 //! | `M82`, `M83` | extruder absolute, relative |
 //! | `M17`, `M18`, `M84` | motors on, off |
 //! | `M92` | set steps per unit |
@@ -158,6 +160,17 @@ impl<const N: usize> Interpreter<N> {
         }
     }
 
+    /// End of program (`M2`, `M30`): the modal groups that grbl and LinuxCNC reset go back to
+    /// their defaults — linear motion (`G1`), the XY plane (`G17`), absolute distances
+    /// (`G90`), units-per-minute feed (`G94`, the only mode) — while units (`G20`/`G21`), the
+    /// feed rate, the extruder mode and the `G92` offsets are kept, as grbl keeps them. The
+    /// spindle is stopped by the controller ([`Effect::ProgramEnd`]).
+    fn end_program(&mut self) {
+        self.motion = Motion::Linear;
+        self.plane = Plane::Xy;
+        self.absolute = true;
+    }
+
     /// Back to the power-on modal state, keeping the position and clearing offsets.
     pub(crate) fn reset_modal(&mut self, config: &MachineConfig<N>) {
         let pos = self.pos;
@@ -182,6 +195,7 @@ impl<const N: usize> Interpreter<N> {
         let mut units: Option<bool> = None;
         let mut distance: Option<bool> = None;
         let mut plane: Option<Plane> = None;
+        let mut feed_mode: Option<()> = None;
         for w in line.words() {
             if !matches!(w.letter, b'G' | b'M' | b'T') {
                 continue;
@@ -205,6 +219,9 @@ impl<const N: usize> Interpreter<N> {
                 (b'G', 21) => set_once(&mut units, false)?,
                 (b'G', 90) => set_once(&mut distance, true)?,
                 (b'G', 91) => set_once(&mut distance, false)?,
+                // Units per minute: the only feed mode, so stating it changes nothing. Inverse
+                // time (`G93`) and units per revolution (`G95`) fall through as unsupported.
+                (b'G', 94) => set_once(&mut feed_mode, ())?,
                 (b'G', 4 | 28 | 92) | (b'M', _) | (b'T', _) => {
                     set_once(&mut command, (w.letter, n))?;
                 }
@@ -406,6 +423,15 @@ impl<const N: usize> Interpreter<N> {
                 Action::None
             }
             (b'M', 0) => Action::Stop(StopKind::Program),
+            (b'M', 2) => {
+                self.end_program();
+                Action::Effect(Effect::ProgramEnd)
+            }
+            // Bare `M30` ends the program (CNC); `M30 <file>` is RepRap's delete file.
+            (b'M', 30) if line.text_arg().is_none() => {
+                self.end_program();
+                Action::Effect(Effect::ProgramEnd)
+            }
             (b'M', 112) => Action::Stop(StopKind::Emergency),
             (b'M', 226) => Action::Pause,
             (b'M', 82) => {
@@ -672,6 +698,59 @@ mod tests {
                 rpm: Some(Decimal::new(12000, 0))
             })))
         );
+    }
+
+    #[test]
+    fn program_end_resets_the_modal_groups_grbl_resets() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        run(&mut it, b"G21 G91 G18 F900").expect("ok");
+        run(&mut it, b"G0 X1").expect("ok");
+        run(&mut it, b"G92 X0").expect("ok");
+        assert_eq!(run(&mut it, b"M2"), Ok(Action::Effect(Effect::ProgramEnd)));
+        // Absolute, XY plane, linear motion at the feed kept; G92 offsets and units kept.
+        assert_eq!(
+            run(&mut it, b"X2 Y1"),
+            Ok(Action::Move {
+                target: [3_000_000, 1_000_000, 0, 0],
+                feed_mm_min: Some(900.0),
+                ramp: false
+            })
+        );
+        run(&mut it, b"G91 G20").expect("ok");
+        assert_eq!(run(&mut it, b"M30"), Ok(Action::Effect(Effect::ProgramEnd)));
+        assert!(it.absolute && it.inches && it.plane == Plane::Xy);
+        // `M30 <file>` is RepRap's delete file, which Forja lacks.
+        assert_eq!(
+            run(&mut it, b"M30 part.gco"),
+            Err(CommandError::Unsupported {
+                letter: b'M',
+                number: Some(30)
+            })
+        );
+    }
+
+    #[test]
+    fn g94_is_the_feed_mode_and_g93_g95_are_refused() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        let before = it;
+        assert_eq!(run(&mut it, b"G94"), Ok(Action::None));
+        assert_eq!(it, before);
+        assert!(matches!(
+            run(&mut it, b"G94 G1 X1 F600"),
+            Ok(Action::Move { .. })
+        ));
+        for (text, n) in [(&b"G93"[..], 93), (b"G95 G1 X2 F1", 95)] {
+            assert_eq!(
+                run(&mut it, text),
+                Err(CommandError::Unsupported {
+                    letter: b'G',
+                    number: Some(n)
+                })
+            );
+        }
+        assert_eq!(run(&mut it, b"G94 G94"), Err(CommandError::ModalConflict));
     }
 
     #[test]

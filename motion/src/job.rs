@@ -166,7 +166,9 @@ pub struct Progress {
     pub estimated_s: u32,
     /// Lines in the program.
     pub total_lines: u16,
-    /// The line whose motion is being executed (1-based; 0 before the start).
+    /// The line whose motion runs now while the job runs or is paused; the next line to run
+    /// when it is idle (after a stop, a rewind, or before the first start); the last line once
+    /// the program has finished. 1-based; 0 with no program stored.
     pub current_line: u16,
 }
 
@@ -190,6 +192,9 @@ pub struct Job {
     elapsed_s: u32,
     estimated_s: f32,
     tick_hz: u32,
+    /// The line the run started from (at a start, not a resume), and the last line fed since
+    /// (the start line until one is).
+    first_fed: u16,
     last_fed: u16,
 }
 
@@ -210,6 +215,7 @@ impl Job {
             elapsed_s: 0,
             estimated_s: 0.0,
             tick_hz: 1,
+            first_fed: 1,
             last_fed: 0,
         }
     }
@@ -259,6 +265,9 @@ impl Job {
         self.tick_hz = kernel.tick_hz().max(1);
         self.started = Some(now);
         self.elapsed_s = 0;
+        // The kernel's line is that of an earlier run until this run's first block is prepared.
+        self.first_fed = self.next_line;
+        self.last_fed = self.next_line;
         self.state = JobState::Running;
         Ok(())
     }
@@ -284,7 +293,7 @@ impl Job {
     ) {
         if matches!(self.state, JobState::Running | JobState::Paused) {
             kernel.stop();
-            let current = u16::try_from(kernel.current_line()).unwrap_or(self.next_line);
+            let current = self.running_line(kernel);
             if current >= 1 && current < self.next_line {
                 self.next_line = current;
             }
@@ -374,6 +383,12 @@ impl Job {
                     if e == Effect::Paused {
                         self.state = JobState::Paused;
                     }
+                    if e == Effect::ProgramEnd {
+                        // `M2`/`M30`: the motion before it is done (the effect waits for it);
+                        // the lines after it do not run, and the next start is from line 1.
+                        self.state = JobState::Finished;
+                        self.next_line = 1;
+                    }
                     self.buf = local;
                     return Ok(Some(e.rebase(&local, &self.buf)));
                 }
@@ -385,6 +400,16 @@ impl Job {
         }
     }
 
+    /// The line whose motion runs now: the kernel's, within the lines of this run fed so far.
+    fn running_line<const N: usize, const B: usize, const Q: usize>(
+        &self,
+        kernel: &Kernel<'_, N, B, Q>,
+    ) -> u16 {
+        u16::try_from(kernel.current_line())
+            .unwrap_or(0)
+            .clamp(self.first_fed, self.last_fed.max(self.first_fed))
+    }
+
     /// The figures of frame message 52.
     pub fn progress<P: ProgramStore, const N: usize, const B: usize, const Q: usize>(
         &self,
@@ -392,12 +417,12 @@ impl Job {
         store: &P,
     ) -> Progress {
         let current = match self.state {
-            JobState::Idle if self.started.is_none() => 0,
+            _ if store.is_empty() => 0,
             JobState::Finished => store.len(),
-            _ => u16::try_from(kernel.current_line())
-                .unwrap_or(0)
-                .max(1)
-                .min(self.last_fed.max(1)),
+            // What `start` will run first.
+            JobState::Idle if self.next_line > store.len() => 1,
+            JobState::Idle => self.next_line,
+            JobState::Running | JobState::Paused => self.running_line(kernel),
         };
         Progress {
             elapsed_s: self.elapsed_s,
@@ -521,6 +546,7 @@ pub fn estimate_seconds<P: ProgramStore, const N: usize, const B: usize, const Q
                 }
                 let _ = planner.push_dwell(ms, 0);
             }
+            Action::Effect(Effect::ProgramEnd) => break,
             Action::Home { mask } => {
                 while !planner.is_empty() {
                     retire(&mut planner, &mut total, &mut v_carry);

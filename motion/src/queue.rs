@@ -21,7 +21,8 @@ const REST_FLAG: u32 = 1 << 31;
 /// One step event.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub(crate) struct Event {
-    /// Ticks since the previous event (ignored for the first event after an idle interrupt).
+    /// Ticks since the previous event; for the first event after an idle interrupt, ticks since
+    /// the interrupt was started.
     pub delta: u32,
     /// After this event the machine is at rest: the interrupt may go idle if nothing follows.
     pub rest: bool,
@@ -110,7 +111,8 @@ pub struct StepQueue<const N: usize, const Q: usize> {
     pub(crate) positions: [AtomicI32; N],
     /// Sum of the deltas of consumed events, wrapping. Writer: interrupt.
     pub(crate) consumed_ticks: AtomicU32,
-    /// Scheduled instant (ticks) of the last consumed event. Writer: interrupt.
+    /// Scheduled instant (ticks) of the last consumed event, or of the start after idle.
+    /// Writer: interrupt.
     pub(crate) last_event_at: AtomicU32,
     /// Times the thread started an idle interrupt. Writer: thread.
     pub(crate) starts: AtomicU32,

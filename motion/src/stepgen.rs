@@ -6,7 +6,8 @@
 //! step, raise step lines — and returns when to be called next. All timing decisions (step
 //! times, pulse width, direction set-up) were taken by the thread side; this side only keeps
 //! the schedule (`next = previous scheduled time + delta`, so interrupt latency never
-//! accumulates) and guards the minimum pulse width against a late rising edge.
+//! accumulates; the first event after idle is due its delta after the start) and guards the
+//! minimum pulse width against a late rising edge.
 
 #![deny(clippy::indexing_slicing, clippy::arithmetic_side_effects)]
 
@@ -138,8 +139,16 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
                 let Some(ev) = self.rx.peek() else {
                     return self.go_idle();
                 };
+                // The start is the instant the queued timeline resumes from: the first event is
+                // due its delta after it (a dwell at rest, the first half step of a move).
                 self.mode = Mode::Running;
-                self.next_at = now;
+                q.last_event_at.store(now.ticks(), Ordering::Relaxed);
+                self.next_ev = ev;
+                self.next_at = now.wrapping_add(Duration::from_ticks(ev.delta));
+                self.wake_at = self.next_at;
+                if !now.is_at_or_after(self.wake_at) {
+                    return Some(self.wake_at);
+                }
                 ev
             }
             Mode::Running => {

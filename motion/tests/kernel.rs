@@ -341,6 +341,35 @@ fn dwell_waits_between_moves() {
 }
 
 #[test]
+fn dwell_at_rest_takes_its_time_then_the_move_runs() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    let start = s.now();
+    s.send("G4 P5000").expect("ok");
+    s.send("G1 X10 F3000").expect("ok");
+    assert!(s.run_until_idle(20 * u64::from(HZ)));
+    assert_eq!(s.kernel.state(), MachineState::Idle, "no alarm");
+    let r = s.rec.borrow();
+    assert_eq!(r.position, [steps(10.0), 0, 0]);
+    let first = r.steps[0][0].tick - start;
+    // The first step comes after the whole dwell, then the usual ramp of the first half step.
+    assert!((5_000_000..5_020_000).contains(&first), "{first}");
+    assert!(r.violations.is_empty(), "{:?}", r.violations);
+}
+
+#[test]
+fn a_dwell_alone_at_rest_ends_idle_after_its_time() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.send("G4 P300").expect("ok");
+    s.advance(u64::from(HZ) / 5);
+    assert_eq!(s.kernel.state(), MachineState::Running, "still dwelling");
+    assert!(s.run_until_idle(u64::from(HZ)));
+    assert!((300_000..320_000).contains(&s.now()), "{}", s.now());
+    assert_eq!(s.kernel.state(), MachineState::Idle);
+}
+
+#[test]
 fn long_moves_survive_clock_wrap_at_168_mhz() {
     let mut q = StepQueue::<3, 256>::new();
     let mut s = sim(&mut q, machine(), 168_000_000);

@@ -149,6 +149,10 @@ impl SimMachine {
             trace: StepTrace::new(
                 config.tick_hz,
                 config.axes.iter().map(|a| a.letter).collect(),
+            )
+            .with_scale(
+                config.axes.iter().map(|a| a.steps_per_mm).collect(),
+                config.axes.iter().map(|a| a.start_mm).collect(),
             ),
             violations: Vec::new(),
             violation_count: 0,
@@ -333,7 +337,13 @@ impl SimMachine {
     /// Start (`true`) or stop recording the step trace. Off by default: a long job makes
     /// millions of steps.
     pub fn set_tracing(&self, on: bool) {
-        self.state.borrow_mut().tracing = on;
+        let start = self.positions_mm();
+        let mut s = self.state.borrow_mut();
+        if on && !s.tracing && s.trace.events().is_empty() {
+            // A fresh trace begins where the axes are now.
+            s.trace.set_start_mm(start);
+        }
+        s.tracing = on;
     }
 
     /// Whether the step trace is being recorded.
@@ -353,8 +363,11 @@ impl SimMachine {
 
     /// Take the trace recorded so far, leaving an empty one.
     pub fn take_trace(&self) -> StepTrace {
+        let start = self.positions_mm();
         let mut s = self.state.borrow_mut();
-        let empty = StepTrace::new(s.trace.tick_hz(), s.trace.axes().to_vec());
+        // The next trace begins where the axes are now.
+        let empty = StepTrace::new(s.trace.tick_hz(), s.trace.axes().to_vec())
+            .with_scale(s.trace.steps_per_mm().to_vec(), start);
         core::mem::replace(&mut s.trace, empty)
     }
 

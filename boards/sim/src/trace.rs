@@ -12,6 +12,8 @@
 //! # forja step trace 1
 //! # tick_hz 1000000
 //! # axes X Y Z A
+//! # steps_per_mm X=80 Y=80 Z=400 A=8.888888888888889
+//! # start_mm X=150 Y=150 Z=0 A=0
 //! time_ticks,axis,event
 //! 0,X,enable
 //! 10,X,dir+
@@ -19,6 +21,10 @@
 //! 512,X,step+
 //! ```
 //!
+//! - `steps_per_mm`: steps per millimetre (per degree for a rotary axis) of each axis, and
+//!   `start_mm`: where each axis was when the trace began, mm (degrees), so that a reader can
+//!   replay the path without the machine file (`forja plot` does). Both are written when the
+//!   trace knows them (the simulator's traces always do); `LETTER=VALUE` pairs in axis order.
 //! - `time_ticks`: virtual time in ticks of the simulator's clock since it started (`tick_hz`
 //!   ticks a second), a 64-bit count that does not wrap.
 //! - `axis`: the axis letter.
@@ -86,10 +92,14 @@ pub struct TraceEvent {
 }
 
 /// A recorded step trace.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone)]
 pub struct StepTrace {
     tick_hz: u32,
     axes: Vec<char>,
+    /// Steps per mm of each axis; empty when not known.
+    steps_per_mm: Vec<f64>,
+    /// Where each axis was when the trace began, mm; empty when not known.
+    start_mm: Vec<f64>,
     events: Vec<TraceEvent>,
 }
 
@@ -99,8 +109,37 @@ impl StepTrace {
         Self {
             tick_hz,
             axes,
+            steps_per_mm: Vec::new(),
+            start_mm: Vec::new(),
             events: Vec::new(),
         }
+    }
+
+    /// The same trace with the steps per mm of each axis and where each was when the trace
+    /// began, mm (both in axis order, one value per axis; other lengths are ignored).
+    pub fn with_scale(mut self, steps_per_mm: Vec<f64>, start_mm: Vec<f64>) -> Self {
+        if steps_per_mm.len() == self.axes.len() {
+            self.steps_per_mm = steps_per_mm;
+        }
+        self.set_start_mm(start_mm);
+        self
+    }
+
+    /// Where each axis was when the trace began, mm (one value per axis, in axis order).
+    pub(crate) fn set_start_mm(&mut self, start_mm: Vec<f64>) {
+        if start_mm.len() == self.axes.len() {
+            self.start_mm = start_mm;
+        }
+    }
+
+    /// Steps per mm of each axis, in axis order; empty when the trace does not know them.
+    pub fn steps_per_mm(&self) -> &[f64] {
+        &self.steps_per_mm
+    }
+
+    /// Where each axis was when the trace began, mm, in axis order; empty when not known.
+    pub fn start_mm(&self) -> &[f64] {
+        &self.start_mm
     }
 
     /// Ticks per second of the event times.
@@ -154,6 +193,21 @@ impl StepTrace {
         writeln!(w, "# tick_hz {}", self.tick_hz)?;
         let letters: Vec<String> = self.axes.iter().map(char::to_string).collect();
         writeln!(w, "# axes {}", letters.join(" "))?;
+        for (name, values) in [
+            ("steps_per_mm", &self.steps_per_mm),
+            ("start_mm", &self.start_mm),
+        ] {
+            if values.is_empty() {
+                continue;
+            }
+            let pairs: Vec<String> = self
+                .axes
+                .iter()
+                .zip(values.iter())
+                .map(|(l, v)| format!("{l}={v}"))
+                .collect();
+            writeln!(w, "# {name} {}", pairs.join(" "))?;
+        }
         writeln!(w, "time_ticks,axis,event")?;
         for e in &self.events {
             let letter = self.axes.get(e.axis).copied().unwrap_or('?');
@@ -199,6 +253,10 @@ impl StepTrace {
                             }
                         })
                         .collect::<Result<_, _>>()?;
+                } else if let Some(v) = rest.strip_prefix("steps_per_mm ") {
+                    trace.steps_per_mm = per_axis(&trace.axes, v, n)?;
+                } else if let Some(v) = rest.strip_prefix("start_mm ") {
+                    trace.start_mm = per_axis(&trace.axes, v, n)?;
                 }
                 continue;
             }
@@ -239,6 +297,47 @@ impl StepTrace {
         }
         Ok(trace)
     }
+}
+
+/// Equal when every field is; the header numbers compare bit for bit (so that equality is an
+/// equivalence, `NaN` included).
+impl PartialEq for StepTrace {
+    fn eq(&self, other: &Self) -> bool {
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        self.tick_hz == other.tick_hz
+            && self.axes == other.axes
+            && bits(&self.steps_per_mm) == bits(&other.steps_per_mm)
+            && bits(&self.start_mm) == bits(&other.start_mm)
+            && self.events == other.events
+    }
+}
+
+impl Eq for StepTrace {}
+
+/// The values of `LETTER=VALUE` pairs (header line `n`), in the order of `axes`; every axis
+/// must have one.
+fn per_axis(axes: &[char], text: &str, n: usize) -> Result<Vec<f64>, TraceParseError> {
+    let mut values = vec![None; axes.len()];
+    for pair in text.split_whitespace() {
+        let (letter, value) = pair.split_once('=').ok_or_else(|| {
+            TraceParseError::new(n, format!("expected LETTER=VALUE, not \"{pair}\""))
+        })?;
+        let i = axes
+            .iter()
+            .position(|&l| letter.len() == l.len_utf8() && letter.starts_with(l))
+            .ok_or_else(|| TraceParseError::new(n, format!("unknown axis \"{letter}\"")))?;
+        let v: f64 = value
+            .parse()
+            .map_err(|_| TraceParseError::new(n, format!("bad number \"{value}\"")))?;
+        if let Some(slot) = values.get_mut(i) {
+            *slot = Some(v);
+        }
+    }
+    values
+        .into_iter()
+        .zip(axes)
+        .map(|(v, l)| v.ok_or_else(|| TraceParseError::new(n, format!("no value for axis {l}"))))
+        .collect()
 }
 
 /// A trace file that could not be read.
@@ -307,6 +406,48 @@ mod tests {
              0,X,enable\n5,X,dir+\n7,X,step+\n9,Y,step-\n"
         ));
         assert_eq!(StepTrace::read_csv(&out[..]).unwrap(), t);
+    }
+
+    #[test]
+    fn the_header_gives_steps_per_mm_and_the_start_position() {
+        use forja_hal_abstraction::stepper::{Stepper, StepperEnable};
+
+        use crate::{MachineConfig, SimMachine};
+
+        let text = "tick_hz = 1_000_000\n\
+                    [[axis]]\nletter = \"X\"\nsteps_per_mm = 80\nmax_rate_mm_min = 6000\n\
+                    accel_mm_s2 = 500\ntravel_min_mm = 0\ntravel_max_mm = 300\nstart_mm = 150\n\
+                    [[axis]]\nletter = \"Z\"\nsteps_per_mm = 400.5\nmax_rate_mm_min = 600\n\
+                    accel_mm_s2 = 100\ntravel_min_mm = 0\ntravel_max_mm = 100\nstart_mm = 0\n";
+        let m = SimMachine::new(&MachineConfig::from_toml_str(text).unwrap());
+        m.set_tracing(true);
+        let mut x = m.stepper(0).unwrap();
+        x.set_enabled(true).unwrap();
+        x.set_direction(Direction::Positive).unwrap();
+        m.advance_by(10);
+        x.step_begin().unwrap();
+        m.advance_by(10);
+        x.step_end().unwrap();
+        let mut out = Vec::new();
+        m.take_trace().write_csv(&mut out).unwrap();
+        let text = String::from_utf8(out.clone()).unwrap();
+        // The lines `forja plot` reads (`host/src/plot.rs`: `Executed::from_trace`).
+        assert!(
+            text.starts_with(
+                "# forja step trace 1\n# tick_hz 1000000\n# axes X Z\n\
+                 # steps_per_mm X=80 Z=400.5\n# start_mm X=150 Z=0\ntime_ticks,axis,event\n"
+            ),
+            "{text}"
+        );
+        let back = StepTrace::read_csv(&out[..]).unwrap();
+        assert_eq!(back.steps_per_mm(), [80.0, 400.5]);
+        assert_eq!(back.start_mm(), [150.0, 0.0]);
+        assert_eq!(back.net_steps(0), 1);
+        // The next trace begins where the last one ended.
+        assert_eq!(m.take_trace().start_mm(), [150.0125, 0.0]);
+        // A header without a value for every axis is refused, naming its line.
+        let bad = "# tick_hz 1000\n# axes X Y\n# steps_per_mm X=80\ntime_ticks,axis,event\n";
+        assert_eq!(StepTrace::read_csv(bad.as_bytes()).unwrap_err().line, 3);
     }
 
     #[test]

@@ -33,6 +33,7 @@ enum Cmd {
     Motors(bool),
     Stop(StopKind),
     Paused,
+    ProgramEnd,
 }
 
 impl Cmd {
@@ -73,6 +74,7 @@ impl Cmd {
             Effect::Motors { enabled } => Cmd::Motors(enabled),
             Effect::Stopped(kind) => Cmd::Stop(kind),
             Effect::Paused => Cmd::Paused,
+            Effect::ProgramEnd => Cmd::ProgramEnd,
         }
     }
 }
@@ -293,6 +295,11 @@ where
                 Err(e) => Done::Refused(Refusal::with(&e, format_args!("spindle"))),
             },
             Cmd::Nothing | Cmd::Paused => Done::Ok,
+            // A board without a spindle has none to stop.
+            Cmd::ProgramEnd => match self.peripherals.set_spindle(Spindle::Off) {
+                Ok(()) | Err(super::PeripheralError::NoDevice) => Done::Ok,
+                Err(e) => Done::Refused(Refusal::with(&e, format_args!("spindle"))),
+            },
             Cmd::Firmware => Done::Firmware,
             Cmd::Endstops => Done::Endstops,
             Cmd::Unsupported(n) => Done::Refused(text::command_refusal(

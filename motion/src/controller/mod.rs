@@ -139,14 +139,16 @@ pub struct ControllerConfig {
     pub peripheral_period_ms: u32,
     /// How often an `M109`/`M116` wait reports the temperatures, ms.
     pub report_period_ms: u32,
-    /// A frame that arrived without a terminator is taken after the link has been quiet this
-    /// long, ms.
+    /// A frame that arrived without a terminator — or, from a host that numbers its lines, a
+    /// G-code line whose terminator was lost — is taken after the link has been quiet this
+    /// long, ms: no byte arrived while the controller was reading (time it held its input back
+    /// does not count).
     pub frame_flush_ms: u32,
 }
 
 impl ControllerConfig {
     /// `machine_type`, no extruder, `timing`; heaters every 100 ms, temperature reports every
-    /// second, unterminated frames taken after 20 ms of quiet.
+    /// second, unterminated frames (and numbered lines) taken after 20 ms of quiet.
     pub const fn new(machine_type: &'static str, timing: StepTiming) -> Self {
         Self {
             machine_type,
@@ -247,14 +249,18 @@ impl MsClock {
 const RX_LEN: usize = 128;
 
 /// The link's input: a small receive buffer, and the tail of what the decoder has taken
-/// since its last event (to see a frame that waits for a byte after it).
+/// since its last event (to see a frame that waits for a byte after it, or a line that waits
+/// for its terminator).
 struct Input {
     buf: [u8; RX_LEN],
     start: usize,
     end: usize,
     tail: [u8; FRAME_LEN],
     since_event: usize,
-    last_rx_ms: u32,
+    /// Since when the controller has been reading the link and no byte came, ms.
+    quiet_since_ms: u32,
+    /// Input was held back (not read) at the end of the last poll.
+    deaf: bool,
 }
 
 impl Input {
@@ -265,7 +271,8 @@ impl Input {
             end: 0,
             tail: [0; FRAME_LEN],
             since_event: 0,
-            last_rx_ms: 0,
+            quiet_since_ms: 0,
+            deaf: false,
         }
     }
 
@@ -309,7 +316,7 @@ impl Input {
             Ok(n) if n > 0 => {
                 self.start = 0;
                 self.end = n.min(RX_LEN);
-                self.last_rx_ms = now_ms;
+                self.quiet_since_ms = now_ms;
                 true
             }
             _ => false,
@@ -319,6 +326,12 @@ impl Input {
     /// Whether a complete frame may be waiting in the decoder for a byte after it.
     fn frame_waiting(&self) -> bool {
         self.is_empty() && self.since_event >= FRAME_LEN - 1 && is_frame(&self.tail)
+    }
+
+    /// Whether the decoder holds the start of a record that waits for its terminator (or for
+    /// the byte after a frame).
+    fn unterminated(&self) -> bool {
+        self.is_empty() && self.since_event > 0 && !matches!(self.tail.last(), Some(b'\n' | b'\r'))
     }
 
     fn event_seen(&mut self) {
@@ -586,6 +599,10 @@ where
         core.feed_job(link);
         core.release_held(link);
 
+        if self.input.deaf {
+            // Quiet counts only while the controller reads: not while it held input back.
+            self.input.quiet_since_ms = self.core.clock.ms;
+        }
         loop {
             if self.core.link.input_blocked() {
                 break;
@@ -602,16 +619,15 @@ where
                 self.input.event_seen();
             }
         }
-        let quiet = self.core.clock.ms.wrapping_sub(self.input.last_rx_ms);
-        if !self.core.link.input_blocked()
-            && self.input.frame_waiting()
-            && quiet >= self.core.config.frame_flush_ms
-        {
+        let quiet = self.core.clock.ms.wrapping_sub(self.input.quiet_since_ms);
+        let flush_ms = self.core.config.frame_flush_ms;
+        if self.flush_due() && quiet >= flush_ms {
             while let Some(event) = self.decoder.flush() {
                 self.core.on_event(event, link);
             }
             self.input.event_seen();
         }
+        self.input.deaf = self.core.link.input_blocked();
 
         let core = &mut self.core;
         if core.taken {
@@ -619,13 +635,22 @@ where
             arm = arm.or(core.kernel.poll(now));
         }
         let frame_wait = self
-            .input
-            .frame_waiting()
-            .then_some(self.core.config.frame_flush_ms);
+            .flush_due()
+            .then(|| flush_ms.saturating_sub(quiet).max(1));
         PollOutcome {
             arm_alarm: arm,
             wake_at: self.core.wake_at(frame_wait),
         }
+    }
+
+    /// Whether the decoder holds a record to take as complete once the link is quiet: a whole
+    /// frame waiting for the byte after it, or, from a host that numbers its lines, a line
+    /// whose terminator may have been lost. A console (unnumbered lines: a person typing) is
+    /// never cut short.
+    fn flush_due(&self) -> bool {
+        !self.core.link.input_blocked()
+            && (self.input.frame_waiting()
+                || (self.core.link.numbering.is_numbered() && self.input.unterminated()))
     }
 
     /// Take the controller apart: the kernel, the program store, the peripherals and the

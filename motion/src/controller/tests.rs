@@ -827,6 +827,109 @@ fn program_upload_run_pause_resume_stop_rewind() {
 }
 
 #[test]
+fn program_end_waits_for_the_motion_stops_the_spindle_and_resets_modes() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("G94 G91 G1 F6000"), ["ok"]);
+    assert_eq!(b.ask("M3 S1000"), ["ok"]);
+    assert_eq!(b.ask("X20"), ["ok"]);
+    // M2 waits for the move before it: its ok comes when the machine is at rest.
+    b.send("M2");
+    b.run_ms(5);
+    assert!(b.take().is_empty());
+    assert!(b.ctl.peripherals().spindle != Some(Spindle::Off));
+    b.run_until(10_000, |b| b.ctl.stats().oks == 4);
+    assert_eq!(b.take(), ["ok"]);
+    assert_eq!(b.position_mm()[0], 20.0);
+    assert_eq!(b.ctl.peripherals().spindle, Some(Spindle::Off));
+    // Absolute again: X5 goes to 5, not 25.
+    assert_eq!(b.ask("X5"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 5.0);
+    assert_eq!(b.ask("G93"), ["!! E120 unsupported-command G93", "ok"]);
+    assert_eq!(b.ask("G95"), ["!! E120 unsupported-command G95", "ok"]);
+}
+
+#[test]
+fn program_end_in_a_stored_program_ends_the_job() {
+    let mut b = Bench::new();
+    b.take();
+    let program = ["G91 G1 F6000", "M3 S500", "X10", "M30", "X10"];
+    for (i, text) in program.iter().enumerate() {
+        b.send_frame(&ClientMessage::LoadLine {
+            index: i as u16 + 1,
+            text,
+            total: program.len() as u16,
+        });
+    }
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_until(10_000, |b| b.ctl.job().state() == JobState::Finished);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 10.0, "the line after M30 does not run");
+    assert_eq!(b.ctl.peripherals().spindle, Some(Spindle::Off));
+    assert!(error_codes(&b.take()).is_empty());
+    // Absolute again after the program's G91.
+    assert_eq!(b.ask("G1 X3"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 3.0);
+    // The next start runs it from the top.
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_ms(5);
+    b.run_until(10_000, |b| b.ctl.job().state() == JobState::Finished);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 13.0);
+}
+
+/// Ask for frame 52 and return (lines stored, `LA`).
+fn progress_frame(b: &mut Bench) -> (u32, u32) {
+    b.take();
+    b.send_frame(&ClientMessage::Request { message_type: 52 });
+    b.run_ms(2);
+    let out = b.take();
+    match frames_of(&out).first() {
+        Some(ControllerMessage::Progress(p)) => (p.total_lines, p.current_line),
+        _ => panic!("{out:?}"),
+    }
+}
+
+#[test]
+fn progress_reports_the_running_line_or_the_next_one_to_run() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(progress_frame(&mut b), (0, 0), "no program");
+    let program = ["G1 X10 F600", "G1 X0", "G1 X10", "G1 X0"];
+    for (i, text) in program.iter().enumerate() {
+        b.send_frame(&ClientMessage::LoadLine {
+            index: i as u16 + 1,
+            text,
+            total: program.len() as u16,
+        });
+    }
+    b.run_ms(5);
+    assert_eq!(progress_frame(&mut b), (4, 1), "before the first start");
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_ms(1500);
+    assert_eq!(progress_frame(&mut b), (4, 2), "line 2 moves");
+    // Stopped in line 2: it runs again on the next start.
+    b.send_frame(&ClientMessage::Action(Action::Stop));
+    b.idle();
+    assert_eq!(progress_frame(&mut b), (4, 2));
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_until(20_000, |b| b.ctl.job().state() == JobState::Finished);
+    assert_eq!(progress_frame(&mut b), (4, 4), "finished");
+    b.send_frame(&ClientMessage::Action(Action::Rewind));
+    b.run_ms(2);
+    assert_eq!(progress_frame(&mut b), (4, 1), "after a rewind");
+    b.send_frame(&ClientMessage::Action(Action::Start));
+    b.run_ms(2);
+    assert_eq!(
+        progress_frame(&mut b),
+        (4, 1),
+        "the new run, not the last one"
+    );
+}
+
+#[test]
 fn bad_program_lines_leave_the_store_as_it_was() {
     let mut b = Bench::new();
     b.take();
@@ -981,6 +1084,73 @@ fn a_frame_without_terminator_is_taken_when_the_link_goes_quiet() {
     assert_eq!(frames_of(&b.take()).len(), 1);
     b.run_ms(30);
     assert_eq!(frames_of(&b.take()).len(), 1);
+}
+
+#[test]
+fn a_numbered_line_whose_terminator_was_lost_is_taken_when_the_link_goes_quiet() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask(&numbered(1, "G1 X1 F3000")), ["ok"]);
+    // Intact but for its line end: it passes its checksum and runs.
+    b.send_raw(numbered(2, "G1 X2").as_bytes());
+    b.run_ms(5);
+    assert!(b.take().is_empty(), "not before the link is quiet");
+    b.run_ms(30);
+    assert_eq!(b.take(), ["ok"]);
+    // Truncated (the last checksum digit and the line end lost): asked for again.
+    let line = numbered(3, "G1 X3");
+    b.send_raw(&line.as_bytes()[..line.len() - 1]);
+    b.run_ms(30);
+    assert_eq!(b.take(), ["rs 3"]);
+    assert_eq!(b.ask(&line), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 3.0);
+}
+
+#[test]
+fn an_unterminated_console_line_is_never_cut_short() {
+    let mut b = Bench::new();
+    b.take();
+    b.send_raw(b"G1 F3000 X5");
+    b.run_ms(1000);
+    assert!(b.take().is_empty());
+    b.send_raw(b"0\n");
+    b.run_ms(5);
+    assert_eq!(b.take(), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 50.0);
+}
+
+#[test]
+fn quiet_does_not_count_while_input_is_held_back() {
+    let mut b = Bench::new();
+    b.take();
+    // M109 holds further lines; the next one is kept aside and reading stops, with the start
+    // of line 3 already read from the link.
+    let mut burst = numbered(1, "M109 S30");
+    burst.push('\n');
+    burst.push_str(&numbered(2, "G1 X1 F3000"));
+    burst.push('\n');
+    let third = numbered(3, "G1 X2");
+    let (head, rest) = third.split_at(4);
+    burst.push_str(head);
+    b.send_raw(burst.as_bytes());
+    b.run_ms(5);
+    assert!(b.ctl.is_holding());
+    b.run_until(10_000, |b| !b.ctl.is_holding());
+    let out = b.take();
+    assert_eq!(out, ["ok", "ok"], "M109 and line 2");
+    assert_eq!(
+        out.iter().filter(|l| l.starts_with("rs")).count(),
+        0,
+        "{out:?}"
+    );
+    // The rest of line 3 comes a little after reading resumes: the line is whole.
+    b.run_ms(5);
+    b.send(rest);
+    b.run_ms(5);
+    let out = b.take();
+    assert_eq!(out, ["ok"], "{out:?}");
 }
 
 #[test]
