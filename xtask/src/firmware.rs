@@ -11,7 +11,7 @@ use std::process::Command;
 use object::read::elf::{ElfFile32, FileHeader, ProgramHeader};
 use object::{Object, ObjectSection, ObjectSymbol};
 
-use crate::qemu::{self, QemuBoard};
+use crate::qemu;
 use crate::{Step, root};
 
 /// How a variant's image gets onto the hardware.
@@ -510,8 +510,11 @@ pub fn run_qemu(name: &str, port: u16, check: bool) -> Result<(), String> {
     crate::run_all(board.build_steps(variant))?;
     if check {
         return crate::run_all(vec![Step::call(
-            format!("{} firmware in QEMU: boot, `start`, host link", board.name),
-            move || qemu_bringup(board),
+            format!(
+                "{} firmware in QEMU: end-to-end job, program, positions vs simulator",
+                board.name
+            ),
+            move || qemu_end_to_end(board),
         )]);
     }
     let port = if port == 0 { qemu::free_port()? } else { port };
@@ -662,7 +665,8 @@ pub fn check_sizes() -> Result<(), String> {
     println!(
         "stm32f4: flash = .vector_table + .text + .rodata + .data; flash extent = last flash \
          byte used (code starts after the 48 KiB of vector table and store sectors); RAM = \
-         .data + .bss + .uninit + stack reservation; other = CCM RAM.\n\
+         .data + .bss + .uninit (the qemu image's 32 KiB RAM store included) + \
+         stack reservation; other = CCM RAM.\n\
          esp32: flash = the loaded segments, in the 3 MiB app partition; RAM = .trap + \
          .rwtext + .data + .bss + .noinit (code and statics in SRAM), the stack is the RAM \
          left; other = the boot loader's RAM reclaimed for the heap."
@@ -674,59 +678,38 @@ pub fn check_sizes() -> Result<(), String> {
     }
 }
 
-/// Bytes sent by the QEMU bring-up check: two G-code lines, one 53-byte frame (the example
-/// of `forja_protocol::stream`), and a run of garbage. The firmware must count 2 lines, 1
-/// frame and 1 dropped run.
-fn bringup_stream() -> Vec<u8> {
-    let mut bytes = b"N1 G1 X10*98\n".to_vec();
-    bytes.extend_from_slice(b"N02Zero");
-    bytes.extend_from_slice(&[b'*'; 41]);
-    bytes.extend_from_slice(b"ZeroF\n\x01garbage\nM114\n");
-    bytes
-}
-
-/// Boot the QEMU image, wait for `start`, stream lines, a frame and garbage, and check through
-/// the firmware's link counters that every byte went through the UART interrupt and the
-/// receive queue to the decoder.
-pub fn qemu_bringup(board: &'static Firmware) -> Result<(), String> {
+/// Boot the QEMU image and run the end-to-end test of [`qemu::end_to_end`]: a G-code job with
+/// a resend, a program uploaded with frames and run, and the final positions compared with the
+/// simulator's.
+pub fn qemu_end_to_end(board: &'static Firmware) -> Result<(), String> {
     let variant = board.variant(None, |v| v.qemu)?;
     let image = board.image(variant);
-    let mut qemu = QemuBoard::boot(&image)?;
-    eprintln!("booted; `start` received on 127.0.0.1:{}", qemu.link_port());
-    let stream = bringup_stream();
-    qemu.send(&stream)?;
-    // rx_bytes, lines, frames, dropped, rx_overruns, uart_errors
-    let expected = [stream.len() as u32, 2, 1, 1, 0, 0];
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
-    loop {
-        let got = qemu.read_symbol_words("FORJA_LINK_COUNTERS", 6)?;
-        if got == expected {
-            break;
-        }
-        if std::time::Instant::now() > deadline {
-            return Err(format!(
-                "link counters [rx_bytes, lines, frames, dropped, overruns, uart errors]: \
-                 expected {expected:?}, got {got:?}"
-            ));
-        }
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    }
-    if !qemu.is_running() {
-        return Err("the firmware reset (QEMU ended)".into());
-    }
-    let unexpected = qemu.drain();
-    if !unexpected.is_empty() {
-        return Err(format!(
-            "the firmware sent {:?} without a controller to answer",
-            String::from_utf8_lossy(&unexpected)
-        ));
-    }
-    eprintln!("link counters as expected: {expected:?}");
+    let started = std::time::Instant::now();
+    let run = qemu::end_to_end(&image)?;
+    let [stream, upload, program] = run.times;
+    eprintln!(
+        "positions match the simulator's: M114 [{}], 51 [{}], simulator [{}]\n\
+         wall time {:.1} s (job {:.1} s, upload {:.1} s, program {:.1} s)",
+        fmt_position(&run.m114, 3),
+        fmt_position(&run.positions, 4),
+        fmt_position(&run.simulated, 4),
+        started.elapsed().as_secs_f64(),
+        stream.as_secs_f64(),
+        upload.as_secs_f64(),
+        program.as_secs_f64()
+    );
     Ok(())
 }
 
+fn fmt_position(p: &[f64], decimals: usize) -> String {
+    p.iter()
+        .map(|v| format!("{v:.decimals$}"))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
 /// The firmware steps of `cargo xtask test`: format, clippy and release build of every
-/// default variant, the size check, and the QEMU bring-up check.
+/// default variant, the size check, and the QEMU end-to-end test.
 pub fn test_steps() -> Vec<Step> {
     let mut steps = Vec::new();
     for board in BOARDS {
@@ -738,9 +721,12 @@ pub fn test_steps() -> Vec<Step> {
     steps.push(Step::call("firmware sizes".to_string(), check_sizes));
     for board in BOARDS {
         if board.variants.iter().any(|v| v.qemu) {
-            let what = format!("{} firmware in QEMU: boot, `start`, host link", board.name);
+            let what = format!(
+                "{} firmware in QEMU: end-to-end job, program, positions vs simulator",
+                board.name
+            );
             if qemu::qemu_available() || std::env::var_os("CI").is_some() {
-                steps.push(Step::call(what, move || qemu_bringup(board)));
+                steps.push(Step::call(what, move || qemu_end_to_end(board)));
             } else {
                 steps.push(Step::call(what, || {
                     eprintln!(

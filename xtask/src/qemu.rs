@@ -15,7 +15,7 @@
 //! It uses the standard library and the `object` crate only.
 
 use std::fmt;
-use std::io::{self, BufRead, BufReader, Read, Write};
+use std::io::{self, BufRead, BufReader, Write};
 use std::net::{Ipv4Addr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -287,23 +287,6 @@ impl QemuBoard {
     pub fn is_running(&mut self) -> bool {
         matches!(self.child.try_wait(), Ok(None))
     }
-
-    /// Drain whatever the firmware sent and is waiting, without blocking for long.
-    pub fn drain(&mut self) -> Vec<u8> {
-        let mut out = Vec::new();
-        let _ = self
-            .link
-            .get_ref()
-            .set_read_timeout(Some(Duration::from_millis(50)));
-        let mut buf = [0u8; 256];
-        while let Ok(n) = self.link.read(&mut buf) {
-            if n == 0 {
-                break;
-            }
-            out.extend_from_slice(&buf[..n]);
-        }
-        out
-    }
 }
 
 impl Drop for QemuBoard {
@@ -311,4 +294,428 @@ impl Drop for QemuBoard {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
+}
+
+/// The job of the end-to-end test, streamed as numbered, checksummed G-code lines: short real
+/// moves on X, Y, Z and A (rapid, feed, relative, an arc), in machine coordinates from the
+/// power-on position. Coordinates are whole steps of the default machine (1/80 mm on X, Y
+/// and A, 1/400 mm on Z), so that every report is exact.
+pub const JOB: &[&str] = &[
+    "G21",
+    "G90",
+    "G94",
+    "G0 X2 Y1",
+    "G1 X4 Y2 F2400",
+    "G1 Z0.5 F600",
+    "G1 X6 Y2.5 F3000",
+    "G1 X6 Y5",
+    "G1 X8.75 Y5 Z1",
+    "G0 Z2",
+    "G0 X10 Y6.25",
+    "G1 Z1.5 F600",
+    "G2 X12 Y8.25 I2 J0 F1800",
+    "G1 X12 Y10",
+    "G3 X10 Y12 I-2 J0",
+    "G1 X7.5 Y12",
+    "G91",
+    "G1 X-1.25 Y-0.5 Z0.25",
+    "G1 X2.5",
+    "G1 Y1.25 Z-0.5",
+    "G0 A15",
+    "G1 X-0.5 Y-0.25 A-5 F1500",
+    "G90",
+    "G1 X5 Y10 Z1.25 F3000",
+    "G1 X3.75 Y8",
+    "G0 Z3",
+    "G0 X1.25 Y1.25",
+    "G1 Z2.5 F600",
+    "G1 X2.5 Y2.5 F2400",
+    "G0 Z4",
+];
+
+/// The line of [`JOB`] (0-based) first sent with a damaged checksum: the firmware must ask for
+/// it again (`rs`), and take it when resent.
+pub const CORRUPTED: usize = 9;
+
+/// The program of the end-to-end test, uploaded with frames 03 and run with frame 02 `Start`.
+pub const PROGRAM: &[&str] = &[
+    "G90",
+    "G0 X5 Y5",
+    "G1 Z1 F600",
+    "G1 X10 Y5 F2400",
+    "G1 X10 Y7.5",
+    "G2 X12.5 Y10 I2.5 J0",
+    "G91",
+    "G1 X-2.5 Y-1.25 Z0.5",
+    "G90",
+    "G0 A20",
+    "G0 Z3.75",
+];
+
+/// The axes the firmware reports, in order.
+const AXES: [char; 4] = ['X', 'Y', 'Z', 'A'];
+
+/// How long one line or frame may wait for its answer.
+const REPLY_TIMEOUT: Duration = Duration::from_secs(20);
+
+/// How long the machine may take to finish the job, or the program.
+const MOTION_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// `N<n> <text>*<checksum>` with a newline; `corrupt` flips the checksum.
+fn numbered(n: u32, text: &str, corrupt: bool) -> Vec<u8> {
+    let body = format!("N{n} {text}");
+    let mut sum = forja_protocol::gcode::checksum(body.as_bytes());
+    if corrupt {
+        sum ^= 0x5A;
+    }
+    format!("{body}*{sum}\n").into_bytes()
+}
+
+/// Positions read from `M114` or frame 51, in [`AXES`] order, mm.
+type Position = [f64; 4];
+
+/// The positions of an `ok C: X:… Y:… Z:… A:…` reply.
+fn parse_m114(reply: &str) -> Result<Position, Error> {
+    let mut out = [f64::NAN; 4];
+    for word in reply.split_whitespace() {
+        if let Some((letter, value)) = word.split_once(':')
+            && let Some(i) = AXES.iter().position(|a| a.to_string() == letter)
+        {
+            out[i] = value
+                .parse()
+                .map_err(|_| Error(format!("M114: bad value in {reply:?}")))?;
+        }
+    }
+    if out.iter().any(|v| v.is_nan()) {
+        return Err(Error(format!("M114: not every axis in {reply:?}")));
+    }
+    Ok(out)
+}
+
+/// The positions of frame 51.
+fn parse_positions(frame: &str) -> Result<Position, Error> {
+    use forja_protocol::frame::ControllerMessage;
+    match ControllerMessage::decode(frame.as_bytes()) {
+        Ok(ControllerMessage::Positions(p)) => {
+            let mut out = [0.0; 4];
+            for (i, letter) in AXES.iter().enumerate() {
+                let tenths = p
+                    .get(*letter as u8)
+                    .ok_or_else(|| Error(format!("51 without axis {letter}: {frame}")))?;
+                out[i] = f64::from(tenths) / 10_000.0;
+            }
+            Ok(out)
+        }
+        other => Err(Error(format!(
+            "expected frame 51, got {frame:?} ({other:?})"
+        ))),
+    }
+}
+
+fn show(p: &Position) -> String {
+    AXES.iter()
+        .zip(p)
+        .map(|(a, v)| format!("{a} {v:.4}"))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+impl QemuBoard {
+    /// The next reply line that is not a comment (`//`) or an unsolicited frame; a `!!` fails.
+    fn reply(&mut self, timeout: Duration) -> Result<String, Error> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let line = self.read_line(left.max(Duration::from_millis(1)))?;
+            if line.starts_with("!!") {
+                return Err(Error(format!("the firmware refused or faulted: {line}")));
+            }
+            if line.starts_with("//") || line.starts_with("N55") || line.is_empty() {
+                continue;
+            }
+            return Ok(line);
+        }
+    }
+
+    /// Send line `n` and return its terminal reply (`ok …` or `rs …`).
+    fn line(&mut self, n: u32, text: &str, corrupt: bool) -> Result<String, Error> {
+        self.send(&numbered(n, text, corrupt))?;
+        let reply = self
+            .reply(REPLY_TIMEOUT)
+            .map_err(|e| Error(format!("line N{n} `{text}`: {e}")))?;
+        if reply.starts_with("ok") || reply.starts_with("rs") {
+            Ok(reply)
+        } else {
+            Err(Error(format!(
+                "line N{n} `{text}`: unexpected reply {reply:?}"
+            )))
+        }
+    }
+
+    /// Send line `n` and expect `ok`.
+    fn line_ok(&mut self, n: u32, text: &str) -> Result<String, Error> {
+        let reply = self.line(n, text, false)?;
+        if reply.starts_with("ok") {
+            Ok(reply)
+        } else {
+            Err(Error(format!(
+                "line N{n} `{text}`: expected ok, got {reply:?}"
+            )))
+        }
+    }
+
+    /// Send a frame (and a newline).
+    fn frame(&mut self, msg: &forja_protocol::frame::ClientMessage<'_>) -> Result<(), Error> {
+        let mut buf = [0u8; forja_protocol::frame::FRAME_LEN];
+        msg.encode(&mut buf)
+            .map_err(|e| Error(format!("encode {msg:?}: {e:?}")))?;
+        let mut bytes = buf.to_vec();
+        bytes.push(b'\n');
+        self.send(&bytes)
+    }
+
+    /// Ask for message `message_type` (frame 04) and return the answer.
+    fn request(&mut self, message_type: u8) -> Result<String, Error> {
+        use forja_protocol::frame::ClientMessage;
+        self.frame(&ClientMessage::Request { message_type })?;
+        let reply = self.reply(REPLY_TIMEOUT)?;
+        if reply.starts_with(&format!("N{message_type}")) {
+            Ok(reply)
+        } else {
+            Err(Error(format!(
+                "04 {message_type}: unexpected answer {reply:?}"
+            )))
+        }
+    }
+
+    /// Poll frame 51 until it reads `target` (to 1e-3 mm), or fail after [`MOTION_TIMEOUT`].
+    fn wait_at(&mut self, target: &Position, what: &str) -> Result<Position, Error> {
+        let deadline = Instant::now() + MOTION_TIMEOUT;
+        loop {
+            let p = parse_positions(&self.request(51)?)?;
+            if p.iter().zip(target).all(|(a, b)| (a - b).abs() <= 5e-4) {
+                return Ok(p);
+            }
+            if Instant::now() > deadline {
+                return Err(Error(format!(
+                    "{what}: the machine did not reach {} within {MOTION_TIMEOUT:?} (at {})",
+                    show(target),
+                    show(&p)
+                )));
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+}
+
+/// What the end-to-end test measured, for the report.
+#[derive(Debug)]
+pub struct EndToEnd {
+    /// Final `M114` of the QEMU board.
+    pub m114: Position,
+    /// Final frame 51 of the QEMU board.
+    pub positions: Position,
+    /// The simulator's final positions of the same job, from its start.
+    pub simulated: Position,
+    /// Wall time of the streamed job, of the upload and of the program run.
+    pub times: [Duration; 3],
+}
+
+/// The same job and program, run through the simulator's firmware over its in-memory link
+/// (`forja_sim::run::run_job`), on the simulator's default machine: the final position of each
+/// axis, from where the machine started.
+pub fn simulate() -> Result<(Position, forja_sim::MachineConfig), Error> {
+    use forja_sim::run::{JobOptions, run_job};
+    let config = forja_sim::MachineConfig::default_router();
+    let text: String = JOB
+        .iter()
+        .chain(PROGRAM)
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let job = forja_sim::Job::from_text("qemu end-to-end", text);
+    let options = JobOptions {
+        home_first: false,
+        ..JobOptions::default()
+    };
+    let run = run_job(&config, &job, &options).map_err(|e| Error(format!("simulator: {e}")))?;
+    if !run.is_clean() {
+        return Err(Error(format!("the simulator's run was not clean:\n{run}")));
+    }
+    let mut out = [0.0; 4];
+    for (i, letter) in AXES.iter().enumerate() {
+        let axis = config
+            .axis_index(*letter)
+            .ok_or_else(|| Error(format!("simulator machine without axis {letter}")))?;
+        let start = config.axes[axis].start_mm;
+        let at = run
+            .axes
+            .iter()
+            .find(|a| a.0 == *letter)
+            .map(|a| a.1)
+            .ok_or_else(|| Error(format!("simulator run without axis {letter}")))?;
+        out[i] = at - start;
+    }
+    Ok((out, config))
+}
+
+/// The end-to-end test: boot the image, stream [`JOB`] (with [`CORRUPTED`] sent damaged
+/// once), check `M114`, upload [`PROGRAM`] with frames 03, run it with 02 `Start`, poll 04 → 52
+/// until it is done, read `M114` and 51, and compare them with the simulator's run of the same
+/// job and program on the same machine (steps per mm read from the board with frame 00).
+pub fn end_to_end(elf: &Path) -> Result<EndToEnd, Error> {
+    use forja_protocol::frame::{Action, ClientMessage, ControllerMessage};
+
+    let (simulated, sim_config) = simulate()?;
+    let mut board = QemuBoard::boot(elf)?;
+    eprintln!(
+        "booted; `start` received on 127.0.0.1:{}",
+        board.link_port()
+    );
+
+    // The board's machine has the simulator machine's steps per mm.
+    for letter in AXES {
+        let key = format!("{}.steps_per_mm", letter.to_ascii_lowercase());
+        board.frame(&ClientMessage::ReadSetting { key: &key })?;
+        let reply = board.reply(REPLY_TIMEOUT)?;
+        let value = match ControllerMessage::decode(reply.as_bytes()) {
+            Ok(ControllerMessage::Setting { value, .. }) => value.parse::<f64>().ok(),
+            _ => None,
+        }
+        .ok_or_else(|| Error(format!("00 {key}: unexpected answer {reply:?}")))?;
+        let sim = sim_config
+            .axis_index(letter)
+            .map(|i| sim_config.axes[i].steps_per_mm);
+        if sim != Some(value) {
+            return Err(Error(format!(
+                "{key}: the board has {value}, the simulator machine {sim:?}"
+            )));
+        }
+    }
+
+    // Stream the job, one line at a time, each sent when the previous one is answered.
+    let started = Instant::now();
+    let mut resends = 0;
+    for (i, text) in JOB.iter().enumerate() {
+        let n = i as u32 + 1;
+        if i == CORRUPTED {
+            let reply = board.line(n, text, true)?;
+            if reply != format!("rs {n}") {
+                return Err(Error(format!(
+                    "line N{n} with a damaged checksum: expected `rs {n}`, got {reply:?}"
+                )));
+            }
+            resends += 1;
+        }
+        board.line_ok(n, text)?;
+    }
+    let n = JOB.len() as u32 + 1;
+    let m114 = parse_m114(&board.line_ok(n, "M114")?)?;
+    let streamed = board.wait_at(&m114, "streamed job")?;
+    let stream_time = started.elapsed();
+    eprintln!(
+        "streamed {} lines ({resends} resend) in {:.1} s; M114 {}; 51 {}",
+        JOB.len(),
+        stream_time.as_secs_f64(),
+        show(&m114),
+        show(&streamed)
+    );
+
+    // Upload the program.
+    let started = Instant::now();
+    let total = PROGRAM.len() as u16;
+    for (i, text) in PROGRAM.iter().enumerate() {
+        board.frame(&ClientMessage::LoadLine {
+            index: i as u16 + 1,
+            text,
+            total,
+        })?;
+        // Give the firmware time to store the line (the link has no flow control for frames).
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let confirm = board.reply(REPLY_TIMEOUT)?;
+    if !matches!(
+        ControllerMessage::decode(confirm.as_bytes()),
+        Ok(ControllerMessage::Confirm { what: "Gcode-load" })
+    ) {
+        return Err(Error(format!(
+            "upload of {total} lines: expected 53 Confirm:Gcode-load, got {confirm:?}"
+        )));
+    }
+    let upload_time = started.elapsed();
+
+    // Run it, and poll its progress until its last line has run.
+    let started = Instant::now();
+    board.frame(&ClientMessage::Action(Action::Start))?;
+    let deadline = started + MOTION_TIMEOUT;
+    let progress = loop {
+        let frame = board.request(52)?;
+        let p = match ControllerMessage::decode(frame.as_bytes()) {
+            Ok(ControllerMessage::Progress(p)) => p,
+            other => {
+                return Err(Error(format!(
+                    "expected frame 52, got {frame:?} ({other:?})"
+                )));
+            }
+        };
+        if p.total_lines != u32::from(total) {
+            return Err(Error(format!(
+                "52 reports {} lines stored, not {total}",
+                p.total_lines
+            )));
+        }
+        if p.current_line == p.total_lines {
+            break p;
+        }
+        if Instant::now() > deadline {
+            return Err(Error(format!(
+                "the program did not finish within {MOTION_TIMEOUT:?} (last 52: {frame})"
+            )));
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let m114 = parse_m114(&board.line_ok(n + 1, "M114")?)?;
+    let positions = board.wait_at(&m114, "program")?;
+    let run_time = started.elapsed();
+    eprintln!(
+        "program: {total} lines uploaded in {:.1} s, run in {:.1} s (52: {} of {} lines, \
+         estimated {} s)",
+        upload_time.as_secs_f64(),
+        run_time.as_secs_f64(),
+        progress.current_line,
+        progress.total_lines,
+        progress.estimated_s
+    );
+
+    // Nothing was lost on the link.
+    let counters = board.read_symbol_words("FORJA_LINK_COUNTERS", 6)?;
+    if counters[4] != 0 || counters[5] != 0 {
+        return Err(Error(format!(
+            "link counters [rx_bytes, oks, frames, garbage, overruns, uart errors] {counters:?}: \
+             bytes were lost"
+        )));
+    }
+    if !board.is_running() {
+        return Err(Error("the firmware reset (QEMU ended)".into()));
+    }
+
+    // The same positions as the simulator's, to the precision of each report.
+    for (i, letter) in AXES.iter().enumerate() {
+        let sim = simulated[i];
+        if (m114[i] - sim).abs() > 0.0005 + 1e-9 || (positions[i] - sim).abs() > 0.00005 + 1e-9 {
+            return Err(Error(format!(
+                "axis {letter}: QEMU M114 {:.3}, 51 {:.4}; simulator {sim:.4}\n  QEMU M114 {}\n  QEMU 51   {}\n  simulator {}",
+                m114[i],
+                positions[i],
+                show(&m114),
+                show(&positions),
+                show(&simulated)
+            )));
+        }
+    }
+    Ok(EndToEnd {
+        m114,
+        positions,
+        simulated,
+        times: [stream_time, upload_time, run_time],
+    })
 }

@@ -4,6 +4,7 @@
 
 use core::fmt;
 
+use forja_drivers::pin::NoPin;
 use forja_drivers::stepper::StepDir;
 use forja_drivers::uart::{UartReader, UartWriter};
 use stm32f4xx_hal::gpio::{ErasedPin, Output};
@@ -11,16 +12,19 @@ use stm32f4xx_hal::pac;
 use stm32f4xx_hal::prelude::*;
 use stm32f4xx_hal::serial::{Serial, config::Config as SerialConfig};
 
-use crate::board::{self, AXES, DRIVERS, HOST_BAUD};
+use crate::board::{self, AXES, DRIVERS, HOST_BAUD, LIMITS};
 use crate::enable::{self, SharedEnable};
-use crate::limits::Limits;
+use crate::limits::{Limit, Limits};
 use crate::storage::{STORE_LEN, Store, StoreFlash};
 use crate::timer::StepTimer;
 use crate::uart::{self, HostUart, RX_LEN, TX_LEN};
 use crate::watchdog::Watchdog;
 
-/// One motor driver: STEP and DIR pins, and its share of the enable line.
-pub type Stepper = StepDir<ErasedPin<Output>, ErasedPin<Output>, SharedEnable>;
+/// One motor driver as the step interrupt drives it: STEP and DIR pins.
+pub type Stepper = StepDir<ErasedPin<Output>, ErasedPin<Output>>;
+
+/// One motor driver as the thread side powers it: its share of the enable line.
+pub type MotorEnable = StepDir<NoPin, NoPin, SharedEnable>;
 
 /// Why the board could not start. The firmware resets (see [`crate::fault`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -34,10 +38,12 @@ pub enum SetupError {
     UartQueues,
     /// The store region of `memory/layout.x` disagrees with `src/storage.rs`.
     StorageLayout,
-    /// The store rejected its region.
+    /// The store rejected its region, or its program could not be read.
     Storage,
     /// A motor driver pin could not be driven.
     Stepper,
+    /// The machine configuration does not suit the step clock.
+    Machine,
 }
 
 impl fmt::Display for SetupError {
@@ -49,6 +55,7 @@ impl fmt::Display for SetupError {
             Self::StorageLayout => "store region disagrees with the linker script",
             Self::Storage => "store region rejected",
             Self::Stepper => "motor driver pin failed",
+            Self::Machine => "machine configuration unsuited to the step clock",
         })
     }
 }
@@ -63,10 +70,14 @@ pub struct Hardware {
     pub reader: UartReader<'static, RX_LEN>,
     /// The controller's end of the transmit queue (kicks the UART interrupt).
     pub writer: UartWriter<'static, TX_LEN>,
-    /// The motor drivers, in axis order, released.
+    /// The motor drivers' STEP and DIR lines, in axis order.
     pub steppers: [Stepper; AXES],
-    /// The limit switches and their EXTI lines.
+    /// The motor drivers' enable line, one handle per axis, released.
+    pub enables: [MotorEnable; AXES],
+    /// The EXTI lines of the limit switches.
     pub limits: Limits,
+    /// The limit switches, in limit input order.
+    pub switches: [Limit; LIMITS],
     /// The settings and program store.
     pub store: Store,
     /// The running watchdog.
@@ -116,13 +127,19 @@ pub fn init(dp: pac::Peripherals, cp: cortex_m::Peripherals) -> Result<Hardware,
     let [s0, s1, s2, s3] = pins.step;
     let [d0, d1, d2, d3] = pins.dir;
     let steppers = [
-        stepper(s0, d0, e0)?,
-        stepper(s1, d1, e1)?,
-        stepper(s2, d2, e2)?,
-        stepper(s3, d3, e3)?,
+        stepper(s0, d0)?,
+        stepper(s1, d1)?,
+        stepper(s2, d2)?,
+        stepper(s3, d3)?,
+    ];
+    let enables = [
+        enable_line(e0)?,
+        enable_line(e1)?,
+        enable_line(e2)?,
+        enable_line(e3)?,
     ];
 
-    let limits = Limits::new(pins.limits, &mut syscfg, &mut exti);
+    let (limits, switches) = Limits::new(pins.limits, &mut syscfg, &mut exti);
 
     #[cfg(not(feature = "qemu"))]
     let flash = StoreFlash::new(dp.FLASH)?;
@@ -138,17 +155,20 @@ pub fn init(dp: pac::Peripherals, cp: cortex_m::Peripherals) -> Result<Hardware,
         reader: parts.reader,
         writer,
         steppers,
+        enables,
         limits,
+        switches,
         store,
         watchdog,
     })
 }
 
-/// One motor driver on its pins, released.
-fn stepper(
-    step: ErasedPin<Output>,
-    dir: ErasedPin<Output>,
-    enable: SharedEnable,
-) -> Result<Stepper, SetupError> {
-    StepDir::with_enable(step, dir, enable, DRIVERS).map_err(|_| SetupError::Stepper)
+/// One motor driver's STEP and DIR lines, STEP idle.
+fn stepper(step: ErasedPin<Output>, dir: ErasedPin<Output>) -> Result<Stepper, SetupError> {
+    StepDir::new(step, dir, DRIVERS).map_err(|_| SetupError::Stepper)
+}
+
+/// One motor driver's share of the enable line, released.
+fn enable_line(enable: SharedEnable) -> Result<MotorEnable, SetupError> {
+    StepDir::with_enable(NoPin, NoPin, enable, DRIVERS).map_err(|_| SetupError::Stepper)
 }

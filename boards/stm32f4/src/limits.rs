@@ -25,18 +25,21 @@ pub type Limit = LimitInput<ErasedPin<Input>>;
 /// EXTI lines that fired since the thread side last looked, one bit per line.
 static FIRED: AtomicU32 = AtomicU32::new(0);
 
-/// The limit switch inputs and their EXTI lines.
+/// The EXTI lines of the limit switch inputs.
 pub struct Limits {
-    /// The switches, in axis order.
-    pub switches: [Limit; LIMITS],
     lines: u32,
 }
 
 impl Limits {
-    /// Configure each pin as an EXTI source on both edges and wrap it in a [`LimitInput`].
+    /// Configure each pin as an EXTI source on both edges and wrap it in a [`LimitInput`]: the
+    /// lines, and the switches in limit input order (for the step interrupt).
     ///
     /// Context: init.
-    pub fn new(pins: [ErasedPin<Input>; LIMITS], syscfg: &mut SysCfg, exti: &mut EXTI) -> Self {
+    pub fn new(
+        pins: [ErasedPin<Input>; LIMITS],
+        syscfg: &mut SysCfg,
+        exti: &mut EXTI,
+    ) -> (Self, [Limit; LIMITS]) {
         let mut lines = 0;
         let config = LimitConfig::new(LIMIT_POLARITY, DEBOUNCE_SAMPLES);
         let switches = pins.map(|mut pin| {
@@ -46,7 +49,7 @@ impl Limits {
             lines |= 1 << pin.pin_id();
             LimitInput::new(pin, config)
         });
-        Self { switches, lines }
+        (Self { lines }, switches)
     }
 
     /// Acknowledge the switch lines of an EXTI interrupt and remember them for the thread side.

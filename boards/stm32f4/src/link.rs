@@ -1,30 +1,33 @@
-//! The host link's counters, and the bring-up reader of the link.
+//! The host link as the controller sees it ([`HostLink`]), and its counters.
+//!
+//! [`HostLink`] joins the two thread-side ends of the UART queues, the drivers' `UartReader`
+//! and `UartWriter`, into the one `Read + ReadReady + Write` object that
+//! `Controller::poll` takes. Writing queues bytes for the UART interrupt and waits (spinning)
+//! only when the 256-byte transmit queue is full, which the higher-priority UART interrupt
+//! drains meanwhile.
 //!
 //! [`LINK_COUNTERS`] is a fixed block in RAM that a debugger (probe-rs, gdb, QEMU's monitor)
-//! can read by its symbol name, `FORJA_LINK_COUNTERS`: bytes received, records decoded,
-//! bytes dropped. It is how the link is observed without printing anything on it.
-//!
-//! Until the controller layer is wired in, [`pump`] is the whole of the controller task: it
-//! drains the receive queue into the mixed-stream decoder and counts what it decodes. It
-//! answers nothing.
+//! can read by its symbol name, `FORJA_LINK_COUNTERS`: bytes received, lines answered, frames
+//! and garbage runs seen, bytes dropped. It is how the link is observed without printing
+//! anything on it.
 
 use core::sync::atomic::{AtomicU32, Ordering};
 
-use forja_drivers::uart::UartReader;
-use forja_protocol::stream::{Decoder, Event};
+use forja_drivers::uart::{UartReader, UartWriter};
+use forja_motion::controller::Stats;
 
-use crate::uart::RX_LEN;
+use crate::uart::{RX_LEN, TX_LEN};
 
 /// Counters of the host link, wrapping. Each is written by one context only.
 #[repr(C)]
 pub struct LinkCounters {
     /// Bytes taken from the receive queue.
     pub rx_bytes: AtomicU32,
-    /// G-code lines decoded.
+    /// G-code lines answered with `ok`.
     pub lines: AtomicU32,
-    /// Frames decoded.
+    /// Frames received.
     pub frames: AtomicU32,
-    /// Runs of garbage bytes and over-long lines dropped by the decoder.
+    /// Runs of garbage bytes skipped.
     pub dropped: AtomicU32,
     /// Bytes dropped because the receive queue was full.
     pub rx_overruns: AtomicU32,
@@ -54,26 +57,64 @@ fn bump(counter: &AtomicU32, by: u32) {
     );
 }
 
-/// Drain the receive queue into `decoder`, counting bytes and records.
-///
-/// Context: the controller task.
-pub fn pump(reader: &mut UartReader<'static, RX_LEN>, decoder: &mut Decoder) {
-    let mut chunk = [0u8; 64];
-    loop {
-        let n = reader.try_read(&mut chunk);
-        if n == 0 {
-            break;
-        }
-        bump(&LINK_COUNTERS.rx_bytes, n as u32);
-        decoder.feed_all(chunk.get(..n).unwrap_or_default(), |event| match event {
-            Event::Line(_) => bump(&LINK_COUNTERS.lines, 1),
-            Event::Frame(_) => bump(&LINK_COUNTERS.frames, 1),
-            _ => bump(&LINK_COUNTERS.dropped, 1),
-        });
+/// The host link: the controller's ends of the UART queues.
+pub struct HostLink {
+    reader: UartReader<'static, RX_LEN>,
+    writer: UartWriter<'static, TX_LEN>,
+}
+
+impl HostLink {
+    /// Join the two ends.
+    pub fn new(reader: UartReader<'static, RX_LEN>, writer: UartWriter<'static, TX_LEN>) -> Self {
+        Self { reader, writer }
     }
-    LINK_COUNTERS
-        .rx_overruns
-        .store(reader.overruns(), Ordering::Relaxed);
+
+    /// Whether received bytes wait in the queue.
+    ///
+    /// Context: the controller task.
+    pub fn has_input(&mut self) -> bool {
+        embedded_io::ReadReady::read_ready(&mut self.reader).unwrap_or(false)
+    }
+
+    /// Publish the controller's counters and the queue's overruns in [`LINK_COUNTERS`].
+    ///
+    /// Context: the controller task.
+    pub fn publish(&self, stats: &Stats) {
+        let c = &LINK_COUNTERS;
+        c.lines.store(stats.oks, Ordering::Relaxed);
+        c.frames.store(stats.frames, Ordering::Relaxed);
+        c.dropped.store(stats.garbage_runs, Ordering::Relaxed);
+        c.rx_overruns
+            .store(self.reader.overruns(), Ordering::Relaxed);
+    }
+}
+
+impl embedded_io::ErrorType for HostLink {
+    type Error = core::convert::Infallible;
+}
+
+impl embedded_io::Read for HostLink {
+    fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        let n = self.reader.read(buf)?;
+        bump(&LINK_COUNTERS.rx_bytes, n as u32);
+        Ok(n)
+    }
+}
+
+impl embedded_io::ReadReady for HostLink {
+    fn read_ready(&mut self) -> Result<bool, Self::Error> {
+        self.reader.read_ready()
+    }
+}
+
+impl embedded_io::Write for HostLink {
+    fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+        self.writer.write(buf)
+    }
+
+    fn flush(&mut self) -> Result<(), Self::Error> {
+        self.writer.flush()
+    }
 }
 
 /// Record the UART's hardware error count.

@@ -7,16 +7,19 @@
 //!
 //! | task | bound to | priority | does |
 //! |---|---|---|---|
-//! | `step_tim2` (`step_systick` under `qemu`) | TIM2 (SysTick) | 4 | step alarm and service tick ([`timer`]) |
+//! | `step_tim2` (`step_systick` under `qemu`) | TIM2 (SysTick) | 4 | step alarm: `StepGenerator::on_alarm`, re-armed from its return; service tick ([`timer`], [`machine::StepSide`]) |
 //! | `host_usart1` (`host_usart6` under `qemu`) | the pin map's UART | 3 | moves bytes between the UART and its queues ([`uart`]) |
 //! | `limit_lines_5_9`, `limit_lines_10_15` | EXTI9_5, EXTI15_10 | 3 | acknowledges limit switch edges ([`limits`]) |
-//! | `controller` | SDIO (no SD card: a free vector) | 1 | reads the link, feeds the decoder ([`link`]) |
+//! | `controller` | SDIO (no SD card: a free vector) | 1 | `Controller::poll` on the host link; arms the step alarm ([`machine::Firmware`]) |
 //! | `status` | I2C3_EV (free vector) | 1 | every 100 ms: feeds the watchdog |
 //! | `idle` | — | 0 | sleeps until the next interrupt |
 //!
 //! The controller and status tasks are pended by interrupts (the UART on received bytes, the
-//! step timer's 1 kHz service tick), never spawned: a pend while running makes them run again,
-//! so no wake-up is lost.
+//! limit inputs on an edge, the step timer's 1 kHz service tick), never spawned: a pend while
+//! running makes them run again, so no wake-up is lost. The controller task polls the
+//! controller when bytes wait, a switch changed or the controller's `wake_at` has come. The
+//! step timer is shared by the step task and the controller task, which arms the alarm under
+//! its lock (the step interrupt is held off for those few instructions).
 #![no_std]
 #![no_main]
 
@@ -26,6 +29,7 @@ pub mod fault;
 pub mod hardware;
 pub mod limits;
 pub mod link;
+pub mod machine;
 pub mod storage;
 pub mod timer;
 pub mod uart;
@@ -47,58 +51,62 @@ pub const STATUS_EVERY: u32 = timer::SERVICE_HZ / 10;
 
 #[rtic::app(device = stm32f4xx_hal::pac, peripherals = true)]
 mod app {
-    use forja_drivers::uart::{UartReader, UartWriter};
-    use forja_protocol::reply::Reply;
-    use forja_protocol::stream::Decoder;
+    use forja_hal_abstraction::clock::{Alarm as _, Clock as _};
 
-    use crate::hardware::{self, Stepper};
+    use crate::hardware;
     use crate::limits::Limits;
-    use crate::storage::Store;
-    use crate::timer::StepTimer;
-    use crate::uart::{HostUart, RX_LEN, TX_LEN};
+    use crate::link::HostLink;
+    use crate::machine::{self, Firmware, MachineParts, Queue, StepSide};
+    use crate::timer::{StepClock, StepTimer};
+    use crate::uart::HostUart;
     use crate::watchdog::Watchdog;
-    use crate::{STATUS_EVERY, board, fault, link, vectors};
+    use crate::{STATUS_EVERY, fault, vectors};
 
-    // The UART is shared only because the two builds bind it from differently named tasks;
-    // one task at one priority uses it, so its lock costs nothing.
+    // The timer is shared by the step task and the controller task (which arms the alarm).
+    // The step side and the UART are shared only because the two builds bind them from
+    // differently named tasks, the limit lines because two tasks at one priority use them:
+    // one priority uses each, so their locks cost nothing.
     #[shared]
     struct Shared {
         timer: StepTimer,
+        step: StepSide,
         limits: Limits,
         uart: HostUart,
     }
 
     #[local]
     struct Local {
-        reader: UartReader<'static, RX_LEN>,
-        writer: UartWriter<'static, TX_LEN>,
-        decoder: Decoder,
-        steppers: [Stepper; board::AXES],
-        store: Store,
+        firmware: Firmware,
+        clock: StepClock,
         watchdog: Watchdog,
     }
 
-    #[init]
+    #[init(local = [queue: Queue = Queue::new()])]
     fn init(cx: init::Context) -> (Shared, Local) {
         let hw = hardware::init(cx.device, cx.core).unwrap_or_else(|_| fault::reset());
-        let mut writer = hw.writer;
+        let clock = hw.timer.clock();
+        let (step, mut firmware) = machine::build(MachineParts {
+            queue: cx.local.queue,
+            tick_hz: clock.tick_hz(),
+            store: hw.store,
+            steppers: hw.steppers,
+            enables: hw.enables,
+            switches: hw.switches,
+            link: HostLink::new(hw.reader, hw.writer),
+        })
+        .unwrap_or_else(|_| fault::reset());
         // The UART is enabled: announce the boot. Sent by the UART interrupt once init returns.
-        let mut start = [0u8; 8];
-        if let Ok(n) = Reply::Start.encode(&mut start) {
-            writer.try_write(start.get(..n).unwrap_or_default());
-        }
+        firmware.boot();
         (
             Shared {
                 timer: hw.timer,
+                step,
                 limits: hw.limits,
                 uart: hw.uart,
             },
             Local {
-                reader: hw.reader,
-                writer,
-                decoder: Decoder::new(),
-                steppers: hw.steppers,
-                store: hw.store,
+                firmware,
+                clock,
                 watchdog: hw.watchdog,
             },
         )
@@ -113,22 +121,27 @@ mod app {
 
     /// The step interrupt.
     #[cfg(not(feature = "qemu"))]
-    #[task(binds = TIM2, priority = 4, shared = [timer], local = [ticks: u32 = 0])]
-    fn step_tim2(mut cx: step_tim2::Context) {
+    #[task(binds = TIM2, priority = 4, shared = [timer, step], local = [ticks: u32 = 0])]
+    fn step_tim2(cx: step_tim2::Context) {
         let ticks = cx.local.ticks;
-        cx.shared.timer.lock(|timer| on_step(timer, ticks));
+        (cx.shared.timer, cx.shared.step).lock(|timer, step| on_step(timer, step, ticks));
     }
 
     /// The step interrupt.
     #[cfg(feature = "qemu")]
-    #[task(binds = SysTick, priority = 4, shared = [timer], local = [ticks: u32 = 0])]
-    fn step_systick(mut cx: step_systick::Context) {
+    #[task(binds = SysTick, priority = 4, shared = [timer, step], local = [ticks: u32 = 0])]
+    fn step_systick(cx: step_systick::Context) {
         let ticks = cx.local.ticks;
-        cx.shared.timer.lock(|timer| on_step(timer, ticks));
+        (cx.shared.timer, cx.shared.step).lock(|timer, step| on_step(timer, step, ticks));
     }
 
-    fn on_step(timer: &mut StepTimer, ticks: &mut u32) {
+    fn on_step(timer: &mut StepTimer, step: &mut StepSide, ticks: &mut u32) {
         let events = timer.on_interrupt();
+        if let Some(now) = events.step
+            && let Some(at) = step.on_alarm(now)
+        {
+            let _ = timer.set_alarm(at);
+        }
         if events.service {
             rtic::pend(vectors::CONTROLLER);
             *ticks += 1;
@@ -158,7 +171,7 @@ mod app {
         if uart.on_interrupt() {
             rtic::pend(vectors::CONTROLLER);
         }
-        link::note_uart_errors(uart.errors());
+        crate::link::note_uart_errors(uart.errors());
     }
 
     /// Limit switch lines 5–9.
@@ -176,9 +189,14 @@ mod app {
     }
 
     /// The protocol and planner task.
-    #[task(binds = SDIO, priority = 1, local = [reader, writer, decoder, steppers, store])]
-    fn controller(cx: controller::Context) {
-        link::pump(cx.local.reader, cx.local.decoder);
+    #[task(binds = SDIO, priority = 1, shared = [timer], local = [firmware, clock])]
+    fn controller(mut cx: controller::Context) {
+        let now = cx.local.clock.now();
+        if let Some(at) = cx.local.firmware.poll(now) {
+            cx.shared.timer.lock(|timer| {
+                let _ = timer.set_alarm(at);
+            });
+        }
     }
 
     /// Periodic status.

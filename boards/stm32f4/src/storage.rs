@@ -1,4 +1,5 @@
-//! The settings and program store: [`FlashRecordStorage`] over two 16 KiB flash sectors.
+//! The settings and program store: [`FlashRecordStorage`] over two 16 KiB flash sectors,
+//! shared by the settings and the uploaded program through two [`StoreHandle`]s ([`share`]).
 //!
 //! `memory/layout.x` reserves sectors 1 and 2 (0x0800_4000..0x0800_C000) and starts the code
 //! after them, so erasing a store page never touches code. [`SectorFlash`] is the
@@ -13,10 +14,25 @@
 //! every interrupt stalls. The record store is written only while the machine is idle (its
 //! contract), and the watchdog allows 1 s.
 //!
+//! # Sharing
+//!
+//! The settings (record keys `0x0100…0x02FF`) and the program (`0x1000…`) live in the same
+//! region: the controller keeps each in its own [`RecordStorage`], so [`share`] parks the one
+//! store in a `static` and gives out two handles. An operation takes the store out of its slot
+//! (a critical section of a few instructions), runs with interrupts enabled, and puts it back:
+//! a program line read while the machine moves never holds the step interrupt off. Both
+//! handles belong to the controller task, so an operation never finds the slot empty; if one
+//! did, it would fail with [`StorageError::Internal`].
+//!
+//! The store's one free page is its spare for reclaiming space, so settings and program
+//! together must fit in one 16 KiB page: a program line is a record of at most 56 bytes,
+//! which is why the controller's program store takes [`crate::machine::PROGRAM_LINES`] lines.
+//!
 //! # QEMU
 //!
 //! QEMU 7.2 emulates the flash as read-only memory and not its controller, so the `qemu`
-//! build keeps the same two pages in core-coupled RAM ([`RamFlash`]): settings and programs
+//! build keeps the same two pages in main RAM ([`RamFlash`], in `.uninit`; QEMU 7.2 does not
+//! map the F405's core-coupled RAM, whose writes fault): settings and programs
 //! then last until QEMU exits.
 
 #[cfg(not(feature = "qemu"))]
@@ -25,7 +41,12 @@ pub use sector::SectorFlash;
 #[cfg(feature = "qemu")]
 pub use ram::RamFlash;
 
-use forja_drivers::storage::FlashRecordStorage;
+use core::cell::RefCell;
+
+use critical_section::Mutex;
+use forja_drivers::storage::{FlashRecordStorage, StorageError};
+use forja_hal_abstraction::ErrorType;
+use forja_hal_abstraction::storage::RecordStorage;
 
 /// Bytes of one erase page: one 16 KiB sector.
 pub const PAGE: usize = 16 * 1024;
@@ -42,6 +63,55 @@ pub type StoreFlash = RamFlash;
 
 /// The settings and program store.
 pub type Store = FlashRecordStorage<StoreFlash>;
+
+/// The store, parked by [`share`] between operations of its handles.
+static SHARED: Mutex<RefCell<Option<Store>>> = Mutex::new(RefCell::new(None));
+
+/// One user's view of the shared store (see [Sharing](self#sharing)).
+#[derive(Debug)]
+pub struct StoreHandle {
+    _private: (),
+}
+
+/// Park `store` and make the handles of its two users: the settings and the program.
+///
+/// Context: init.
+pub fn share(store: Store) -> (StoreHandle, StoreHandle) {
+    critical_section::with(|cs| SHARED.borrow(cs).replace(Some(store)));
+    (StoreHandle { _private: () }, StoreHandle { _private: () })
+}
+
+impl StoreHandle {
+    /// Run `op` on the store, taken out of its slot for the time of the operation.
+    fn with<R>(
+        &mut self,
+        op: impl FnOnce(&mut Store) -> Result<R, StorageError>,
+    ) -> Result<R, StorageError> {
+        let taken = critical_section::with(|cs| SHARED.borrow(cs).take());
+        let mut store = taken.ok_or(StorageError::Internal)?;
+        let result = op(&mut store);
+        critical_section::with(|cs| SHARED.borrow(cs).replace(Some(store)));
+        result
+    }
+}
+
+impl ErrorType for StoreHandle {
+    type Error = StorageError;
+}
+
+impl RecordStorage for StoreHandle {
+    fn read(&mut self, key: u16, buf: &mut [u8]) -> Result<Option<usize>, Self::Error> {
+        self.with(|s| s.read(key, buf))
+    }
+
+    fn write(&mut self, key: u16, value: &[u8]) -> Result<(), Self::Error> {
+        self.with(|s| s.write(key, value))
+    }
+
+    fn remove(&mut self, key: u16) -> Result<(), Self::Error> {
+        self.with(|s| s.remove(key))
+    }
+}
 
 /// An access outside the region or not aligned to the word or page size.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -233,11 +303,11 @@ mod ram {
     use super::{FlashError, PAGE, STORE_LEN, check};
     use crate::hardware::SetupError;
 
-    /// The RAM behind the store: core-coupled RAM, not initialised at reset.
-    #[unsafe(link_section = ".ccmram.store")]
+    /// The RAM behind the store: main RAM, not initialised at reset.
+    #[unsafe(link_section = ".uninit.forja_store")]
     static mut STORE: MaybeUninit<[u8; STORE_LEN]> = MaybeUninit::uninit();
 
-    /// Two 16 KiB "sectors" of core-coupled RAM that behave like NOR flash: erase sets bytes
+    /// Two 16 KiB "sectors" of RAM that behave like NOR flash: erase sets bytes
     /// to 0xFF, programming can only clear bits.
     pub struct RamFlash {
         mem: &'static mut [u8; STORE_LEN],

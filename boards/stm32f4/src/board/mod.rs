@@ -13,9 +13,11 @@
 //! | `pins()` | the GPIO ports split into [`Pins`] |
 //!
 //! Exactly one board is compiled in, chosen by a Cargo feature; `build.rs` rejects zero or two.
+//! Every pin map drives the same machine before its stored settings: [`machine`].
 
 use forja_drivers::stepper::StepDirConfig;
 use forja_hal_abstraction::stepper::StepTiming;
+use forja_motion::{AxisConfig, AxisKind, HomeDirection, HomingConfig, MachineConfig};
 use stm32f4xx_hal::gpio::{ErasedPin, Input, Output};
 use stm32f4xx_hal::pac;
 
@@ -73,3 +75,53 @@ pub struct Ports {
 /// Level of the shared enable line that releases every motor (the drivers' ENABLE is active
 /// low): the line starts there, before anything else runs.
 pub const DRIVERS_RELEASED: stm32f4xx_hal::gpio::PinState = stm32f4xx_hal::gpio::PinState::High;
+
+/// Homing of a linear axis of [`machine`] through limit input `switch`, order `order`.
+const fn homing(direction: HomeDirection, switch: u8, order: u8, rates: [f32; 3]) -> HomingConfig {
+    let [seek_mm_min, locate_mm_min, pull_off_mm] = rates;
+    HomingConfig {
+        direction,
+        seek_mm_min,
+        locate_mm_min,
+        pull_off_mm,
+        switch,
+        order,
+    }
+}
+
+/// The machine every pin map drives until settings (frame 00) change it: a 300 × 300 mm
+/// gantry router with 100 mm of Z and a rotary A, the numbers of the simulator's default
+/// machine (`boards/sim/machines/default.toml`), so that a job gives the same positions on
+/// both.
+///
+/// | axis | steps/mm | max rate, mm/min | accel, mm/s² | travel, mm | homes |
+/// |---|---|---|---|---|---|
+/// | X | 80 (GT2, 20 teeth, 1/16) | 6000 | 500 | 0 – 300 | to min, limit input 0, second |
+/// | Y | 80 | 6000 | 500 | 0 – 300 | to min, limit input 1, second |
+/// | Z | 400 (T8 screw, 1/16) | 1200 | 200 | 0 – 100 | to max, limit input 2, first |
+/// | A | 80 per degree (9:1, 1/16) | 3600 | 720 | unlimited | no |
+pub const fn machine() -> MachineConfig<AXES> {
+    let x = AxisConfig::linear(b'X', 80.0, 6000.0, 500.0, 300.0).with_homing(homing(
+        HomeDirection::Min,
+        0,
+        1,
+        [2000.0, 100.0, 2.0],
+    ));
+    let y = AxisConfig::linear(b'Y', 80.0, 6000.0, 500.0, 300.0).with_homing(homing(
+        HomeDirection::Min,
+        1,
+        1,
+        [2000.0, 100.0, 2.0],
+    ));
+    let z = AxisConfig::linear(b'Z', 400.0, 1200.0, 200.0, 100.0).with_homing(homing(
+        HomeDirection::Max,
+        2,
+        0,
+        [600.0, 50.0, 1.0],
+    ));
+    let mut a = AxisConfig::linear(b'A', 80.0, 3600.0, 720.0, 0.0);
+    a.kind = AxisKind::Rotary;
+    a.min_mm = -100_000.0;
+    a.max_mm = 100_000.0;
+    MachineConfig::new([x, y, z, a])
+}
