@@ -84,8 +84,9 @@ enum Task {
         /// TCP port of the host link on 127.0.0.1 (0: pick a free one).
         #[arg(long, default_value_t = 2324)]
         port: u16,
-        /// Instead of running interactively, run the end-to-end check that `test` runs: boot,
-        /// wait for `start`, stream bytes and check that the firmware received them.
+        /// Instead of running interactively, run the end-to-end test that `test` runs: boot,
+        /// stream a G-code job (with a resend), upload and run a program with frames, and
+        /// compare the final positions with the simulator's.
         #[arg(long)]
         check: bool,
     },
