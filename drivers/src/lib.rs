@@ -18,6 +18,7 @@
 //! | [`heater`] | [`PidHeater`](heater::PidHeater), [`HeaterChannel`](heater::HeaterChannel) | (sans-IO controller) | thread: the temperature loop |
 //! | [`pwm`] | [`Fan`](pwm::Fan), [`Spindle`](pwm::Spindle), [`PwmHeater`](pwm::PwmHeater) | `Heater` (for `PwmHeater`) | thread |
 //! | [`storage`] | [`FlashRecordStorage`](storage::FlashRecordStorage), [`Records`](storage::Records) | `RecordStorage` | thread: may block for a flash erase |
+//! | [`program_flash`] | [`SlotProgramStore`](program_flash::SlotProgramStore) | `forja_motion::job::ProgramStore` | thread: one flash read per line read; may block for a sector erase while a program is loaded |
 //! | [`ram_flash`] | [`RamNorFlash`](ram_flash::RamNorFlash) | `embedded_storage::nor_flash::NorFlash` | a simulated flash for the host simulator and tests |
 //! | [`peripherals`] | [`DriverPeripherals`](peripherals::DriverPeripherals) | `forja_motion::controller::Peripherals` | thread: the controller's heaters, fans, spindle, motor power and `M119` |
 //!
@@ -70,6 +71,7 @@ pub mod limit;
 pub mod max31855;
 pub mod peripherals;
 pub mod pin;
+pub mod program_flash;
 pub mod pwm;
 pub mod ram_flash;
 pub mod session;

@@ -65,6 +65,8 @@ pub struct RamNorFlash<const SIZE: usize, const WORD: usize = 4, const PAGE: usi
     powered: bool,
     work_done: usize,
     pages_erased: usize,
+    reads: usize,
+    bytes_read: usize,
 }
 
 impl<const SIZE: usize, const WORD: usize, const PAGE: usize> fmt::Debug
@@ -98,6 +100,8 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> RamNorFlash<SIZE, 
             powered: true,
             work_done: 0,
             pages_erased: 0,
+            reads: 0,
+            bytes_read: 0,
         }
     }
 
@@ -126,6 +130,16 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> RamNorFlash<SIZE, 
     /// Pages fully erased since creation.
     pub fn pages_erased(&self) -> usize {
         self.pages_erased
+    }
+
+    /// Successful `read` calls since creation (to count the reads a storage layer makes).
+    pub fn reads(&self) -> usize {
+        self.reads
+    }
+
+    /// Bytes returned by successful `read` calls since creation.
+    pub fn bytes_read(&self) -> usize {
+        self.bytes_read
     }
 
     /// The raw contents.
@@ -185,6 +199,8 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> ReadNorFlash
             .get(start..start + bytes.len())
             .ok_or(RamFlashError::OutOfBounds)?;
         bytes.copy_from_slice(src);
+        self.reads += 1;
+        self.bytes_read += bytes.len();
         Ok(())
     }
 

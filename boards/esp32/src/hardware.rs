@@ -4,7 +4,6 @@
 
 use core::fmt;
 
-use embedded_hal::digital::PinState;
 use esp_hal::clock::CpuClock;
 use esp_hal::gpio::{Input, Output};
 use esp_hal::interrupt::InterruptHandler;
@@ -14,19 +13,24 @@ use esp_hal::time::Duration;
 use esp_hal::timer::timg::{MwdtStage, TimerGroup, Wdt};
 use esp_radio::wifi::{ControllerConfig, Interface, WifiController};
 use forja_drivers::limit::{LimitConfig, LimitInput};
+use forja_drivers::pin::NoPin;
 use forja_drivers::stepper::StepDir;
 
 use crate::board::{self, AXES, DRIVERS, LIMIT_POLARITY, LIMITS};
-use crate::enable::{self, SharedEnable};
+use crate::limits::{self, ThreadLimit};
 use crate::link::WifiLink;
 use crate::step::StepContext;
-use crate::storage::{self, Store};
+use crate::storage::{self, Stores};
 use crate::timer::{StepClock, StepTimer};
 
-/// One motor driver: STEP and DIR pins, and its share of the enable line.
-pub type Stepper = StepDir<Output<'static>, Output<'static>, SharedEnable>;
+/// One motor driver as the step interrupt drives it: its STEP and DIR lines.
+pub type Stepper = StepDir<Output<'static>, Output<'static>>;
 
-/// One limit switch.
+/// The drivers' shared enable line as the controller drives it (`M17`/`M18`, before motion):
+/// a driver with no STEP or DIR line, as the simulator's enables.
+pub type EnableLine = StepDir<NoPin, NoPin, Output<'static>>;
+
+/// One limit switch as the step interrupt reads it, debounced.
 pub type Limit = LimitInput<Input<'static>>;
 
 /// Samples that must agree before a switch changes state.
@@ -53,8 +57,10 @@ pub enum SetupError {
     PartitionTable,
     /// The partition table has no `forja` data partition (flashed with another table).
     NoStore,
-    /// The store rejected its partition.
+    /// The store rejected its partition, or was opened twice.
     Storage,
+    /// The stored settings make a machine the kernel refuses.
+    Kernel,
     /// The WiFi driver did not start.
     Wifi,
     /// The network stacks or the link were already set up.
@@ -69,6 +75,7 @@ impl fmt::Display for SetupError {
             Self::PartitionTable => "partition table unreadable",
             Self::NoStore => "no `forja` data partition",
             Self::Storage => "store partition rejected",
+            Self::Kernel => "machine configuration refused by the kernel",
             Self::Wifi => "WiFi driver did not start",
             Self::Network => "network already set up",
         })
@@ -80,14 +87,17 @@ pub type Watchdog = Wdt<TIMG0<'static>>;
 
 /// Everything [`init`] sets up.
 pub struct Hardware {
-    /// What the step interrupt owns: the step alarm and the motor drivers (released).
+    /// What the step interrupt owns: the step alarm, the STEP/DIR lines and the limit
+    /// switches; no step generator yet.
     pub step: StepContext,
     /// The step clock, for any context.
     pub clock: StepClock,
-    /// The limit switches, in axis order.
-    pub limits: [Limit; LIMITS],
-    /// The settings and program store.
-    pub store: Store,
+    /// The drivers' enable line (released), for the controller.
+    pub enable: EnableLine,
+    /// The limit switches as the controller reads them, in axis order.
+    pub limits: [ThreadLimit; LIMITS],
+    /// The settings and program stores.
+    pub stores: Stores,
     /// The WiFi driver.
     pub wifi: WifiController<'static>,
     /// The station interface.
@@ -123,18 +133,20 @@ pub fn init(step_interrupt: InterruptHandler) -> Result<Hardware, SetupError> {
     let timer = StepTimer::new(p.SYSTIMER, step_interrupt);
     let clock = timer.clock();
 
-    let enables: [SharedEnable; AXES] = enable::split(pins.enable, PinState::Low);
-    let mut steppers = pins.step.into_iter().zip(pins.dir).zip(enables);
+    let enable = StepDir::with_enable(NoPin, NoPin, pins.enable, DRIVERS)
+        .map_err(|_| SetupError::Stepper)?;
+    let mut steppers = pins.step.into_iter().zip(pins.dir);
     let mut stepper = || {
-        let ((step, dir), enable) = steppers.next().ok_or(SetupError::Stepper)?;
-        StepDir::with_enable(step, dir, enable, DRIVERS).map_err(|_| SetupError::Stepper)
+        let (step, dir) = steppers.next().ok_or(SetupError::Stepper)?;
+        StepDir::new(step, dir, DRIVERS).map_err(|_| SetupError::Stepper)
     };
     let steppers: [Stepper; AXES] = [stepper()?, stepper()?, stepper()?];
 
+    let thread_limits = pins.limits.each_ref().map(limits::thread_side);
     let limit_config = LimitConfig::new(LIMIT_POLARITY, DEBOUNCE_SAMPLES);
-    let limits = pins.limits.map(|pin| LimitInput::new(pin, limit_config));
+    let step_limits = pins.limits.map(|pin| LimitInput::new(pin, limit_config));
 
-    let store = storage::open(p.FLASH)?;
+    let stores = storage::open(p.FLASH)?;
 
     let wifi =
         WifiController::new(p.WIFI, ControllerConfig::default()).map_err(|_| SetupError::Wifi)?;
@@ -152,10 +164,16 @@ pub fn init(step_interrupt: InterruptHandler) -> Result<Hardware, SetupError> {
     watchdog.enable();
 
     Ok(Hardware {
-        step: StepContext { timer, steppers },
+        step: StepContext {
+            timer,
+            steppers,
+            limits: step_limits,
+            generator: None,
+        },
         clock,
-        limits,
-        store,
+        enable,
+        limits: thread_limits,
+        stores,
         wifi,
         station,
         access_point,

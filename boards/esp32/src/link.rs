@@ -26,22 +26,30 @@
 //! # Bytes
 //!
 //! Bytes move between the sockets and the controller through two static queues (embassy-sync
-//! pipes, [`RX_LEN`] and [`TX_LEN`] bytes). The controller's end is [`WifiLink`]: the same
-//! `embedded-io` traits as the UART link of the STM32 board, plus [`LinkStatus`]. Received
-//! bytes are read from the socket only when the receive queue has room, so a client that sends
-//! faster than the controller reads is held back by TCP flow control, never dropped. With no
-//! client connected, the controller's writes are discarded at once (like a UART with nothing
-//! attached), so it never waits for an absent host; at each new connection anything still
-//! queued from the previous one is dropped.
+//! pipes, [`RX_LEN`] and [`TX_LEN`] bytes). The controller's end is [`WifiLink`], the link
+//! object of `Controller::poll`: `embedded-io` `Read + ReadReady + Write`, plus
+//! [`LinkStatus`]. The controller runs in a task of the same executor as the sockets, so
+//! nothing on its side may wait for them:
+//!
+//! - **Input.** Received bytes are read from the socket only when the receive queue has room,
+//!   so a client that sends faster than the controller reads is held back by TCP flow control,
+//!   never dropped. `read_ready` says `true` only while the transmit queue also has
+//!   [`TX_HEADROOM`] bytes free: a client that does not read its replies stops being read.
+//! - **Output.** Writes never wait: what does not fit in the transmit queue is dropped and
+//!   counted (`tx_dropped`), which the headroom makes a client's fault only. With no client
+//!   connected, writes are discarded at once (like a UART with nothing attached), so the
+//!   controller never waits for an absent host; at each new connection anything still queued
+//!   from the previous one is dropped.
+//! - **Waking.** [`WifiLink::wait`] returns when bytes arrive, a client connects or leaves,
+//!   or at a deadline: the controller task sleeps in it between polls.
 //!
 //! Nothing in this module depends on the motion side: a program stored on the board runs on
 //! while the link is down.
 //!
 //! # Observing the link
 //!
-//! [`FORJA_LINK_COUNTERS`] counts connections, refusals, keep-alives and bytes, and (while the
-//! controller is not wired in, see [`pump`]) what the decoder found; a debugger reads it by
-//! its symbol name through the USB Serial/JTAG port.
+//! [`FORJA_LINK_COUNTERS`] counts connections, refusals, keep-alives, bytes and dropped
+//! replies; a debugger reads it by its symbol name through the USB Serial/JTAG port.
 
 use core::cell::RefCell;
 use core::convert::Infallible;
@@ -54,14 +62,13 @@ use embassy_sync::blocking_mutex::Mutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::pipe::Pipe;
 use embassy_sync::signal::Signal;
-use embassy_time::{Duration, Instant, Timer, with_timeout};
+use embassy_time::{Duration, Instant, Timer, with_deadline, with_timeout};
 use forja_drivers::session::{LinkSession, SessionAction};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use forja_motion::controller::DEFAULT_KEEP_ALIVE_MS;
 use forja_protocol::error::WireError;
 use forja_protocol::frame::{ControllerMessage, FRAME_LEN};
 use forja_protocol::reply::Reply;
-use forja_protocol::stream::{Decoder, Event};
 
 /// The TCP port of the host link, the simulator's too.
 pub const PORT: u16 = 2323;
@@ -78,6 +85,11 @@ pub const RX_LEN: usize = 2048;
 /// Bytes of the transmit queue (controller to client).
 pub const TX_LEN: usize = 2048;
 
+/// Free bytes the transmit queue must have for the controller to read more input: more than
+/// the longest burst of replies one poll writes for 128 bytes of input (an `M115` answer, a
+/// status frame, a keep-alive).
+pub const TX_HEADROOM: usize = 512;
+
 /// Bytes of each socket's receive and transmit buffers.
 const SOCKET_BUF: usize = 1536;
 
@@ -90,6 +102,9 @@ static RX: Queue<RX_LEN> = Pipe::new();
 static TX: Queue<TX_LEN> = Pipe::new();
 /// Raised by [`WifiLink`] writes, so that the serving task sends at once.
 static TX_KICK: Signal<CriticalSectionRawMutex, ()> = Signal::new();
+/// Raised when bytes reach the receive queue or a client comes or goes, to wake the
+/// controller task ([`WifiLink::wait`]).
+static WAKE: Signal<CriticalSectionRawMutex, ()> = Signal::new();
 
 /// The session, and whether its controller was not yet greeted (54).
 struct Shared {
@@ -107,7 +122,7 @@ static SESSION: Mutex<CriticalSectionRawMutex, RefCell<Shared>> =
 static TAKEN: Mutex<CriticalSectionRawMutex, RefCell<bool>> = Mutex::new(RefCell::new(false));
 
 /// Counters of the host link, wrapping. Each is written by one context at a time (the serving
-/// task, or the controller for the decoder's).
+/// task, or the controller task for `keep_alives` and `tx_dropped`).
 #[repr(C)]
 pub struct LinkCounters {
     /// Clients that became the controller.
@@ -120,12 +135,8 @@ pub struct LinkCounters {
     pub rx_bytes: AtomicU32,
     /// Bytes sent to controlling clients, 54 and 55 included.
     pub tx_bytes: AtomicU32,
-    /// G-code lines decoded by [`pump`].
-    pub lines: AtomicU32,
-    /// Frames decoded by [`pump`].
-    pub frames: AtomicU32,
-    /// Runs of garbage bytes and over-long lines dropped by [`pump`]'s decoder.
-    pub dropped: AtomicU32,
+    /// Reply bytes dropped because the transmit queue was full (a client that does not read).
+    pub tx_dropped: AtomicU32,
 }
 
 /// The link counters, at a symbol a debugger can find.
@@ -136,9 +147,7 @@ pub static FORJA_LINK_COUNTERS: LinkCounters = LinkCounters {
     keep_alives: AtomicU32::new(0),
     rx_bytes: AtomicU32::new(0),
     tx_bytes: AtomicU32::new(0),
-    lines: AtomicU32::new(0),
-    frames: AtomicU32::new(0),
-    dropped: AtomicU32::new(0),
+    tx_dropped: AtomicU32::new(0),
 };
 
 fn bump(counter: &AtomicU32, by: usize) {
@@ -196,14 +205,12 @@ fn frame_line(message: &ControllerMessage<'_>) -> Option<[u8; FRAME_LEN + 1]> {
     Some(line)
 }
 
-/// The controller's end of the link: `embedded-io` reads and writes (blocking and async) over
-/// the queues, and whether a client is in control.
+/// The controller's end of the link: `embedded-io` reads and writes over the queues, and
+/// whether a client is in control. See the [module documentation](self) for the rules.
 ///
-/// The blocking [`embedded_io::Read::read`] on an empty queue, and
-/// [`embedded_io::Write::write`] on a full one, spin until the network task has run: call them
-/// only from a context that the network task can preempt, or check
-/// [`embedded_io::ReadReady`] / [`embedded_io::WriteReady`] (or use [`WifiLink::try_read`],
-/// [`WifiLink::try_write`], or the async traits) from an executor task.
+/// The blocking [`embedded_io::Read::read`] on an empty queue spins until the network task has
+/// run: from an executor task, read only what [`embedded_io::ReadReady`] announces (as
+/// `Controller::poll` does), or use [`WifiLink::try_read`] or the async traits.
 pub struct WifiLink {
     _private: (),
 }
@@ -266,6 +273,20 @@ impl WifiLink {
         session(|s| s.poll_at())
     }
 
+    /// Wait until bytes arrive, a client connects or leaves, or `deadline` (embassy time).
+    ///
+    /// Context: the controller task.
+    /// Always lets the other tasks run once, even with a deadline already past. Bytes that
+    /// were waiting before the call do not end the wait: the controller reads all it can take
+    /// at each poll, so bytes still queued after it are held back on purpose.
+    pub async fn wait(&mut self, deadline: Instant) {
+        if deadline <= Instant::now() {
+            embassy_futures::yield_now().await;
+        } else {
+            let _ = with_deadline(deadline, WAKE.wait()).await;
+        }
+    }
+
     /// How many clients have been in control so far.
     pub fn connections(&self) -> u32 {
         FORJA_LINK_COUNTERS.connections.load(Ordering::Relaxed)
@@ -283,8 +304,10 @@ impl embedded_io::ErrorType for WifiLink {
 }
 
 impl embedded_io::ReadReady for WifiLink {
+    /// Bytes are waiting, and the transmit queue has room for their replies
+    /// ([`TX_HEADROOM`]).
     fn read_ready(&mut self) -> Result<bool, Self::Error> {
-        Ok(!RX.is_empty())
+        Ok(!RX.is_empty() && TX.free_capacity() >= TX_HEADROOM)
     }
 }
 
@@ -310,23 +333,17 @@ impl embedded_io::WriteReady for WifiLink {
 }
 
 impl embedded_io::Write for WifiLink {
+    /// Queue `buf` for the client; never waits. What does not fit is dropped (and counted).
     fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
-        if buf.is_empty() {
-            return Ok(0);
+        let n = self.try_write(buf);
+        if n < buf.len() {
+            bump(&FORJA_LINK_COUNTERS.tx_dropped, buf.len() - n);
         }
-        loop {
-            let n = self.try_write(buf);
-            if n > 0 {
-                return Ok(n);
-            }
-            core::hint::spin_loop();
-        }
+        Ok(buf.len())
     }
 
+    /// Nothing to do: the serving task sends queued bytes as soon as it runs.
     fn flush(&mut self) -> Result<(), Self::Error> {
-        while session(|s| s.is_connected()) && !TX.is_empty() {
-            core::hint::spin_loop();
-        }
         Ok(())
     }
 }
@@ -392,9 +409,11 @@ pub async fn listen(stack: Stack<'static>) -> ! {
         match action {
             SessionAction::SendConnected => {
                 bump(&FORJA_LINK_COUNTERS.connections, 1);
+                WAKE.signal(());
                 serve(&mut socket).await;
                 session(LinkSession::on_disconnect);
                 TX.clear();
+                WAKE.signal(());
             }
             _ => refuse(&mut socket).await,
         }
@@ -466,8 +485,12 @@ async fn serve(socket: &mut TcpSocket<'_>) {
                 bump(&FORJA_LINK_COUNTERS.rx_bytes, n);
                 end = n;
                 start = inbound.get(..n).map_or(0, |b| RX.try_write(b).unwrap_or(0));
+                WAKE.signal(());
             }
-            Wake::Queued(n) => start += n,
+            Wake::Queued(n) => {
+                start += n;
+                WAKE.signal(());
+            }
             Wake::ToSend(n) => {
                 if send(socket, outbound.get(..n).unwrap_or_default())
                     .await
@@ -478,58 +501,5 @@ async fn serve(socket: &mut TcpSocket<'_>) {
                 bump(&FORJA_LINK_COUNTERS.tx_bytes, n);
             }
         }
-    }
-}
-
-/// Carry out a session action for the link alone, while no controller is wired in: frame 54
-/// or 55 into the outgoing stream, as `Controller::on_connect` and `Controller::keep_alive`
-/// write them.
-///
-/// Context: the controller task.
-pub fn greet(link: &mut WifiLink, action: SessionAction) {
-    let message = match action {
-        SessionAction::SendConnected => ControllerMessage::Connected,
-        SessionAction::SendKeepAlive(counter) => ControllerMessage::KeepAlive { counter },
-        SessionAction::RefuseSecondClient => return,
-    };
-    if let Some(line) = frame_line(&message) {
-        let _ = embedded_io::Write::write_all(link, &line);
-    }
-}
-
-/// One turn of the controller task while no controller is wired in: carry out the session's
-/// actions ([`greet`]; a new client also gets a fresh decoder), then [`pump`] the received
-/// bytes.
-///
-/// Context: the controller task.
-pub fn bring_up(link: &mut WifiLink, decoder: &mut Decoder) {
-    let now = now_ms();
-    while let Some(action) = link.poll_session(now) {
-        if action == SessionAction::SendConnected {
-            *decoder = Decoder::new();
-        }
-        greet(link, action);
-    }
-    pump(link, decoder);
-}
-
-/// Drain the receive queue into `decoder`, counting what it decodes.
-///
-/// Until the controller layer is wired in, this and [`greet`] are the whole of the controller
-/// task: it answers nothing but the session's 54 and 55.
-///
-/// Context: the controller task.
-pub fn pump(link: &mut WifiLink, decoder: &mut Decoder) {
-    let mut chunk = [0u8; 64];
-    loop {
-        let n = link.try_read(&mut chunk);
-        if n == 0 {
-            break;
-        }
-        decoder.feed_all(chunk.get(..n).unwrap_or_default(), |event| match event {
-            Event::Line(_) => bump(&FORJA_LINK_COUNTERS.lines, 1),
-            Event::Frame(_) => bump(&FORJA_LINK_COUNTERS.frames, 1),
-            _ => bump(&FORJA_LINK_COUNTERS.dropped, 1),
-        });
     }
 }

@@ -7,24 +7,30 @@
 //!
 //! | context | bound to | priority | does |
 //! |---|---|---|---|
-//! | `step_interrupt` | the step alarm (SYSTIMER comparator 0; TIMG1 on the ESP32) | `Priority::max()` | step alarm ([`step`]) |
+//! | `step_interrupt` | the step alarm (SYSTIMER comparator 0; TIMG1 on the ESP32) | `Priority::max()` | `StepGenerator::on_alarm`, re-arms the alarm ([`step`]) |
 //! | WiFi driver, esp-rtos scheduler | their own interrupts | esp-radio's | the radio |
 //! | `wifi_task` | esp-rtos executor | thread | joins the network, falls back to an access point ([`wifi`]) |
 //! | `net_task` (×2) | esp-rtos executor | thread | the station and access point IP stacks ([`net`]) |
 //! | `dhcp_task` | esp-rtos executor | thread | DHCP server of the access point ([`net`]) |
-//! | `link_task` (×4) | esp-rtos executor | thread | TCP listeners, session, 54/55 ([`link`]) |
-//! | `controller_task` | esp-rtos executor | thread | the session's 54/55 and the link's input ([`link::bring_up`]), feeds the watchdog |
+//! | `link_task` (×4) | esp-rtos executor | thread | TCP listeners, session ([`link`]) |
+//! | `controller_task` | esp-rtos executor | thread | 54/55, `Controller::poll`, arms the step alarm, feeds the watchdog ([`controller`]) |
 //!
 //! RTIC's ESP32-C3 backend does not work with esp-hal 1.x, so the step interrupt is a plain
 //! esp-hal interrupt handler at the highest priority, and everything else is an async task
 //! of esp-rtos's executor, which never preempts the step interrupt.
+//!
+//! The step interrupt shares the step context (timer, STEP/DIR lines, switches, step
+//! generator) with the controller task through a `critical_section::Mutex`; the controller
+//! task only takes it to arm the alarm. The kernel and the step generator talk through their
+//! lock-free step queue.
 #![no_std]
 #![no_main]
 
 pub mod board;
-pub mod enable;
+pub mod controller;
 pub mod fault;
 pub mod hardware;
+pub mod limits;
 pub mod link;
 pub mod net;
 pub mod settings;
@@ -35,20 +41,16 @@ pub mod wifi;
 
 use embassy_executor::Spawner;
 use embassy_net::Stack;
-use embassy_time::{Duration, Ticker};
 use esp_radio::wifi::{Interface, WifiController};
-use forja_motion::controller::Settings;
-use forja_protocol::stream::Decoder;
 use heapless::String;
 
+use crate::controller::BoardController;
 use crate::hardware::Watchdog;
 use crate::link::WifiLink;
 use crate::settings::Credentials;
+use crate::timer::StepClock;
 
 esp_bootloader_esp_idf::esp_app_desc!();
-
-/// Rate at which the controller task polls the link.
-const CONTROLLER_HZ: u64 = 1_000;
 
 /// The step interrupt.
 #[esp_hal::handler(priority = esp_hal::interrupt::Priority::max())]
@@ -65,15 +67,21 @@ async fn main(spawner: Spawner) -> ! {
         fault::reset();
     }
 
-    // The settings as the controller keeps them; the kernel is built from them too.
-    let mut store = hw.store;
-    let (stored, _report) = Settings::load(board::MACHINE, &mut store);
+    // The kernel from the machine and the stored settings; its step generator goes to the
+    // step interrupt.
+    let controller = controller::build(clock, hw.stores, hw.enable, hw.limits)
+        .unwrap_or_else(|_| fault::reset());
+    let stored = controller.settings();
     link::configure(stored.keep_alive_ms());
     let credentials = settings::credentials(stored.ssid(), stored.password());
     let ap_ssid = wifi::ap_ssid(hw.access_point.mac_address());
     let stacks =
         net::stacks(hw.station, hw.access_point, hw.seed).unwrap_or_else(|| fault::reset());
 
+    spawner.spawn(
+        controller_task(controller, hw.link, clock, hw.watchdog, credentials.clone())
+            .unwrap_or_else(|_| fault::reset()),
+    );
     spawner.spawn(wifi_task(hw.wifi, credentials, ap_ssid).unwrap_or_else(|_| fault::reset()));
     spawner.spawn(net_task(stacks.station_runner).unwrap_or_else(|_| fault::reset()));
     spawner.spawn(net_task(stacks.access_point_runner).unwrap_or_else(|_| fault::reset()));
@@ -83,8 +91,18 @@ async fn main(spawner: Spawner) -> ! {
             spawner.spawn(link_task(stack).unwrap_or_else(|_| fault::reset()));
         }
     }
-    spawner.spawn(controller_task(hw.link, hw.watchdog).unwrap_or_else(|_| fault::reset()));
     core::future::pending().await
+}
+
+#[embassy_executor::task]
+async fn controller_task(
+    controller: BoardController,
+    link: WifiLink,
+    clock: StepClock,
+    watchdog: Watchdog,
+    credentials: Option<Credentials>,
+) -> ! {
+    controller::run(controller, link, clock, watchdog, credentials).await
 }
 
 #[embassy_executor::task]
@@ -109,15 +127,4 @@ async fn dhcp_task(stack: Stack<'static>) -> ! {
 #[embassy_executor::task(pool_size = 4)]
 async fn link_task(stack: Stack<'static>) -> ! {
     link::listen(stack).await
-}
-
-#[embassy_executor::task]
-async fn controller_task(mut link: WifiLink, mut watchdog: Watchdog) -> ! {
-    let mut decoder = Decoder::new();
-    let mut ticker = Ticker::every(Duration::from_hz(CONTROLLER_HZ));
-    loop {
-        link::bring_up(&mut link, &mut decoder);
-        watchdog.feed();
-        ticker.next().await;
-    }
 }

@@ -2,14 +2,16 @@
 //!
 //! The step interrupt is the highest-priority interrupt of the board
 //! (`Priority::max()`, bound in `main.rs`), raised by the step alarm of [`crate::timer`]. It
-//! owns the [`StepTimer`] and the motor drivers, kept in [`STEP`] behind a critical section so
-//! that the thread side can reach them too (to start motion: arm the alarm). Everything it
-//! runs is integer-only, allocation-free and panic-free: the interrupt has a budget of a few
-//! microseconds.
+//! owns the [`StepTimer`], the motion kernel's [`StepGenerator`], the STEP/DIR lines and the
+//! limit switch inputs, kept in [`STEP`] behind a critical section so that the thread side can
+//! reach the timer too (the controller task arms the alarm to start motion, [`arm`]).
+//! Everything it runs is integer-only, allocation-free and panic-free: acknowledge the timer,
+//! `StepGenerator::on_alarm` (pin writes and switch reads), re-arm the timer. The interrupt
+//! has a budget of a few microseconds.
 //!
-//! The motion kernel's step generator is called from [`on_interrupt`] once the controller is
-//! wired in; until then the handler acknowledges the timer and counts the alarms in
-//! [`FORJA_STEP_COUNTERS`], which [`self_test`] checks at every boot and a debugger can read.
+//! The step generator is handed over with [`attach`] once the kernel is built from the stored
+//! settings; before that (and in [`self_test`], at every boot) the handler only acknowledges
+//! the timer. [`FORJA_STEP_COUNTERS`] counts the alarms; a debugger can read it.
 //!
 //! # Latency
 //!
@@ -24,17 +26,29 @@ use critical_section::Mutex;
 use embassy_time::{Duration, Timer};
 use forja_hal_abstraction::clock::{Alarm, Clock};
 use forja_hal_abstraction::time::Instant;
+use forja_motion::StepGenerator;
 
-use crate::board::AXES;
-use crate::hardware::{SetupError, Stepper};
+use crate::board::{AXES, LIMITS};
+use crate::hardware::{Limit, SetupError, Stepper};
 use crate::timer::{StepClock, StepTimer};
+
+/// Events of the step queue between the kernel and the step interrupt (a power of two; 8 KiB,
+/// the simulator's size).
+pub const QUEUE_EVENTS: usize = 1024;
+
+/// The interrupt side of the motion kernel on this board.
+pub type Generator = StepGenerator<'static, AXES, QUEUE_EVENTS>;
 
 /// What the step interrupt owns.
 pub struct StepContext {
     /// The step alarm.
     pub timer: StepTimer,
-    /// The motor drivers, in axis order.
+    /// The STEP and DIR lines of each motor driver, in axis order.
     pub steppers: [Stepper; AXES],
+    /// The limit switches, indexed by each homed axis's `homing.switch`.
+    pub limits: [Limit; LIMITS],
+    /// The kernel's step generator, once [`attach`]ed.
+    pub generator: Option<Generator>,
 }
 
 /// The step context, once installed.
@@ -71,6 +85,23 @@ pub fn install(context: StepContext) {
     critical_section::with(|cs| STEP.borrow(cs).replace(Some(context)));
 }
 
+/// Hand the kernel's step generator to the step interrupt.
+///
+/// Context: init, after [`install`] and [`self_test`], before the first [`arm`].
+pub fn attach(generator: Generator) {
+    with(|context| context.generator = Some(generator));
+}
+
+/// Arm the step alarm at `at` (an instant already past fires at once): what the controller
+/// task does with `PollOutcome::arm_alarm`.
+///
+/// Context: thread. A few register writes with interrupts masked.
+pub fn arm(at: Instant) {
+    with(|context| {
+        let _ = context.timer.set_alarm(at);
+    });
+}
+
 /// Run `f` on the step context, with interrupts masked; `None` before [`install`].
 ///
 /// Context: either. Keep `f` short: the step interrupt waits for it.
@@ -79,14 +110,31 @@ pub fn with<R>(f: impl FnOnce(&mut StepContext) -> R) -> Option<R> {
 }
 
 /// The body of the step interrupt: acknowledge the timer and, when the alarm was due, run the
-/// step generator (once the kernel is wired in) and count it.
+/// step generator and arm the alarm at the instant it returns (none: the generator is idle
+/// until the controller task arms it again).
 ///
 /// Context: the step interrupt.
 #[inline]
 pub fn on_interrupt() {
-    let due = with(|context| context.timer.on_interrupt()).flatten();
+    let due = with(|context| {
+        let now = context.timer.on_interrupt()?;
+        let StepContext {
+            timer,
+            steppers,
+            limits,
+            generator,
+        } = context;
+        if let Some(next) = generator
+            .as_mut()
+            .and_then(|g| g.on_alarm(now, steppers, limits))
+        {
+            let _ = timer.set_alarm(next);
+        }
+        Some(())
+    })
+    .flatten();
     match due {
-        Some(_now) => bump(&FORJA_STEP_COUNTERS.alarms),
+        Some(()) => bump(&FORJA_STEP_COUNTERS.alarms),
         None => bump(&FORJA_STEP_COUNTERS.spurious),
     }
 }

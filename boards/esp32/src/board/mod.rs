@@ -16,7 +16,7 @@ use esp_hal::gpio::{Input, Output};
 use forja_drivers::limit::Polarity;
 use forja_drivers::stepper::StepDirConfig;
 use forja_hal_abstraction::stepper::StepTiming;
-use forja_motion::{AxisConfig, MachineConfig};
+use forja_motion::{AxisConfig, HomeDirection, HomingConfig, MachineConfig};
 
 #[cfg(feature = "esp32c3")]
 mod devkitm1;
@@ -51,11 +51,37 @@ pub const DRIVERS: StepDirConfig = StepDirConfig::new(StepTiming::CONSERVATIVE);
 /// The machine the kernel is built from where no stored setting says otherwise (frame 00
 /// `x.steps_per_mm` etc. override it): a small three-axis router, X and Y on GT2 belts with
 /// 20-tooth pulleys at 1/16 microstep (80 steps/mm), Z on an 8 mm lead screw (400 steps/mm).
+/// Each axis homes on its own switch (limit input `i` for axis `i`): Z up first, then X and Y
+/// to their minimum.
 pub const MACHINE: MachineConfig<AXES> = MachineConfig::new([
-    AxisConfig::linear(b'X', 80.0, 3_000.0, 500.0, 300.0),
-    AxisConfig::linear(b'Y', 80.0, 3_000.0, 500.0, 300.0),
-    AxisConfig::linear(b'Z', 400.0, 600.0, 100.0, 80.0),
+    AxisConfig::linear(b'X', 80.0, 3_000.0, 500.0, 300.0).with_homing(homing(
+        HomeDirection::Min,
+        0,
+        1,
+    )),
+    AxisConfig::linear(b'Y', 80.0, 3_000.0, 500.0, 300.0).with_homing(homing(
+        HomeDirection::Min,
+        1,
+        1,
+    )),
+    AxisConfig::linear(b'Z', 400.0, 600.0, 100.0, 80.0).with_homing(homing(
+        HomeDirection::Max,
+        2,
+        0,
+    )),
 ]);
+
+/// Homing of one axis of [`MACHINE`] towards `direction` on limit input `switch`.
+const fn homing(direction: HomeDirection, switch: u8, order: u8) -> HomingConfig {
+    HomingConfig {
+        direction,
+        seek_mm_min: 500.0,
+        locate_mm_min: 50.0,
+        pull_off_mm: 2.0,
+        switch,
+        order,
+    }
+}
 
 /// Switches close to ground at the limit, against the input's pull-up.
 pub const LIMIT_POLARITY: Polarity = Polarity::NormallyOpen;

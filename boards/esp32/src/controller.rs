@@ -1,0 +1,153 @@
+//! The controller task: the motion kernel and the portable controller wired to this board,
+//! exactly as the simulator wires them (`boards/sim/src/board.rs`).
+//!
+//! | firmware part | on the ESP32 |
+//! |---|---|
+//! | step interrupt | [`crate::step::on_interrupt`]: `StepGenerator::on_alarm` over `StepDir` drivers on the STEP/DIR outputs and debounced `LimitInput`s on the switch inputs |
+//! | thread side | [`run`]: `LinkSession` (frames 54/55) through [`WifiLink::poll_session`], `Controller::poll`, the step alarm, the WiFi settings, the watchdog |
+//! | peripherals | `DriverPeripherals`: the shared enable line, the switches read again for `M119`; no heater, fan or spindle |
+//! | storage | the `forja` partition ([`crate::storage`]): the settings in a `FlashRecordStorage`, the uploaded program in a `SlotProgramStore` (one flash read per line) |
+//!
+//! The kernel's configuration is [`board::MACHINE`] with the stored settings applied over it
+//! (`Settings::load`), as on the simulator.
+//!
+//! The task runs whether or not a client is connected: with none, replies are discarded and
+//! a stored program runs on.
+
+use embassy_time::{Duration, Instant as EmbassyInstant};
+use forja_drivers::peripherals::{
+    DriverPeripherals, MotorEnables, NoHeater, NoPwm, NoSpindle, Parts,
+};
+use forja_drivers::session::SessionAction;
+use forja_hal_abstraction::clock::Clock;
+use forja_hal_abstraction::time::Instant;
+use forja_motion::controller::{Controller, ControllerConfig, Settings};
+use forja_motion::{Kernel, StepQueue};
+use static_cell::StaticCell;
+
+use crate::board::{self, AXES};
+use crate::hardware::{EnableLine, SetupError, Watchdog};
+use crate::limits::ThreadLimit;
+use crate::link::{self, WifiLink};
+use crate::settings::{self, Credentials};
+use crate::step::{self, QUEUE_EVENTS};
+use crate::storage::{ProgramFlash, Store, Stores};
+use crate::timer::StepClock;
+
+/// Planner blocks of the kernel (the simulator's).
+pub const PLANNER_BLOCKS: usize = 32;
+
+/// The longest sleep of the controller task, ms: it feeds the watchdog and polls the
+/// temperature loops at least this often.
+pub const MAX_SLEEP_MS: u64 = 100;
+
+/// The board's peripherals: motor power and the switches for `M119`.
+pub type BoardPeripherals = DriverPeripherals<
+    NoHeater,
+    NoHeater,
+    NoPwm,
+    NoSpindle,
+    MotorEnables<EnableLine, 1>,
+    ThreadLimit,
+    AXES,
+    0,
+>;
+
+/// The uploaded program's store.
+pub type ProgramStore = ProgramFlash;
+
+/// The controller of this board.
+pub type BoardController =
+    Controller<'static, AXES, PLANNER_BLOCKS, QUEUE_EVENTS, ProgramStore, BoardPeripherals, Store>;
+
+static QUEUE: StaticCell<StepQueue<AXES, QUEUE_EVENTS>> = StaticCell::new();
+
+/// Build the kernel from [`board::MACHINE`] and the stored settings, hand its step generator to
+/// the step interrupt, and build the controller over it.
+///
+/// Context: init, after `step::install` and the step alarm's self-test; call once.
+/// Errors: [`SetupError::Kernel`] when the stored settings make a machine the kernel refuses
+/// at this clock rate, [`SetupError::Storage`] when this was called before.
+pub fn build(
+    clock: StepClock,
+    stores: Stores,
+    enable: EnableLine,
+    limits: [ThreadLimit; board::LIMITS],
+) -> Result<BoardController, SetupError> {
+    let Stores {
+        settings: mut settings_store,
+        program,
+    } = stores;
+    let (settings, _report) = Settings::load(board::MACHINE, &mut settings_store);
+    let queue = QUEUE
+        .try_init(StepQueue::new())
+        .ok_or(SetupError::Storage)?;
+    let timing = board::DRIVERS.timing;
+    let (kernel, generator): (Kernel<'static, AXES, PLANNER_BLOCKS, QUEUE_EVENTS>, _) =
+        forja_motion::split(queue, settings.machine().clone(), clock.tick_hz(), timing)
+            .map_err(|_| SetupError::Kernel)?;
+    step::attach(generator);
+
+    let peripherals = DriverPeripherals::new(Parts {
+        hot_end: None,
+        bed: None,
+        fans: [],
+        spindle: None,
+        motors: MotorEnables([enable]),
+        limits: limits.map(Some),
+        tolerance_mc: 0,
+    });
+    let config = ControllerConfig::new("cnc", timing);
+    Ok(Controller::new(kernel, program, peripherals, config)
+        .with_settings(settings, settings_store))
+}
+
+/// `at` on embassy's clock: `at` is an instant of the step clock, compared with `now`.
+fn embassy_deadline(clock: StepClock, now: Instant, at: Instant) -> EmbassyInstant {
+    let ticks = at.signed_ticks_since(now).max(0) as u64;
+    let us = ticks * 1_000_000 / u64::from(clock.tick_hz());
+    EmbassyInstant::now() + Duration::from_micros(us)
+}
+
+/// Run the controller for ever: the session's 54 and 55, `Controller::poll`, the step alarm,
+/// new WiFi credentials to the WiFi task, the watchdog; then sleep until the link has news,
+/// the controller's `wake_at`, the next keep-alive, or [`MAX_SLEEP_MS`].
+///
+/// Context: the controller task. Never returns.
+pub async fn run(
+    mut controller: BoardController,
+    mut link: WifiLink,
+    clock: StepClock,
+    mut watchdog: Watchdog,
+    mut applied: Option<Credentials>,
+) -> ! {
+    loop {
+        let now_ms = link::now_ms();
+        while let Some(action) = link.poll_session(now_ms) {
+            match action {
+                SessionAction::SendConnected => controller.on_connect(&mut link),
+                SessionAction::SendKeepAlive(n) => controller.keep_alive(n, &mut link),
+                SessionAction::RefuseSecondClient => {}
+            }
+        }
+        let now = clock.now();
+        let outcome = controller.poll(now, &mut link);
+        if let Some(at) = outcome.arm_alarm {
+            step::arm(at);
+        }
+        let s = controller.settings();
+        settings::track(&mut applied, s.ssid(), s.password());
+        watchdog.feed();
+
+        let mut deadline = EmbassyInstant::now() + Duration::from_millis(MAX_SLEEP_MS);
+        if let Some(at) = outcome.wake_at {
+            deadline = deadline.min(embassy_deadline(clock, now, at));
+        }
+        if let Some(at_ms) = link.session_poll_at() {
+            let ms = at_ms.wrapping_sub(link::now_ms()) as i32;
+            deadline =
+                deadline.min(EmbassyInstant::now() + Duration::from_millis(ms.max(0) as u64));
+        }
+        link.wait(deadline).await;
+    }
+}
