@@ -4,7 +4,7 @@
 //! | firmware part | on the simulator |
 //! |---|---|
 //! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`crate::SimStepDirPins`], and `forja_drivers::limit::LimitInput`s on [`crate::SimSwitchPin`]s (the homing switch of each homed axis) |
-//! | thread side | [`Firmware::poll`]: the links, `LinkSession` (frames 54/55), `Controller::poll` |
+//! | thread side | [`Firmware::poll`]: the links, one `LinkSession` per port (admission of TCP clients, frames 54/55), `Controller::poll` |
 //! | peripherals | `forja_drivers::peripherals::DriverPeripherals`: PID `HeaterChannel`s over the simulated heaters, fans and the spindle on the PWM outputs, the drivers' enable lines, the switches read again for `M119` |
 //! | storage | two `FlashRecordStorage`s on `RamNorFlash`es ([`Flash`]): the settings, and the uploaded program (`RecordProgramStore`) |
 //!
@@ -20,6 +20,12 @@
 //! then the next. Each new host starts afresh (line 1 expected, no held line); on a port with
 //! a session it is greeted with frame 54 and kept alive with frame 55 every `keep_alive_ms`.
 //! The first host of a port without a session receives `start`.
+//!
+//! Each port has one `forja_drivers::session::LinkSession`, used as the ESP32 board uses its
+//! own: every turn the link reports to it the controlling client that closed and the clients
+//! that connected ([`HostLink::admit`]), and carries out its answer (a TCP client is admitted,
+//! or sent the busy message and closed); the session's `SendConnected` is the greeting (frame
+//! 54, when the port is served), its `SendKeepAlive` the frames 55 of the served port.
 //!
 //! # Machine files
 //!
@@ -230,9 +236,25 @@ pub struct PortId(usize);
 
 struct Served {
     link: Box<dyn Port>,
-    session: Option<LinkSession>,
+    /// Who controls a connection-oriented link ([`HostLink::admit`]), and its keep-alives.
+    session: LinkSession,
+    /// Whether the host is greeted with frame 54 and kept alive with frame 55.
+    frames: bool,
+    /// The session admitted a host that was not greeted yet.
+    admitted: bool,
     seen: u64,
     failure: Option<String>,
+}
+
+impl Served {
+    /// Whether a new host is there since the last call: on a port with frames, one the session
+    /// admitted; on another, a change of the link's connection count.
+    fn new_host(&mut self) -> bool {
+        let seen = self.link.connections();
+        let counted = core::mem::replace(&mut self.seen, seen) != seen;
+        let admitted = core::mem::take(&mut self.admitted);
+        if self.frames { admitted } else { counted }
+    }
 }
 
 /// What the board is doing, whatever its number of axes.
@@ -498,19 +520,14 @@ impl<const N: usize> Wired<N> {
     }
 
     /// Choose the port to serve, greet a new host.
-    fn serve(&mut self, ports: &mut [Served], active: &mut Option<usize>, now_ms: u32) {
+    fn serve(&mut self, ports: &mut [Served], active: &mut Option<usize>) {
         if let Some(i) = *active
             && let Some(p) = ports.get_mut(i)
         {
-            let seen = p.link.connections();
             let connected = p.link.state() == LinkState::Connected;
-            if seen != p.seen {
-                p.seen = seen;
-                self.greet(p, now_ms);
+            if p.new_host() {
+                self.greet(p, true);
             } else if !connected && !p.link.read_ready().unwrap_or(false) {
-                if let Some(s) = p.session.as_mut() {
-                    s.on_disconnect();
-                }
                 *active = None;
             }
         }
@@ -518,29 +535,29 @@ impl<const N: usize> Wired<N> {
             for (i, p) in ports.iter_mut().enumerate() {
                 let connected = p.link.state() == LinkState::Connected;
                 if connected || p.link.read_ready().unwrap_or(false) {
-                    p.seen = p.link.connections();
                     *active = Some(i);
-                    self.greet(p, now_ms);
+                    let new_host = p.new_host();
+                    self.greet(p, new_host);
                     break;
                 }
             }
         }
     }
 
-    fn greet(&mut self, p: &mut Served, now_ms: u32) {
-        match p.session.as_mut() {
-            Some(s) => {
-                s.on_disconnect();
-                if s.on_connect(now_ms) == SessionAction::SendConnected {
-                    self.controller.on_connect(&mut p.link);
-                }
-            }
-            None => {
+    /// Start afresh with the host of `p`: frame 54 to a host its session admitted, `start`
+    /// to the first host of a port without frames.
+    fn greet(&mut self, p: &mut Served, new_host: bool) {
+        if p.frames {
+            if new_host {
+                self.controller.on_connect(&mut p.link);
+            } else {
                 self.controller.reset_link();
-                if !self.booted {
-                    self.booted = true;
-                    self.controller.boot(&mut p.link);
-                }
+            }
+        } else {
+            self.controller.reset_link();
+            if !self.booted {
+                self.booted = true;
+                self.controller.boot(&mut p.link);
             }
         }
     }
@@ -593,15 +610,22 @@ impl<const N: usize> Wiring for Wired<N> {
         let now_ms = (u128::from(self.machine.now_ticks()) * 1000
             / u128::from(self.machine.tick_hz())) as u32;
         for p in ports.iter_mut() {
-            if let Err(e) = p.link.poll() {
-                p.failure.get_or_insert(e.to_string());
+            match p
+                .link
+                .poll()
+                .and_then(|()| p.link.admit(&mut p.session, now_ms))
+            {
+                Ok(admitted) => p.admitted |= admitted,
+                Err(e) => {
+                    p.failure.get_or_insert(e.to_string());
+                }
             }
         }
-        self.serve(ports, active, now_ms);
+        self.serve(ports, active);
         let outcome = match active.and_then(|i| ports.get_mut(i)) {
             Some(p) => {
-                if let Some(s) = p.session.as_mut() {
-                    while let Some(SessionAction::SendKeepAlive(n)) = s.poll(now_ms) {
+                if p.frames {
+                    while let Some(SessionAction::SendKeepAlive(n)) = p.session.poll(now_ms) {
                         self.controller.keep_alive(n, &mut p.link);
                     }
                 }
@@ -717,11 +741,17 @@ impl SimBoard {
 
     /// Serve `link`; `session`: greet each host with frame 54 and keep it alive with frame 55
     /// (TCP, like the ESP32's WiFi).
+    ///
+    /// Every port has its [`LinkSession`] (keep-alives every `keep_alive_ms` of the stored
+    /// settings): a connection-oriented link ([`crate::link::TcpLink`]) admits and refuses
+    /// clients through it ([`HostLink::admit`]), with or without frames.
     pub fn add_port(&mut self, link: impl Port, session: bool) -> PortId {
         let keep_alive = self.wiring.keep_alive_ms();
         self.ports.push(Served {
             link: Box::new(link),
-            session: session.then(|| LinkSession::new(keep_alive)),
+            session: LinkSession::new(keep_alive),
+            frames: session,
+            admitted: false,
             seen: 0,
             failure: None,
         });

@@ -10,6 +10,7 @@ use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use embedded_io::{Read, ReadReady, Write, WriteReady};
+use forja_drivers::session::LinkSession;
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use forja_motion::controller::Stats as ControllerStats;
 
@@ -293,9 +294,9 @@ impl<L: HostLink> LinkStatus for Watched<L> {
     }
 }
 
-impl<L: HostLink> HostLink for Watched<L> {
-    fn poll(&mut self) -> Result<(), Self::Error> {
-        self.link.poll()?;
+impl<L: HostLink> Watched<L> {
+    /// Report a change of the link's state.
+    fn watch(&mut self) {
         let state = self.link.state();
         if state != self.state {
             self.state = state;
@@ -306,11 +307,24 @@ impl<L: HostLink> HostLink for Watched<L> {
             let now_s = self.clock.now_ticks() as f64 / self.tick_hz;
             eprintln!("forja-sim: [{now_s:.3} s] {}: {what}", self.name);
         }
+    }
+}
+
+impl<L: HostLink> HostLink for Watched<L> {
+    fn poll(&mut self) -> Result<(), Self::Error> {
+        self.link.poll()?;
+        self.watch();
         Ok(())
     }
 
     fn connections(&self) -> u64 {
         self.link.connections()
+    }
+
+    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
+        let admitted = self.link.admit(session, now_ms)?;
+        self.watch();
+        Ok(admitted)
     }
 }
 

@@ -1,10 +1,12 @@
-//! The TCP link against real sockets on the loopback interface.
+//! The TCP link against real sockets on the loopback interface, its clients admitted and
+//! refused by a `LinkSession`.
 
 use std::io::{Read as _, Write as _};
 use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 use embedded_io::Write;
+use forja_drivers::session::{LinkSession, SessionAction};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use forja_sim::link::{FaultConfig, FaultInjector, FaultyBytes, HostLink, TcpLink};
 
@@ -14,12 +16,26 @@ fn bind() -> TcpLink {
     TcpLink::bind("127.0.0.1:0".parse().unwrap(), &b"error: busy\n"[..]).unwrap()
 }
 
-/// Poll `link` until `done` holds, for at most five seconds.
-fn poll_until<L: HostLink>(link: &mut L, mut done: impl FnMut(&mut L) -> bool) {
+/// A link and the session that decides who controls it, as a board serves them.
+struct Served<L> {
+    link: L,
+    session: LinkSession,
+}
+
+fn served<L: HostLink>(link: L) -> Served<L> {
+    Served {
+        link,
+        session: LinkSession::new(1_000),
+    }
+}
+
+/// Poll `s` (its link, then admission) until `done` holds, for at most five seconds.
+fn poll_until<L: HostLink>(s: &mut Served<L>, mut done: impl FnMut(&mut Served<L>) -> bool) {
     let start = Instant::now();
     loop {
-        let _ = link.poll();
-        if done(link) {
+        let _ = s.link.poll();
+        let _ = s.link.admit(&mut s.session, 0);
+        if done(s) {
             return;
         }
         assert!(start.elapsed() < TIMEOUT, "timed out");
@@ -27,13 +43,13 @@ fn poll_until<L: HostLink>(link: &mut L, mut done: impl FnMut(&mut L) -> bool) {
     }
 }
 
-/// Read from `link` without blocking until `n` bytes have arrived.
-fn receive<L: HostLink>(link: &mut L, n: usize) -> Vec<u8> {
+/// Read from `s` without blocking until `n` bytes have arrived.
+fn receive<L: HostLink>(s: &mut Served<L>, n: usize) -> Vec<u8> {
     let mut got = Vec::new();
-    poll_until(link, |l| {
+    poll_until(s, |s| {
         let mut buf = [0u8; 256];
-        while l.read_ready().unwrap_or(false) {
-            let k = l.read(&mut buf).unwrap_or(0);
+        while s.link.read_ready().unwrap_or(false) {
+            let k = s.link.read(&mut buf).unwrap_or(0);
             got.extend_from_slice(&buf[..k]);
         }
         got.len() >= n
@@ -49,23 +65,23 @@ fn client(link: &TcpLink) -> TcpStream {
 
 #[test]
 fn carries_bytes_both_ways() {
-    let mut link = bind();
+    let mut s = served(bind());
     assert_ne!(
-        link.local_addr().unwrap().port(),
+        s.link.local_addr().unwrap().port(),
         0,
         "port 0 resolves to a real port"
     );
-    assert_eq!(link.state(), LinkState::Disconnected);
-    let mut c = client(&link);
-    poll_until(&mut link, |l| l.state() == LinkState::Connected);
-    assert_eq!(link.connections(), 1);
-    assert_eq!(link.peer_addr(), Some(c.local_addr().unwrap()));
+    assert_eq!(s.link.state(), LinkState::Disconnected);
+    let mut c = client(&s.link);
+    poll_until(&mut s, |s| s.link.state() == LinkState::Connected);
+    assert_eq!(s.link.connections(), 1);
+    assert_eq!(s.link.peer_addr(), Some(c.local_addr().unwrap()));
 
     c.write_all(b"M115\nG0 X10\n").unwrap();
-    assert_eq!(receive(&mut link, 12), b"M115\nG0 X10\n");
+    assert_eq!(receive(&mut s, 12), b"M115\nG0 X10\n");
 
-    link.write_all(b"ok\nok\n").unwrap();
-    link.flush().unwrap();
+    s.link.write_all(b"ok\nok\n").unwrap();
+    s.link.flush().unwrap();
     let mut buf = [0u8; 6];
     c.read_exact(&mut buf).unwrap();
     assert_eq!(&buf, b"ok\nok\n");
@@ -73,38 +89,81 @@ fn carries_bytes_both_ways() {
 
 #[test]
 fn a_second_client_is_refused_with_the_busy_message() {
-    let mut link = bind();
-    let mut first = client(&link);
-    poll_until(&mut link, |l| l.state() == LinkState::Connected);
+    let mut s = served(bind());
+    let mut first = client(&s.link);
+    poll_until(&mut s, |s| s.link.state() == LinkState::Connected);
 
-    let mut second = client(&link);
-    poll_until(&mut link, |l| l.refused() == 1);
+    let mut second = client(&s.link);
+    poll_until(&mut s, |s| s.link.refused() == 1);
     let mut text = String::new();
     second.read_to_string(&mut text).unwrap();
     assert_eq!(text, "error: busy\n", "one line, then closed");
 
     // The first client keeps control.
-    assert_eq!(link.connections(), 1);
+    assert_eq!(s.link.connections(), 1);
     first.write_all(b"?").unwrap();
-    assert_eq!(receive(&mut link, 1), b"?");
+    assert_eq!(receive(&mut s, 1), b"?");
 
     // Once it leaves, the next client is accepted.
     drop(first);
-    poll_until(&mut link, |l| l.state() == LinkState::Disconnected);
-    let _third = client(&link);
-    poll_until(&mut link, |l| l.state() == LinkState::Connected);
-    assert_eq!(link.connections(), 2);
-    assert_eq!(link.refused(), 1);
+    poll_until(&mut s, |s| s.link.state() == LinkState::Disconnected);
+    let _third = client(&s.link);
+    poll_until(&mut s, |s| s.link.state() == LinkState::Connected);
+    assert_eq!(s.link.connections(), 2);
+    assert_eq!(s.link.refused(), 1);
+}
+
+/// The refusal is the session's decision, and so is the admission of the next client: the
+/// session that refused the second client admits a third once the first has closed, and
+/// starts its keep-alives afresh.
+#[test]
+fn the_session_admits_and_refuses() {
+    let mut s = served(bind());
+    let first = client(&s.link);
+    let start = Instant::now();
+    while !s.link.admit(&mut s.session, 100).unwrap() {
+        assert!(start.elapsed() < TIMEOUT, "timed out");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    assert!(s.session.is_connected());
+    assert_eq!(
+        s.session.poll_at(),
+        Some(1_100),
+        "keep-alives from the admission"
+    );
+
+    let mut second = client(&s.link);
+    poll_until(&mut s, |s| s.link.refused() == 1);
+    let mut text = String::new();
+    second.read_to_string(&mut text).unwrap();
+    assert_eq!(text, "error: busy\n");
+    assert!(s.session.is_connected(), "the controller is untouched");
+    assert_eq!(s.session.poll(1_100), Some(SessionAction::SendKeepAlive(0)));
+
+    drop(first);
+    let _third = client(&s.link);
+    let start = Instant::now();
+    loop {
+        let _ = s.link.poll();
+        if s.link.admit(&mut s.session, 5_000).unwrap() {
+            break;
+        }
+        assert!(start.elapsed() < TIMEOUT, "timed out");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    assert_eq!((s.link.connections(), s.link.refused()), (2, 1));
+    assert_eq!(s.session.poll(5_999), None);
+    assert_eq!(s.session.poll(6_000), Some(SessionAction::SendKeepAlive(0)));
 }
 
 #[test]
 fn writes_without_a_client_are_discarded() {
-    let mut link = bind();
-    assert!(embedded_io::WriteReady::write_ready(&mut link).unwrap());
-    assert_eq!(link.write(b"nobody hears this\n").unwrap(), 18);
-    let mut c = client(&link);
-    poll_until(&mut link, |l| l.state() == LinkState::Connected);
-    link.write_all(b"ok\n").unwrap();
+    let mut s = served(bind());
+    assert!(embedded_io::WriteReady::write_ready(&mut s.link).unwrap());
+    assert_eq!(s.link.write(b"nobody hears this\n").unwrap(), 18);
+    let mut c = client(&s.link);
+    poll_until(&mut s, |s| s.link.state() == LinkState::Connected);
+    s.link.write_all(b"ok\n").unwrap();
     let mut buf = [0u8; 3];
     c.read_exact(&mut buf).unwrap();
     assert_eq!(&buf, b"ok\n");
@@ -123,13 +182,13 @@ fn fault_injection_over_tcp_is_reproducible() {
         .unwrap()
         .apply_all(&data, &mut expected);
 
-    let mut link = FaultInjector::new(bind(), config).unwrap();
-    let mut c = client(link.inner());
-    poll_until(&mut link, |l| l.state() == LinkState::Connected);
+    let mut s = served(FaultInjector::new(bind(), config).unwrap());
+    let mut c = client(s.link.inner());
+    poll_until(&mut s, |s| s.link.state() == LinkState::Connected);
     c.write_all(&data).unwrap();
-    let got = receive(&mut link, expected.len());
+    let got = receive(&mut s, expected.len());
     assert_eq!(got, expected);
-    let stats = link.stats();
+    let stats = s.link.stats();
     assert_eq!(stats.bytes, data.len() as u64);
     assert!(stats.dropped > 100 && stats.corrupted > 200, "{stats:?}");
 }

@@ -25,6 +25,7 @@ use core::fmt;
 use std::collections::VecDeque;
 
 use embedded_io::{ErrorType, Read, ReadReady, Write, WriteReady};
+use forja_drivers::session::LinkSession;
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use rand_chacha::ChaCha8Rng;
 use rand_core::{Rng, SeedableRng};
@@ -282,6 +283,10 @@ impl<L: HostLink> HostLink for FaultInjector<L> {
 
     fn connections(&self) -> u64 {
         self.inner.connections()
+    }
+
+    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
+        self.inner.admit(session, now_ms)
     }
 }
 

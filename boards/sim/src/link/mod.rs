@@ -8,7 +8,7 @@
 //!
 //! | link | what | connected while |
 //! |---|---|---|
-//! | [`TcpLink`] | a listening socket, one controlling client at a time | a client is accepted and has not closed |
+//! | [`TcpLink`] | a listening socket, one controlling client at a time, as a [`LinkSession`] decides ([`HostLink::admit`]) | a client is admitted and has not closed |
 //! | [`PtyLink`] | a pseudo-terminal pair; host software opens the slave (`/dev/pts/N`) | some process holds the slave open |
 //! | [`MemoryLink`] | an in-process pipe to a [`MemoryHost`], for tests and scripted jobs | the [`MemoryHost`] exists |
 //! | [`FaultInjector`] | wraps any of them; corrupts and drops received bytes | as the wrapped link |
@@ -16,9 +16,11 @@
 //! # Polling
 //!
 //! OS links are non-blocking and buffered: [`HostLink::poll`] (context: thread; never blocks)
-//! accepts or notices the loss of a peer, moves received bytes into the receive buffer and
-//! sends what the transmit buffer holds. The simulation's thread side calls it once per turn,
-//! then reads while [`ReadReady::read_ready`] says so; that read never blocks.
+//! notices the loss of a peer, moves received bytes into the receive buffer and sends what the
+//! transmit buffer holds; on a connection-oriented link, [`HostLink::admit`] then lets the
+//! port's [`LinkSession`] admit or refuse the peers that connected. The simulation's thread
+//! side calls both once per turn, then reads while [`ReadReady::read_ready`] says so; that read
+//! never blocks.
 //! [`ReadReady::read_ready`] on an empty buffer and every [`Write::write`] service the link
 //! too, so received bytes are seen and replies leave without waiting for the next poll.
 //!
@@ -46,6 +48,7 @@ pub use memory::{MemoryHost, MemoryLink};
 pub use pty::PtyLink;
 pub use tcp::TcpLink;
 
+use forja_drivers::session::LinkSession;
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 
 /// Most bytes a link's receive buffer holds.
@@ -69,6 +72,28 @@ pub trait HostLink: Read + ReadReady + Write + WriteReady + LinkStatus {
     /// How many peers have connected so far: a change tells the protocol layer that a new host
     /// is there and its decoder should start afresh.
     fn connections(&self) -> u64;
+
+    /// Let `session` decide, at `now_ms`, on what happened on a connection-oriented link since
+    /// the last call, in the order it happened: a controlling peer that closed is
+    /// [`LinkSession::on_disconnect`], each peer that connected is [`LinkSession::on_connect`],
+    /// and the link carries out the answer: [`SessionAction::SendConnected`] makes it the
+    /// controlling peer, [`SessionAction::RefuseSecondClient`] sends it the link's busy message
+    /// and closes it. Returns `true` when a peer became the controller (the caller greets it
+    /// with frame 54); the keep-alives are the caller's, from [`LinkSession::poll`].
+    ///
+    /// The link admits nobody unless this is called; a link without connections (a terminal,
+    /// an in-process pair) ignores it, which is the provided implementation. Give a link the
+    /// same session at every call, and no other link that session.
+    ///
+    /// Context: thread. Never blocks, but for the short write of a refusal. Errors: as
+    /// [`HostLink::poll`].
+    ///
+    /// [`SessionAction::SendConnected`]: forja_drivers::session::SessionAction::SendConnected
+    /// [`SessionAction::RefuseSecondClient`]: forja_drivers::session::SessionAction::RefuseSecondClient
+    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
+        let _ = (session, now_ms);
+        Ok(false)
+    }
 }
 
 impl<T: HostLink + ?Sized> HostLink for &mut T {
@@ -77,6 +102,9 @@ impl<T: HostLink + ?Sized> HostLink for &mut T {
     }
     fn connections(&self) -> u64 {
         T::connections(self)
+    }
+    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
+        T::admit(self, session, now_ms)
     }
 }
 
@@ -114,6 +142,9 @@ pub(crate) trait BufferedPort {
     fn buffers(&mut self) -> &mut Buffers;
     fn is_connected(&self) -> bool;
     fn service(&mut self) -> io::Result<()>;
+    fn admit(&mut self, _session: &mut LinkSession, _now_ms: u32) -> io::Result<bool> {
+        Ok(false)
+    }
 }
 
 pub(crate) fn port_read<P: BufferedPort>(port: &mut P, buf: &mut [u8]) -> io::Result<usize> {
@@ -226,6 +257,14 @@ macro_rules! buffered_link {
 
             fn connections(&self) -> u64 {
                 self.connections
+            }
+
+            fn admit(
+                &mut self,
+                session: &mut forja_drivers::session::LinkSession,
+                now_ms: u32,
+            ) -> Result<bool, std::io::Error> {
+                $crate::link::BufferedPort::admit(self, session, now_ms)
             }
         }
     };

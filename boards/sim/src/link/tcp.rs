@@ -3,16 +3,24 @@
 use std::io::{self, Read as _, Write as _};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
 
+use forja_drivers::session::{LinkSession, SessionAction};
+
 use super::{BufferedPort, Buffers, buffered_link};
 
 /// A TCP listener with one controlling client at a time.
 ///
-/// The first client to connect controls the machine until it closes. A client that connects
-/// while another is in control is sent the busy message (given by the protocol layer, e.g. an
-/// error line) and closed; [`TcpLink::refused`] counts them. If the refused client has already
-/// sent bytes that arrive after its connection is drained, the operating system may reset the
-/// connection rather than close it, and the message can be lost; a host that waits for the
-/// controller to speak first always receives it.
+/// Who controls is decided by a [`LinkSession`], the ESP32 board's WiFi link's rules:
+/// [`HostLink::admit`](super::HostLink::admit) accepts the clients waiting on the listener and
+/// reports each to the session (`on_connect`), after reporting the close of the controlling
+/// client (`on_disconnect`), so that a host that closes and reconnects at once is admitted.
+/// The first client controls the machine until it closes; a client that connects while
+/// another is in control (`RefuseSecondClient`) is sent the busy message (given by the
+/// protocol layer, e.g. an error line) and closed, and the controlling client is untouched;
+/// [`TcpLink::refused`] counts them. Until `admit` is called, clients wait in the listener's
+/// backlog. If a refused client has already sent bytes that arrive after its connection is
+/// drained, the operating system may reset the connection rather than close it, and the
+/// message can be lost; a host that waits for the controller to speak first always receives
+/// it.
 ///
 /// Bytes received from a client stay in the receive buffer after it disconnects (they were
 /// sent); unsent replies are discarded. Implements [`super::HostLink`].
@@ -25,6 +33,8 @@ pub struct TcpLink {
     busy_message: Vec<u8>,
     connections: u64,
     refused: u64,
+    /// The controlling client went away and the session was not told yet.
+    closed: bool,
 }
 
 impl TcpLink {
@@ -43,6 +53,7 @@ impl TcpLink {
             busy_message: busy_message.into(),
             connections: 0,
             refused: 0,
+            closed: false,
         })
     }
 
@@ -63,10 +74,12 @@ impl TcpLink {
         self.refused
     }
 
-    /// Close the controlling client's connection, if any.
+    /// Close the controlling client's connection, if any; the session hears of it at the next
+    /// [`HostLink::admit`](super::HostLink::admit).
     pub fn disconnect(&mut self) {
         if let Some(client) = self.client.take() {
             let _ = client.shutdown(Shutdown::Both);
+            self.closed = true;
         }
         self.peer = None;
         self.bufs.tx.clear();
@@ -123,29 +136,12 @@ impl TcpLink {
         }
     }
 
-    fn accept(&mut self) -> io::Result<()> {
+    /// The client waiting on the listener, if any.
+    fn accept(&mut self) -> io::Result<Option<(TcpStream, SocketAddr)>> {
         loop {
             match self.listener.accept() {
-                Ok((stream, addr)) => {
-                    if self.client.is_some() {
-                        // The current client may have closed after the last read, just before
-                        // this one connected (a host that reconnects at once): look again. A
-                        // host closes before it reconnects, so its close is there to be seen.
-                        self.receive();
-                    }
-                    if self.client.is_some() {
-                        self.refuse(stream);
-                        continue;
-                    }
-                    if stream.set_nonblocking(true).is_err() {
-                        continue;
-                    }
-                    let _ = stream.set_nodelay(true);
-                    self.client = Some(stream);
-                    self.peer = Some(addr);
-                    self.connections += 1;
-                }
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(()),
+                Ok(waiting) => return Ok(Some(waiting)),
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(None),
                 Err(e)
                     if matches!(
                         e.kind(),
@@ -156,6 +152,23 @@ impl TcpLink {
                 Err(e) => return Err(e),
             }
         }
+    }
+
+    /// Tell `session` that the controlling client went away, if it did.
+    fn report_close(&mut self, session: &mut LinkSession) {
+        if std::mem::take(&mut self.closed) {
+            session.on_disconnect();
+        }
+    }
+
+    /// Make `stream` the controlling client. Errors: it cannot be made non-blocking.
+    fn take_control(&mut self, stream: TcpStream, addr: SocketAddr) -> io::Result<()> {
+        stream.set_nonblocking(true)?;
+        let _ = stream.set_nodelay(true);
+        self.client = Some(stream);
+        self.peer = Some(addr);
+        self.connections += 1;
+        Ok(())
     }
 }
 
@@ -168,15 +181,31 @@ impl BufferedPort for TcpLink {
         self.client.is_some()
     }
 
-    /// Serve the current client first, so that a client that closed and a new one waiting
-    /// in the same turn hand over rather than the new one being refused.
     fn service(&mut self) -> io::Result<()> {
         self.receive();
         self.send();
-        self.accept()?;
-        self.receive();
-        self.send();
         Ok(())
+    }
+
+    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> io::Result<bool> {
+        self.report_close(session);
+        let mut admitted = false;
+        while let Some((stream, addr)) = self.accept()? {
+            // The controlling client may have closed after the last read, just before this one
+            // connected (a host that reconnects at once): look again, so that the session
+            // hears of the close first. A host closes before it reconnects, so its close is
+            // there to be seen.
+            self.receive();
+            self.report_close(session);
+            match session.on_connect(now_ms) {
+                SessionAction::SendConnected => match self.take_control(stream, addr) {
+                    Ok(()) => admitted = true,
+                    Err(_) => session.on_disconnect(),
+                },
+                _ => self.refuse(stream),
+            }
+        }
+        Ok(admitted)
     }
 }
 
@@ -187,26 +216,60 @@ mod tests {
     use super::*;
     use crate::link::HostLink;
 
+    fn link() -> TcpLink {
+        TcpLink::bind("127.0.0.1:0".parse().unwrap(), b"busy\n".to_vec()).unwrap()
+    }
+
     /// A host that closes and reconnects at once: its close may arrive after the link's last
     /// read and before it accepts the new connection, which must not be refused for it.
     #[test]
     fn a_host_that_reconnects_at_once_is_not_refused() {
-        let mut link = TcpLink::bind("127.0.0.1:0".parse().unwrap(), b"busy\n".to_vec()).unwrap();
+        let mut link = link();
+        let mut session = LinkSession::new(1_000);
         let addr = link.local_addr().unwrap();
         let first = TcpStream::connect(addr).unwrap();
         while link.connections() == 0 {
             link.poll().unwrap();
+            HostLink::admit(&mut link, &mut session, 0).unwrap();
         }
         // The close and the new connection both come between two reads.
         drop(first);
         let mut second = TcpStream::connect(addr).unwrap();
         std::thread::sleep(std::time::Duration::from_millis(20));
-        link.accept().unwrap();
+        assert!(
+            HostLink::admit(&mut link, &mut session, 10).unwrap(),
+            "admitted"
+        );
         assert_eq!(link.refused(), 0);
         assert_eq!(link.connections(), 2);
+        assert_eq!(session.poll_at(), Some(1_010), "a new session");
         embedded_io::Write::write_all(&mut link, b"ok\n").unwrap();
         let mut buf = [0u8; 3];
         second.read_exact(&mut buf).unwrap();
         assert_eq!(&buf, b"ok\n");
+    }
+
+    /// Admission is the session's: a session that already has a controller refuses the first
+    /// client of a new link, and one that has none admits it.
+    #[test]
+    fn the_session_decides() {
+        let mut link = link();
+        let addr = link.local_addr().unwrap();
+        let mut taken = LinkSession::new(1_000);
+        assert_eq!(taken.on_connect(0), SessionAction::SendConnected);
+        let mut refused = TcpStream::connect(addr).unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        assert!(!HostLink::admit(&mut link, &mut taken, 5).unwrap());
+        assert_eq!((link.connections(), link.refused()), (0, 1));
+        let mut text = String::new();
+        refused.read_to_string(&mut text).unwrap();
+        assert_eq!(text, "busy\n");
+
+        taken.on_disconnect();
+        let _admitted = TcpStream::connect(addr).unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        assert!(HostLink::admit(&mut link, &mut taken, 5).unwrap());
+        assert_eq!((link.connections(), link.refused()), (1, 1));
+        assert!(taken.is_connected());
     }
 }
