@@ -46,6 +46,10 @@ from unicorn.arm_const import (
 
 MEASURED = ("bench_isr", "bench_prep", "bench_line")
 
+# A guard against an image that never ends (the count takes under a minute, `--exact` about
+# ten).
+TIMEOUT_US = 60 * 60 * 1_000_000
+
 # The STM32F4's memories (the largest of the family, so that every pin map's image fits) and
 # the System Control Space, where the reset code enables the FPU (the write lands in RAM; the
 # emulated core runs FPU instructions without it).
@@ -115,7 +119,8 @@ class Counter:
         self.stats = {}
         self.results = []
         self.total = 0
-        self.failed = False
+        self.failed = None
+        self.faults = set()
 
     def block_length(self, address, size):
         """Instructions in the Thumb-2 block at `address` of `size` bytes."""
@@ -175,7 +180,10 @@ class Counter:
             r = [self.uc.reg_read(x) for x in (UC_ARM_REG_R0, UC_ARM_REG_R1, UC_ARM_REG_R2)]
             self.results.append(r)
         elif address == self.failed_at:
-            self.failed = True
+            self.failed = "the image reached bench_failed (a panic, or a refused set-up)"
+            self.uc.emu_stop()
+        elif address in self.faults:
+            self.failed = f"the core took an exception (handler at {address:#010x})"
             self.uc.emu_stop()
         if self.active is not None:
             self.current += n
@@ -208,18 +216,24 @@ def main(argv):
     uc.reg_write(UC_ARM_REG_SP, sp)
 
     counter = Counter(uc, symbols)
+    # The core's exception handlers (NMI, HardFault, MemManage, BusFault, UsageFault, …): the
+    # image has no interrupt sources here, so reaching one is a fault (an FPU instruction the
+    # emulated core refused, a bad access) and ends the count.
+    vectors = struct.unpack("<14I", uc.mem_read(MEMORY[0][0] + 8, 56))
+    counter.faults = {v & ~1 for v in vectors if v & 1}
     if exact:
         uc.hook_add(UC_HOOK_CODE, counter.on_instruction)
     else:
         uc.hook_add(UC_HOOK_BLOCK, counter.on_block)
     try:
-        uc.emu_start(reset | 1, counter.addr["bench_done"])
+        uc.emu_start(reset | 1, counter.addr["bench_done"], timeout=TIMEOUT_US)
     except UcError as e:
         fail(f"emulation stopped at {uc.reg_read(UC_ARM_REG_PC):#010x}: {e}")
     if counter.failed:
-        fail("the image reached bench_failed (a panic, or a refused set-up)")
+        fail(counter.failed)
     if uc.reg_read(UC_ARM_REG_PC) != counter.addr["bench_done"]:
-        fail(f"emulation ended at {uc.reg_read(UC_ARM_REG_PC):#010x}, not at bench_done")
+        pc = uc.reg_read(UC_ARM_REG_PC)
+        fail(f"emulation ended at {pc:#010x}, not at bench_done (time limit reached?)")
 
     for (phase, name), (calls, total, lo, hi) in sorted(counter.stats.items()):
         print(f"marker {phase} {name} {calls} {total} {lo} {hi}")

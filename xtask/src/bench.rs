@@ -17,8 +17,8 @@ use std::process::Command;
 use crate::firmware;
 use crate::{Step, root};
 
-/// Unicorn from PyPI (a manylinux wheel: nothing is compiled).
-const UNICORN: &str = "unicorn==2.1.1";
+/// The Unicorn release from PyPI (a manylinux wheel: nothing is compiled).
+const UNICORN_VERSION: &str = "2.1.1";
 
 /// The bench image, an example of the STM32F4 firmware crate.
 const EXAMPLE: &str = "kernel_bench";
@@ -29,8 +29,7 @@ const CORE_HZ: f64 = 168e6;
 /// Most instructions per step event in the step interrupt.
 const STEP_EVENT_BUDGET: u64 = 200;
 
-/// Most instructions per planned 1 mm `G1` line (5,000 lines/s at 168 MHz with 10 % of the
-/// core, rounded down).
+/// Most instructions per planned 1 mm `G1` line (over 5,000 lines/s on a 168 MHz core).
 const LINE_BUDGET: u64 = 30_000;
 
 /// The phases of the bench image, in its order (see the example's documentation).
@@ -89,28 +88,44 @@ pub fn on_target() -> Result<(), String> {
             ),
             build,
         ),
-        Step::call("Unicorn in target/bench-venv".to_string(), || {
-            ensure_venv().map(drop)
-        }),
+        Step::call(
+            format!("Unicorn {UNICORN_VERSION} in target/bench-venv"),
+            ensure_venv,
+        ),
     ])?;
-    let python = ensure_venv()?;
-    eprintln!("\n==> instruction count of {}", image.display());
-    let counts = count(&python, &image)?;
+    eprintln!(
+        "\n==> instruction count of {} (about a minute)",
+        image.display()
+    );
+    let counts = count(&venv_python(), &image)?;
     report(&counts, variant.feature)
 }
 
-/// The virtual environment's Python, with Unicorn; created and filled when missing.
-fn ensure_venv() -> Result<PathBuf, String> {
+/// The virtual environment's Python.
+fn venv_python() -> PathBuf {
+    root()
+        .join("target")
+        .join("bench-venv")
+        .join("bin")
+        .join("python")
+}
+
+/// Create the virtual environment and install Unicorn into it, unless it has the right one.
+fn ensure_venv() -> Result<(), String> {
     let venv = root().join("target").join("bench-venv");
-    let python = venv.join("bin").join("python");
+    let python = venv_python();
+    let check = format!(
+        "import importlib.metadata as m, sys; sys.exit(m.version('unicorn') != '{UNICORN_VERSION}')"
+    );
     let ready = Command::new(&python)
-        .args(["-c", "import unicorn"])
+        .args(["-c", &check])
         .output()
         .is_ok_and(|o| o.status.success());
     if ready {
-        return Ok(python);
+        return Ok(());
     }
-    eprintln!("installing {UNICORN} into {}", venv.display());
+    let unicorn = format!("unicorn=={UNICORN_VERSION}");
+    eprintln!("installing {unicorn} into {}", venv.display());
     let status = Command::new("python3")
         .args(["-m", "venv"])
         .arg(&venv)
@@ -129,14 +144,14 @@ fn ensure_venv() -> Result<PathBuf, String> {
             "install",
             "--quiet",
             "--disable-pip-version-check",
-            UNICORN,
+            &unicorn,
         ])
         .status()
         .map_err(|e| format!("{}: {e}", python.display()))?;
     if status.success() {
-        Ok(python)
+        Ok(())
     } else {
-        Err(format!("pip install {UNICORN} failed"))
+        Err(format!("pip install {unicorn} failed"))
     }
 }
 
@@ -205,17 +220,71 @@ fn thousands(n: u64) -> String {
     out
 }
 
-/// A rate at 168 MHz with one instruction per cycle, e.g. `672k/s`.
-fn rate(per_unit: f64) -> String {
-    format!("{:.0}k/s", CORE_HZ / per_unit / 1e3)
+/// One row of a table: a measured function in one phase.
+struct Row<'a> {
+    what: &'a str,
+    calls: &'a Marker,
+    /// Instructions per unit (step event or line).
+    per_unit: f64,
+    /// Instructions per unit that the "at 168 MHz" rate is computed from.
+    for_rate: f64,
+    budget: Option<u64>,
+}
+
+/// Print a table of `rows` under `title`, in instructions per `unit` (a column heading, and
+/// `unit_name` in messages); returns the rows over their budget.
+fn table(title: &str, unit: &str, unit_name: &str, rows: &[Row<'_>]) -> Vec<String> {
+    println!(
+        "\n{title:<44} {:>9} {:>22} {:>10} {:>8} {:>6} {:>11}",
+        "calls", "per call min/avg/max", unit, "budget", "ratio", "at 168 MHz"
+    );
+    let mut over = Vec::new();
+    for r in rows {
+        let m = r.calls;
+        let per_call = format!(
+            "{}/{}/{}",
+            thousands(m.min),
+            thousands((m.total as f64 / m.calls as f64).round() as u64),
+            thousands(m.max)
+        );
+        let (budget, ratio) = match r.budget {
+            Some(b) => (thousands(b), format!("{:.2}", r.per_unit / b as f64)),
+            None => ("-".to_string(), "-".to_string()),
+        };
+        let exceeded = r.budget.is_some_and(|b| r.per_unit > b as f64);
+        println!(
+            "{:<44} {:>9} {per_call:>22} {:>10} {budget:>8} {ratio:>6} {:>9}k/s{}",
+            r.what,
+            thousands(m.calls),
+            format_per_unit(r.per_unit),
+            (CORE_HZ / r.for_rate / 1e3).round(),
+            if exceeded { "  OVER" } else { "" }
+        );
+        if exceeded {
+            over.push(format!(
+                "{title}, {}: {} instructions per {unit_name} (budget {budget})",
+                r.what,
+                format_per_unit(r.per_unit)
+            ));
+        }
+    }
+    over
+}
+
+/// Instructions per unit: one decimal below 1,000, whole numbers above.
+fn format_per_unit(x: f64) -> String {
+    if x < 1000.0 {
+        format!("{x:.1}")
+    } else {
+        thousands(x.round() as u64)
+    }
 }
 
 fn report(counts: &Counts, variant: &str) -> Result<(), String> {
-    let marker = |phase: u32, name: &str| -> Result<Marker, String> {
+    let marker = |phase: u32, name: &str| -> Result<&Marker, String> {
         counts
             .markers
             .get(&(phase, name.to_string()))
-            .copied()
             .filter(|m| m.calls > 0)
             .ok_or_else(|| format!("the counter saw no call of {name} in phase {phase}"))
     };
@@ -227,105 +296,66 @@ fn report(counts: &Counts, variant: &str) -> Result<(), String> {
             .filter(|r| r.step_events > 0 && r.lines > 0)
             .ok_or_else(|| format!("phase {phase} reported no step events or no lines"))
     };
-    let mut over = Vec::new();
     println!(
-        "\nMotion kernel on the Cortex-M4 (thumbv7em-none-eabihf, release profile, {variant} \
-         build; Unicorn; {} instructions executed in all)",
+        "\nMotion kernel as Cortex-M4 machine code: thumbv7em-none-eabihf, release profile, \
+         {variant} build,\n{} instructions emulated in all.",
         thousands(counts.total)
     );
-    println!(
-        "\n{:<42} {:>9} {:>19} {:>12} {:>8} {:>7} {:>13}",
-        "step interrupt (StepGenerator::on_alarm)",
-        "calls",
-        "per call min/avg/max",
-        "per step ev.",
-        "budget",
-        "ratio",
-        "at 168 MHz"
-    );
+    let mut isr = Vec::new();
+    let mut prep = Vec::new();
     for &(phase, what) in PHASES {
-        let m = marker(phase, "bench_isr")?;
-        let r = result(phase)?;
-        let per_event = m.total as f64 / r.step_events as f64;
-        let ratio = per_event / STEP_EVENT_BUDGET as f64;
-        println!(
-            "{what:<42} {:>9} {:>19} {per_event:>12.1} {STEP_EVENT_BUDGET:>8} {ratio:>7.2} {:>13}{}",
-            thousands(m.calls),
-            format!("{}/{:.0}/{}", m.min, m.total as f64 / m.calls as f64, m.max),
-            rate(per_event),
-            if ratio > 1.0 { "  OVER" } else { "" }
-        );
-        if ratio > 1.0 {
-            over.push(format!(
-                "step interrupt, {what}: {per_event:.1} instructions per step event \
-                 (budget {STEP_EVENT_BUDGET})"
-            ));
-        }
+        let steps = result(phase)?.step_events as f64;
+        let i = marker(phase, "bench_isr")?;
+        let p = marker(phase, "bench_prep")?;
+        isr.push(Row {
+            what,
+            calls: i,
+            per_unit: i.total as f64 / steps,
+            for_rate: i.total as f64 / steps,
+            budget: Some(STEP_EVENT_BUDGET),
+        });
+        prep.push(Row {
+            what,
+            calls: p,
+            per_unit: p.total as f64 / steps,
+            for_rate: (p.total + i.total) as f64 / steps,
+            budget: None,
+        });
     }
-    let m = marker(3, "bench_line")?;
-    let r = result(3)?;
-    let per_line = m.total as f64 / r.lines as f64;
-    let ratio = per_line / LINE_BUDGET as f64;
-    println!(
-        "\n{:<42} {:>9} {:>19} {:>12} {:>8} {:>7} {:>13}",
-        "planning (Line::parse + Kernel::execute)",
-        "calls",
-        "per call min/avg/max",
-        "per line",
-        "budget",
-        "ratio",
-        "at 168 MHz"
+    let line = marker(3, "bench_line")?;
+    let per_line = line.total as f64 / result(3)?.lines as f64;
+    let mut over = table(
+        "step interrupt: StepGenerator::on_alarm",
+        "/step ev.",
+        "step event",
+        &isr,
     );
+    over.extend(table(
+        "planning: Line::parse + Kernel::execute",
+        "/line",
+        "line",
+        &[Row {
+            what: PHASES[2].1,
+            calls: line,
+            per_unit: per_line,
+            for_rate: per_line,
+            budget: Some(LINE_BUDGET),
+        }],
+    ));
+    over.extend(table(
+        "segment preparation: Kernel::poll",
+        "/step ev.",
+        "step event",
+        &prep,
+    ));
     println!(
-        "{:<42} {:>9} {:>19} {per_line:>12.0} {:>8} {ratio:>7.2} {:>13}{}",
-        PHASES[2].1,
-        thousands(m.calls),
-        format!("{}/{per_line:.0}/{}", thousands(m.min), thousands(m.max)),
-        thousands(LINE_BUDGET),
-        rate(per_line),
-        if ratio > 1.0 { "  OVER" } else { "" }
-    );
-    if ratio > 1.0 {
-        over.push(format!(
-            "planning: {per_line:.0} instructions per 1 mm line (budget {LINE_BUDGET})"
-        ));
-    }
-    println!(
-        "\n{:<42} {:>9} {:>19} {:>12} {:>8} {:>7} {:>13}",
-        "segment preparation (Kernel::poll)",
-        "calls",
-        "per call min/avg/max",
-        "per step ev.",
-        "+ isr",
-        "",
-        "at 168 MHz"
-    );
-    for &(phase, what) in PHASES {
-        let m = marker(phase, "bench_prep")?;
-        let isr = marker(phase, "bench_isr")?;
-        let r = result(phase)?;
-        let per_event = m.total as f64 / r.step_events as f64;
-        let both = (m.total + isr.total) as f64 / r.step_events as f64;
-        println!(
-            "{what:<42} {:>9} {:>19} {per_event:>12.1} {both:>8.0} {:>7} {:>13}",
-            thousands(m.calls),
-            format!(
-                "{}/{:.0}/{}",
-                m.min,
-                m.total as f64 / m.calls as f64,
-                thousands(m.max)
-            ),
-            "",
-            rate(both)
-        );
-    }
-    println!(
-        "\nper step event: all instructions of the calls during the phase divided by its step \
-         events (rising edges, all axes), pulse-end and direction calls included; a call counts \
-         from the measured function's first instruction to its return, callees included. \
-         \"at 168 MHz\": step events per second if every instruction took one cycle and the \
-         core did nothing else (flash wait states and multi-cycle instructions make cycles \
-         more); for segment preparation, with the interrupt's instructions added (\"+ isr\")."
+        "\nPer step event: the instructions of every call during the phase divided by its step \
+         events\n(rising edges, all axes), pulse-end and direction calls included. A call counts \
+         from the\nmeasured function's first instruction to its return, callees included. \
+         \"at 168 MHz\": steps\n(or lines) per second if each instruction took one cycle and \
+         the core did nothing else;\nfor segment preparation, the step interrupt's instructions \
+         added. Flash wait states and\nmulti-cycle instructions make the cycles more than the \
+         instructions."
     );
     if over.is_empty() {
         Ok(())

@@ -6,7 +6,8 @@
 //! functions below in the symbol table and counts the instructions executed from each one's
 //! first instruction to its return. Nothing here touches a peripheral: the step and
 //! direction lines are the firmware's own drivers (`StepDir`, `LimitInput`) over pins whose
-//! register writes go to statics, one store per edge as on a GPIO's BSRR.
+//! register accesses go to statics: one volatile store per edge, one volatile load per switch
+//! sample, as on a GPIO's BSRR and IDR.
 //!
 //! | marker | what one call runs |
 //! |---|---|
@@ -33,7 +34,7 @@ use core::convert::Infallible;
 use core::fmt::Write as _;
 use core::hint::black_box;
 use core::panic::PanicInfo;
-use core::sync::atomic::{AtomicU32, Ordering};
+use core::sync::atomic::AtomicU32;
 
 use cortex_m_rt::entry;
 use embedded_hal::digital::{ErrorType, InputPin, OutputPin};
@@ -63,10 +64,27 @@ const POLL_TICKS: u32 = TICK_HZ / 1000;
 /// Lines of the 1 mm path.
 const PATH_LINES: u32 = 1000;
 
-/// Stands in for a GPIO port's bit set/reset register: every edge is one store to it.
+/// Stands in for a GPIO port's bit set/reset register: every edge is one volatile store to
+/// it, as to the register (so that the compiler keeps every one).
 static GPIO_BSRR: AtomicU32 = AtomicU32::new(0);
-/// Stands in for a GPIO port's input data register: all switch inputs low (released).
+/// Stands in for a GPIO port's input data register: every switch sample is one volatile load
+/// of it. It stays 0, all switch inputs low: released.
 static GPIO_IDR: AtomicU32 = AtomicU32::new(0);
+
+/// A volatile store to `register`, as a GPIO register write.
+#[inline]
+fn write_register(register: &AtomicU32, value: u32) {
+    // SAFETY: the pointer comes from a live, aligned static, and nothing else accesses the
+    // static at the same time (the bench runs on one core without interrupts).
+    unsafe { register.as_ptr().write_volatile(value) }
+}
+
+/// A volatile load of `register`, as a GPIO register read.
+#[inline]
+fn read_register(register: &AtomicU32) -> u32 {
+    // SAFETY: as in `write_register`.
+    unsafe { register.as_ptr().read_volatile() }
+}
 
 /// An output line written through [`GPIO_BSRR`], as `stm32f4xx-hal` writes BSRR.
 struct RegPin {
@@ -80,13 +98,13 @@ impl ErrorType for RegPin {
 impl OutputPin for RegPin {
     #[inline]
     fn set_low(&mut self) -> Result<(), Infallible> {
-        GPIO_BSRR.store(self.mask << 16, Ordering::Relaxed);
+        write_register(&GPIO_BSRR, self.mask << 16);
         Ok(())
     }
 
     #[inline]
     fn set_high(&mut self) -> Result<(), Infallible> {
-        GPIO_BSRR.store(self.mask, Ordering::Relaxed);
+        write_register(&GPIO_BSRR, self.mask);
         Ok(())
     }
 }
@@ -103,7 +121,7 @@ impl ErrorType for RegInput {
 impl InputPin for RegInput {
     #[inline]
     fn is_high(&mut self) -> Result<bool, Infallible> {
-        Ok(GPIO_IDR.load(Ordering::Relaxed) & self.mask != 0)
+        Ok(read_register(&GPIO_IDR) & self.mask != 0)
     }
 
     #[inline]
@@ -330,8 +348,12 @@ fn main() -> ! {
     };
     let driver = StepDirConfig::new(timing);
     let stepper = |n: u32| {
-        StepDir::new(RegPin { mask: 1 << n }, RegPin { mask: 1 << (n + 8) }, driver)
-            .unwrap_or_else(|_| bench_failed())
+        StepDir::new(
+            RegPin { mask: 1 << n },
+            RegPin { mask: 1 << (n + 8) },
+            driver,
+        )
+        .unwrap_or_else(|_| bench_failed())
     };
     let limit = LimitConfig::new(Polarity::NormallyClosed, 3);
     let switch = |n: u32| LimitInput::new(RegInput { mask: 1 << n }, limit);
