@@ -71,7 +71,7 @@ use core::ops::Range;
 
 use embedded_storage::nor_flash::{NorFlash, NorFlashError};
 use forja_motion::error::StoreError;
-use forja_motion::job::{MAX_LINE_LEN, MAX_LINES, ProgramStore};
+use forja_motion::job::{MAX_LINE_LEN, MAX_LINES, ProgramStore, check_next_line};
 
 use crate::storage::StorageError;
 
@@ -283,19 +283,7 @@ impl<F: NorFlash> ProgramStore for SlotProgramStore<F> {
     /// Line 1 erases sector 0 unless [`clear`](ProgramStore::clear) just did; the last line
     /// of each sector erases the next one first.
     fn store(&mut self, index: u16, text: &[u8]) -> Result<(), StoreError> {
-        let expected = self.count.saturating_add(1);
-        if index != expected {
-            return Err(StoreError::OutOfOrder {
-                expected,
-                got: index,
-            });
-        }
-        if text.len() > MAX_LINE_LEN {
-            return Err(StoreError::TooLong);
-        }
-        if index > self.capacity {
-            return Err(StoreError::Full);
-        }
+        check_next_line(self.count, self.capacity, index, text.len())?;
         let slot = index - 1;
         if self.tail_dirty {
             if slot != 0 {

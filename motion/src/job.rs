@@ -70,6 +70,32 @@ impl<T: ProgramStore + ?Sized> ProgramStore for &mut T {
     }
 }
 
+/// The rule every [`ProgramStore`] applies before it stores line `index` of `len` bytes, holding
+/// `count` lines with room for `capacity`: lines come strictly in order (1, 2, …), are at most
+/// [`MAX_LINE_LEN`] bytes, and fit. The errors come in that order, and a refused line leaves the
+/// store as it was.
+pub fn check_next_line(
+    count: u16,
+    capacity: u16,
+    index: u16,
+    len: usize,
+) -> Result<(), StoreError> {
+    let expected = count.saturating_add(1);
+    if index != expected {
+        return Err(StoreError::OutOfOrder {
+            expected,
+            got: index,
+        });
+    }
+    if len > MAX_LINE_LEN {
+        return Err(StoreError::TooLong);
+    }
+    if index > capacity {
+        return Err(StoreError::Full);
+    }
+    Ok(())
+}
+
 /// A program store in RAM with room for `L` lines (at most [`MAX_LINES`] are ever accepted).
 pub struct RamStore<const L: usize> {
     lines: [[u8; MAX_LINE_LEN]; L],
@@ -112,20 +138,9 @@ impl<const L: usize> ProgramStore for RamStore<L> {
     }
 
     fn store(&mut self, index: u16, text: &[u8]) -> Result<(), StoreError> {
-        let expected = self.count.saturating_add(1);
-        if index != expected {
-            return Err(StoreError::OutOfOrder {
-                expected,
-                got: index,
-            });
-        }
-        if text.len() > MAX_LINE_LEN {
-            return Err(StoreError::TooLong);
-        }
+        let capacity = u16::try_from(L).unwrap_or(MAX_LINES).min(MAX_LINES);
+        check_next_line(self.count, capacity, index, text.len())?;
         let k = usize::from(self.count);
-        if index > MAX_LINES {
-            return Err(StoreError::Full);
-        }
         let (Some(line), Some(len)) = (self.lines.get_mut(k), self.lens.get_mut(k)) else {
             return Err(StoreError::Full);
         };

@@ -10,7 +10,7 @@ use forja_hal_abstraction::storage::RecordStorage;
 use forja_hal_abstraction::{Error as _, ErrorKind};
 
 use crate::error::StoreError;
-use crate::job::{MAX_LINE_LEN, MAX_LINES, ProgramStore};
+use crate::job::{MAX_LINE_LEN, MAX_LINES, ProgramStore, check_next_line};
 
 /// The record key of the header (the number of lines).
 pub const HEADER_RECORD: u16 = 0x1000;
@@ -95,19 +95,7 @@ impl<S: RecordStorage> ProgramStore for RecordProgramStore<S> {
     }
 
     fn store(&mut self, index: u16, text: &[u8]) -> Result<(), StoreError> {
-        let expected = self.count.saturating_add(1);
-        if index != expected {
-            return Err(StoreError::OutOfOrder {
-                expected,
-                got: index,
-            });
-        }
-        if text.len() > MAX_LINE_LEN {
-            return Err(StoreError::TooLong);
-        }
-        if index > self.capacity {
-            return Err(StoreError::Full);
-        }
+        check_next_line(self.count, self.capacity, index, text.len())?;
         self.storage
             .write(LINE_RECORDS + index, text)
             .map_err(|e| store_error(e.kind()))?;
