@@ -324,6 +324,24 @@ macro_rules! display_and_error {
 
 display_and_error!(LineError, FrameError, EncodeError, ReplyError);
 
+/// `E<1 to 5 digits>` then the end or a space, the number not 0: the code and the rest, as on
+/// `!!` and `//` lines and in frame 56. `E0` is not a code: code 0 means none.
+pub(crate) fn split_code(text: &str) -> Option<(u32, &str)> {
+    let rest = text.strip_prefix('E')?;
+    let n = rest.bytes().take_while(u8::is_ascii_digit).count();
+    if !(1..=5).contains(&n) {
+        return None;
+    }
+    let (code, after) = rest.split_at_checked(n)?;
+    let detail = match after.strip_prefix(' ') {
+        Some(detail) => detail,
+        None if after.is_empty() => after,
+        None => return None,
+    };
+    let code: u32 = code.parse().ok()?;
+    (code > 0).then_some((code, detail))
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used, clippy::panic, clippy::indexing_slicing)]
 mod tests {

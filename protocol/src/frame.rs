@@ -26,8 +26,8 @@
 use heapless::Vec;
 
 pub use crate::decimal::Decimal;
-use crate::error::WireError;
 pub use crate::error::{EncodeError, FrameError};
+use crate::error::{WireError, split_code};
 use crate::write::{Cursor, Sink};
 
 /// Bytes in one frame: `N`, two type digits, the payload, `F`.
@@ -688,24 +688,6 @@ fn text_field(p: &[u8]) -> Result<&str, FrameError> {
 fn split_setting(text: &str) -> Option<(&str, &str)> {
     let (key, value) = text.split_once('=')?;
     (!key.is_empty() && key.bytes().all(is_key)).then_some((key, value))
-}
-
-/// `E<1 to 5 digits>` then the end or a space, the number not 0: the code and the rest. `E0`
-/// is not a code: code 0 means none.
-fn split_code(text: &str) -> Option<(u32, &str)> {
-    let rest = text.strip_prefix('E')?;
-    let n = rest.bytes().take_while(u8::is_ascii_digit).count();
-    if !(1..=5).contains(&n) {
-        return None;
-    }
-    let (code, after) = rest.split_at_checked(n)?;
-    let detail = match after.strip_prefix(' ') {
-        Some(detail) => detail,
-        None if after.is_empty() => after,
-        None => return None,
-    };
-    let code = digits(code.as_bytes())?;
-    (code > 0).then_some((code, detail))
 }
 
 fn parse_setting_request(p: &[u8]) -> Result<ClientMessage<'_>, FrameError> {

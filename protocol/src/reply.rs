@@ -173,22 +173,10 @@ fn printable(text: &str) -> bool {
     text.bytes().all(|b| (b' '..=b'~').contains(&b))
 }
 
-/// `E<1 to 5 digits>` then the end or a space, the number not 0: the code and the rest (as in
-/// frame 56). `E0` is not a code: code 0 means none.
+/// [`crate::error::split_code`] for a code that fits a `u16`; a larger one is no code.
 fn split_code(text: &str) -> Option<(u16, &str)> {
-    let rest = text.strip_prefix('E')?;
-    let n = rest.bytes().take_while(u8::is_ascii_digit).count();
-    if !(1..=5).contains(&n) {
-        return None;
-    }
-    let (code, after) = rest.split_at_checked(n)?;
-    let detail = match after.strip_prefix(' ') {
-        Some(detail) => detail,
-        None if after.is_empty() => after,
-        None => return None,
-    };
-    let code: u16 = code.parse().ok()?;
-    (code > 0).then_some((code, detail))
+    let (code, detail) = crate::error::split_code(text)?;
+    Some((u16::try_from(code).ok()?, detail))
 }
 
 impl<'a> Reply<'a> {
