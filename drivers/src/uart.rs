@@ -134,6 +134,24 @@ pub struct UartParts<'a, const RX: usize, const TX: usize> {
     pub tx_irq: UartTxIrq<'a, TX>,
 }
 
+/// Copy as much of `bytes` into `queue` as fits; returns how much did. Never blocks: at most
+/// two grants, up to the end of the ring and then from its start.
+fn enqueue<const N: usize>(queue: &StreamProducer<&LinkQueue<N>>, bytes: &[u8]) -> usize {
+    let mut done = 0;
+    while let Some(rest) = bytes.get(done..).filter(|r| !r.is_empty()) {
+        let Ok(mut grant) = queue.grant_max_remaining(rest.len()) else {
+            break;
+        };
+        let n = grant.len().min(rest.len());
+        if let (Some(dst), Some(src)) = (grant.get_mut(..n), rest.get(..n)) {
+            dst.copy_from_slice(src);
+        }
+        grant.commit(n);
+        done += n;
+    }
+    done
+}
+
 /// The receive interrupt's end of the receive queue.
 pub struct UartRxIrq<'a, const N: usize> {
     queue: StreamProducer<&'a LinkQueue<N>>,
@@ -154,19 +172,7 @@ impl<const N: usize> UartRxIrq<'_, N> {
     ///
     /// Context: the receive interrupt. Never blocks.
     pub fn push_slice(&mut self, bytes: &[u8]) -> usize {
-        let mut done = 0;
-        // At most two grants: up to the end of the ring, then from its start.
-        while let Some(rest) = bytes.get(done..).filter(|r| !r.is_empty()) {
-            let Ok(mut grant) = self.queue.grant_max_remaining(rest.len()) else {
-                break;
-            };
-            let n = grant.len().min(rest.len());
-            if let (Some(dst), Some(src)) = (grant.get_mut(..n), rest.get(..n)) {
-                dst.copy_from_slice(src);
-            }
-            grant.commit(n);
-            done += n;
-        }
+        let done = enqueue(&self.queue, bytes);
         let dropped = bytes.len() - done;
         if dropped > 0 {
             // Single writer: a plain load and store is a correct increment.
@@ -270,18 +276,7 @@ impl<'a, const N: usize> UartWriter<'a, N> {
     ///
     /// Context: thread. Never blocks.
     pub fn try_write(&mut self, bytes: &[u8]) -> usize {
-        let mut done = 0;
-        while let Some(rest) = bytes.get(done..).filter(|r| !r.is_empty()) {
-            let Ok(mut grant) = self.queue.grant_max_remaining(rest.len()) else {
-                break;
-            };
-            let n = grant.len().min(rest.len());
-            if let (Some(dst), Some(src)) = (grant.get_mut(..n), rest.get(..n)) {
-                dst.copy_from_slice(src);
-            }
-            grant.commit(n);
-            done += n;
-        }
+        let done = enqueue(&self.queue, bytes);
         if done > 0 {
             let total = self.queued.load(Ordering::Relaxed);
             self.queued
