@@ -8,67 +8,17 @@
 //! - `isr/on_alarm`: one interrupt-side call, with the queue filled beforehand (untimed).
 #![allow(missing_docs)]
 
-use std::convert::Infallible;
 use std::time::{Duration, Instant as WallInstant};
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use forja_hal_abstraction::ErrorType;
-use forja_hal_abstraction::limit::LimitSwitch;
-use forja_hal_abstraction::stepper::{Direction, StepTiming, Stepper};
+use forja_hal_abstraction::stepper::StepTiming;
 use forja_hal_abstraction::time::Instant;
 use forja_motion::job::{ProgramStore, RamStore, estimate_seconds};
-use forja_motion::{AxisConfig, Kernel, MachineConfig, Reply, StepGenerator, StepQueue, split};
+use forja_motion::{Kernel, Reply, StepGenerator, StepQueue, split};
 use forja_protocol::gcode::Line;
 
-struct Pin(u64);
-impl ErrorType for Pin {
-    type Error = Infallible;
-}
-impl Stepper for Pin {
-    fn set_direction(&mut self, _: Direction) -> Result<(), Infallible> {
-        Ok(())
-    }
-    fn step_begin(&mut self) -> Result<(), Infallible> {
-        self.0 += 1;
-        Ok(())
-    }
-    fn step_end(&mut self) -> Result<(), Infallible> {
-        Ok(())
-    }
-    fn timing(&self) -> StepTiming {
-        StepTiming::CONSERVATIVE
-    }
-}
-struct Switch;
-impl ErrorType for Switch {
-    type Error = Infallible;
-}
-impl LimitSwitch for Switch {
-    fn is_triggered(&mut self) -> Result<bool, Infallible> {
-        Ok(false)
-    }
-}
-
-fn config() -> MachineConfig<3> {
-    MachineConfig::new([
-        AxisConfig::linear(b'X', 80.0, 12_000.0, 3000.0, 1000.0),
-        AxisConfig::linear(b'Y', 80.0, 12_000.0, 3000.0, 1000.0),
-        AxisConfig::linear(b'Z', 400.0, 900.0, 200.0, 200.0),
-    ])
-}
-
-/// `n` lines of 1 mm segments along a slowly turning path.
-fn program(n: usize) -> Vec<String> {
-    let (mut x, mut y) = (500.0f64, 500.0f64);
-    (0..n)
-        .map(|k| {
-            let a = k as f64 * 0.05;
-            x += a.cos();
-            y += a.sin();
-            format!("G1 X{x:.3} Y{y:.3} F6000")
-        })
-        .collect()
-}
+mod common;
+use common::{Pin, Switch, config, program};
 
 fn plan(c: &mut Criterion) {
     let lines = program(2000);

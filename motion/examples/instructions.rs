@@ -12,67 +12,15 @@
 //!
 //! It prints the number of lines, step events and interrupt calls to divide by.
 
-use std::convert::Infallible;
-use std::hint::black_box;
-
-use forja_hal_abstraction::ErrorType;
-use forja_hal_abstraction::limit::LimitSwitch;
-use forja_hal_abstraction::stepper::{Direction, StepTiming, Stepper};
+use forja_hal_abstraction::stepper::StepTiming;
 use forja_hal_abstraction::time::Instant;
 use forja_motion::job::{ProgramStore, RamStore, estimate_seconds};
-use forja_motion::{AxisConfig, Kernel, MachineConfig, Reply, StepGenerator, StepQueue, split};
+use forja_motion::{Kernel, Reply, StepGenerator, StepQueue, split};
 use forja_protocol::gcode::Line;
 
-struct Pin(u64);
-impl ErrorType for Pin {
-    type Error = Infallible;
-}
-impl Stepper for Pin {
-    fn set_direction(&mut self, d: Direction) -> Result<(), Infallible> {
-        black_box(d);
-        Ok(())
-    }
-    fn step_begin(&mut self) -> Result<(), Infallible> {
-        self.0 += 1;
-        Ok(())
-    }
-    fn step_end(&mut self) -> Result<(), Infallible> {
-        black_box(());
-        Ok(())
-    }
-    fn timing(&self) -> StepTiming {
-        StepTiming::CONSERVATIVE
-    }
-}
-struct Switch;
-impl ErrorType for Switch {
-    type Error = Infallible;
-}
-impl LimitSwitch for Switch {
-    fn is_triggered(&mut self) -> Result<bool, Infallible> {
-        Ok(black_box(false))
-    }
-}
-
-fn config() -> MachineConfig<3> {
-    MachineConfig::new([
-        AxisConfig::linear(b'X', 80.0, 12_000.0, 3000.0, 1000.0),
-        AxisConfig::linear(b'Y', 80.0, 12_000.0, 3000.0, 1000.0),
-        AxisConfig::linear(b'Z', 400.0, 900.0, 200.0, 200.0),
-    ])
-}
-
-fn program(n: usize) -> Vec<String> {
-    let (mut x, mut y) = (500.0f64, 500.0f64);
-    (0..n)
-        .map(|k| {
-            let a = k as f64 * 0.05;
-            x += a.cos();
-            y += a.sin();
-            format!("G1 X{x:.3} Y{y:.3} F6000")
-        })
-        .collect()
-}
+#[path = "../benches/common/mod.rs"]
+mod common;
+use common::{Pin, Switch, config, program};
 
 #[inline(never)]
 fn count_plan<P: ProgramStore>(kernel: &Kernel<'_, 3>, store: &mut P) -> f32 {
