@@ -210,22 +210,26 @@ impl Link for SerialLink {
         self.port
             .set_timeout(timeout.max(Duration::from_millis(1)))
             .map_err(io::Error::other)?;
-        match self.port.read(buf) {
-            Ok(n) => Ok(n),
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
-                ) =>
-            {
-                Ok(0)
-            }
-            Err(e) => Err(e),
-        }
+        nothing_on_timeout(self.port.read(buf))
     }
 
     fn bit_rate(&self) -> Option<u32> {
         Some(self.baud)
+    }
+}
+
+/// A read that ran out of time read nothing: `Ok(0)`, as [`Link::read`] promises.
+fn nothing_on_timeout(read: io::Result<usize>) -> io::Result<usize> {
+    match read {
+        Err(e)
+            if matches!(
+                e.kind(),
+                io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+            ) =>
+        {
+            Ok(0)
+        }
+        read => read,
     }
 }
 
@@ -246,16 +250,7 @@ impl Link for TcpLink {
                 io::ErrorKind::ConnectionAborted,
                 "the controller closed the connection",
             )),
-            Ok(n) => Ok(n),
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
-                ) =>
-            {
-                Ok(0)
-            }
-            Err(e) => Err(e),
+            read => nothing_on_timeout(read),
         }
     }
 }
