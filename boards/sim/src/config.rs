@@ -453,6 +453,30 @@ struct Validator<'a> {
 type Res<T> = Result<T, MachineFileError>;
 
 impl Validator<'_> {
+    /// Push `item` onto `list` unless an entry there has the same `key`: a second `kind` with
+    /// the same `field` is an error at byte `at` of the file.
+    fn push_unique<T, K: PartialEq + std::fmt::Display>(
+        &self,
+        list: &mut Vec<T>,
+        item: T,
+        key: impl Fn(&T) -> K,
+        at: usize,
+        kind: &str,
+        field: &str,
+    ) -> Res<()> {
+        let k = key(&item);
+        if list.iter().any(|other| key(other) == k) {
+            return self.err(
+                Some(at),
+                &format!("{kind} {k}"),
+                field,
+                format!("is used by another {kind}"),
+            );
+        }
+        list.push(item);
+        Ok(())
+    }
+
     fn err<T>(
         &self,
         at: Option<usize>,
@@ -563,41 +587,34 @@ impl Validator<'_> {
         let mut axes: Vec<AxisConfig> = Vec::with_capacity(raw.axes.len());
         for a in &raw.axes {
             let axis = self.axis(a, tick_hz)?;
-            if axes.iter().any(|b| b.letter == axis.letter) {
-                return self.err(
-                    Some(a.get_ref().letter.span().start),
-                    &format!("axis {}", axis.letter),
-                    "letter",
-                    "is used by another axis",
-                );
-            }
-            axes.push(axis);
+            let at = a.get_ref().letter.span().start;
+            self.push_unique(&mut axes, axis, |x| x.letter, at, "axis", "letter")?;
         }
         let mut heaters: Vec<HeaterConfig> = Vec::new();
         for h in &raw.heaters {
             let heater = self.heater(h.get_ref())?;
-            if heaters.iter().any(|o| o.name == heater.name) {
-                return self.err(
-                    Some(h.get_ref().name.span().start),
-                    &format!("heater {}", heater.name),
-                    "name",
-                    "is used by another heater",
-                );
-            }
-            heaters.push(heater);
+            let at = h.get_ref().name.span().start;
+            self.push_unique(
+                &mut heaters,
+                heater,
+                |x| x.name.clone(),
+                at,
+                "heater",
+                "name",
+            )?;
         }
         let mut outputs: Vec<OutputConfig> = Vec::new();
         for o in &raw.outputs {
             let output = self.output(o.get_ref())?;
-            if outputs.iter().any(|p| p.name == output.name) {
-                return self.err(
-                    Some(o.get_ref().name.span().start),
-                    &format!("output {}", output.name),
-                    "name",
-                    "is used by another output",
-                );
-            }
-            outputs.push(output);
+            let at = o.get_ref().name.span().start;
+            self.push_unique(
+                &mut outputs,
+                output,
+                |x| x.name.clone(),
+                at,
+                "output",
+                "name",
+            )?;
         }
         let link = match &raw.link {
             Some(l) => self.link(l.get_ref())?,
@@ -1011,6 +1028,20 @@ travel_max_mm = 300
         assert_eq!(
             e.to_string(),
             format!("machine file line {line}: axis Y: steps_per_mm must be > 0")
+        );
+    }
+
+    #[test]
+    fn a_second_axis_with_the_same_letter_is_refused_at_its_line() {
+        let text = MachineConfig::bundled_toml("default").unwrap();
+        // Rename the Y axis to X: the error points at the second `letter = "X"`.
+        let y_at = text.find("letter = \"Y\"").unwrap();
+        let line = line_of(text, y_at);
+        let twice = text.replacen("letter = \"Y\"", "letter = \"X\"", 1);
+        let e = invalid(&twice);
+        assert_eq!(
+            e.to_string(),
+            format!("machine file line {line}: axis X: letter is used by another axis")
         );
     }
 
