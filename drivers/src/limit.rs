@@ -153,6 +153,10 @@ impl<P: InputPin> LimitSwitch for LimitInput<P> {
             }
         }
     }
+
+    fn is_changing(&self) -> bool {
+        self.disagreeing != 0
+    }
 }
 
 #[cfg(test)]
@@ -189,6 +193,22 @@ mod tests {
         pin.push(&[High, High, High]);
         let got: Vec<bool> = poll_n(&mut s, 3).into_iter().map(Result::unwrap).collect();
         assert_eq!(got, [true, true, false]);
+    }
+
+    #[test]
+    fn is_changing_while_the_debounce_counts() {
+        let pin = FakeInput::at(High);
+        let mut s = LimitInput::new(pin.clone(), LimitConfig::new(Polarity::NormallyOpen, 3));
+        assert!(!s.is_changing());
+        pin.push(&[Low, Low, Low, High]);
+        assert_eq!(s.is_triggered(), Ok(false));
+        assert!(s.is_changing(), "one disagreeing sample");
+        assert_eq!(s.is_triggered(), Ok(false));
+        assert!(s.is_changing());
+        assert_eq!(s.is_triggered(), Ok(true));
+        assert!(!s.is_changing(), "the change is reported");
+        assert_eq!(s.is_triggered(), Ok(true));
+        assert!(s.is_changing(), "a release starts counting");
     }
 
     #[test]

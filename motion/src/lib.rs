@@ -71,7 +71,7 @@ pub use config::{AxisConfig, AxisKind, HomeDirection, HomingConfig, MachineConfi
 pub use effect::{Effect, Sync};
 pub use error::{Alarm, CommandError, ConfigError, JobError, StoreError};
 pub use kernel::{Kernel, MachineState, PositionReport, Reply, split};
-pub use queue::StepQueue;
+pub use queue::{StepQueue, SwitchAlert};
 pub use stepgen::StepGenerator;
 
 /// The most axes a machine can have (step masks are 8 bits wide).

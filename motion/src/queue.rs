@@ -47,15 +47,62 @@ impl Event {
         ]
     }
 
-    fn decode(w: [u32; 2]) -> Self {
+    #[cfg(test)]
+    fn decode(w: Raw) -> Self {
         Self {
-            delta: w[0] & MAX_DELTA,
-            rest: w[0] & REST_FLAG != 0,
-            fall: w[1] as u8,
-            dir_set: (w[1] >> 8) as u8,
-            dir_neg: (w[1] >> 16) as u8,
-            rise: (w[1] >> 24) as u8,
+            delta: w.delta(),
+            rest: w.rest(),
+            fall: w.fall(),
+            dir_set: w.dir_set(),
+            dir_neg: w.dir_neg(),
+            rise: w.rise(),
         }
+    }
+}
+
+/// One step event as the queue holds it: the interrupt side reads its fields straight from
+/// the two words.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub(crate) struct Raw {
+    time: u32,
+    masks: u32,
+}
+
+impl Raw {
+    /// See [`Event::delta`].
+    #[inline(always)]
+    pub(crate) fn delta(self) -> u32 {
+        self.time & MAX_DELTA
+    }
+
+    /// See [`Event::rest`].
+    #[inline(always)]
+    pub(crate) fn rest(self) -> bool {
+        self.time & REST_FLAG != 0
+    }
+
+    /// See [`Event::fall`].
+    #[inline(always)]
+    pub(crate) fn fall(self) -> u8 {
+        self.masks as u8
+    }
+
+    /// See [`Event::dir_set`].
+    #[inline(always)]
+    pub(crate) fn dir_set(self) -> u8 {
+        (self.masks >> 8) as u8
+    }
+
+    /// See [`Event::dir_neg`].
+    #[inline(always)]
+    pub(crate) fn dir_neg(self) -> u8 {
+        (self.masks >> 16) as u8
+    }
+
+    /// See [`Event::rise`].
+    #[inline(always)]
+    pub(crate) fn rise(self) -> u8 {
+        (self.masks >> 24) as u8
     }
 }
 
@@ -128,6 +175,9 @@ pub struct StepQueue<const N: usize, const Q: usize> {
     stop_cause: AtomicU32,
     /// Axes whose switch ends the current (homing) move. Writer: thread.
     pub(crate) homing_mask: AtomicU32,
+    /// Limit switch input edges reported (wrapping count). Writers: the contexts that hold a
+    /// [`SwitchAlert`]; see there why more than one is safe.
+    pub(crate) switch_edges: AtomicU32,
 }
 
 impl<const N: usize, const Q: usize> Default for StepQueue<N, Q> {
@@ -163,6 +213,7 @@ impl<const N: usize, const Q: usize> StepQueue<N, Q> {
             stops: AtomicU32::new(0),
             stop_cause: AtomicU32::new(0),
             homing_mask: AtomicU32::new(0),
+            switch_edges: AtomicU32::new(0),
         }
     }
 
@@ -193,6 +244,44 @@ impl<const N: usize, const Q: usize> StepQueue<N, Q> {
 
     pub(crate) fn stop_cause(&self) -> Option<StopCause> {
         StopCause::decode(self.stop_cause.load(Ordering::Relaxed))
+    }
+}
+
+/// Reports limit switch input edges to the step interrupt.
+///
+/// Outside homing, the step interrupt samples the limit switches only while one may matter:
+/// from the start of each motion until every switch reads released and settled, and again
+/// after an edge is reported here, until they are all released and settled once more. A board
+/// calls [`SwitchAlert::notify`] on every edge of every switch input, from the pin-change
+/// interrupt of the inputs (EXTI on an STM32, the GPIO interrupt on an ESP32); the next step
+/// of an axis towards a triggered switch then stops motion. A board with no pin-change
+/// interrupt calls it from a periodic timer instead, and gets hard limits within that period.
+///
+/// Get one from [`crate::StepGenerator::switch_alert`] or [`crate::Kernel::switch_alert`]. It
+/// is `Copy` and may live in a `static`: it only holds a reference to the [`StepQueue`].
+///
+/// Context: any, including interrupts of any priority. One load and one store; no
+/// read-modify-write atomics. Two contexts notifying at once may count one edge instead of
+/// two, which loses nothing: the step interrupt reads the count before it samples, so any
+/// count it has not seen makes it sample, and an edge whose count it has seen happened before
+/// that sample.
+#[derive(Debug, Clone, Copy)]
+pub struct SwitchAlert<'q> {
+    edges: &'q AtomicU32,
+}
+
+impl<'q> SwitchAlert<'q> {
+    pub(crate) fn new<const N: usize, const Q: usize>(q: &'q StepQueue<N, Q>) -> Self {
+        Self {
+            edges: &q.switch_edges,
+        }
+    }
+
+    /// A limit switch input changed level.
+    #[inline]
+    pub fn notify(&self) {
+        let n = self.edges.load(Ordering::Relaxed);
+        self.edges.store(n.wrapping_add(1), Ordering::Release);
     }
 }
 
@@ -258,16 +347,16 @@ impl<'q, const N: usize, const Q: usize> Consumer<'q, N, Q> {
 
     /// The oldest event, without removing it.
     #[inline]
-    pub(crate) fn peek(&self) -> Option<Event> {
+    pub(crate) fn peek(&self) -> Option<Raw> {
         let head = self.q.head.load(Ordering::Acquire);
         if head == self.tail {
             return None;
         }
         let [s0, s1] = self.q.slot(self.tail)?;
-        Some(Event::decode([
-            s0.load(Ordering::Relaxed),
-            s1.load(Ordering::Relaxed),
-        ]))
+        Some(Raw {
+            time: s0.load(Ordering::Relaxed),
+            masks: s1.load(Ordering::Relaxed),
+        })
     }
 
     /// Remove the oldest event (after a successful [`Consumer::peek`]).
@@ -304,7 +393,7 @@ mod tests {
                 rise: 0x80 | k as u8,
             };
             assert!(p.push(ev));
-            assert_eq!(c.peek(), Some(ev));
+            assert_eq!(c.peek().map(Event::decode), Some(ev));
             c.advance();
         }
         for _ in 0..8 {

@@ -21,6 +21,7 @@ use forja_protocol::gcode::Line;
 
 use crate::error::CommandError;
 use crate::kernel::{Kernel, Reply};
+use crate::queue::SwitchAlert;
 use crate::stepgen::StepGenerator;
 
 /// One rising step edge.
@@ -173,6 +174,36 @@ impl<const N: usize> LimitSwitch for SimSwitch<N> {
     }
 }
 
+/// A pin-change interrupt for simulated switches: [`EdgeWatch::look`] reports an edge to the
+/// step interrupt when any switch changed since the last look. Looking after every step
+/// interrupt is what an EXTI line does for a switch that a step pushed over its point.
+#[derive(Debug, Clone, Copy)]
+pub struct EdgeWatch<'q> {
+    alert: SwitchAlert<'q>,
+    levels: u64,
+}
+
+impl<'q> EdgeWatch<'q> {
+    /// Watch for `alert`, with every switch seen released.
+    pub fn new(alert: SwitchAlert<'q>) -> Self {
+        Self { alert, levels: 0 }
+    }
+
+    /// Compare the switches' levels with the last look; report an edge if any differs.
+    pub fn look<const N: usize>(&mut self, switches: &mut [SimSwitch<N>]) {
+        let mut levels = 0u64;
+        for (i, sw) in switches.iter_mut().enumerate().take(64) {
+            if sw.is_triggered() == Ok(true) {
+                levels |= 1 << i;
+            }
+        }
+        if levels != self.levels {
+            self.levels = levels;
+            self.alert.notify();
+        }
+    }
+}
+
 /// A kernel, its interrupt side, steppers and switches on a virtual clock.
 pub struct Simulation<'q, const N: usize, const B: usize, const Q: usize> {
     /// The thread side.
@@ -183,6 +214,8 @@ pub struct Simulation<'q, const N: usize, const B: usize, const Q: usize> {
     pub steppers: [SimStepper<N>; N],
     /// The limit switches, by switch index.
     pub switches: Vec<SimSwitch<N>>,
+    /// Their pin-change interrupt, looked at after each step interrupt and poll.
+    pub edges: EdgeWatch<'q>,
     /// The record of everything that moved.
     pub rec: Rc<RefCell<Recorder<N>>>,
     /// Ticks between two polls of the thread side.
@@ -225,11 +258,13 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Simulation<'q, N, B, Q>
             axis,
             rec: rec.clone(),
         });
+        let edges = EdgeWatch::new(isr.switch_alert());
         Self {
             kernel,
             isr,
             steppers,
             switches: Vec::new(),
+            edges,
             rec,
             poll_period: (u64::from(tick_hz) / 1000).max(1),
             interrupts: 0,
@@ -267,12 +302,14 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Simulation<'q, N, B, Q>
             .isr
             .on_alarm(self.instant(), &mut self.steppers, &mut self.switches);
         self.interrupts += 1;
+        self.edges.look(&mut self.switches);
         self.alarm =
             at.map(|i| now + i.signed_ticks_since(Instant::from_ticks(now as u32)).max(0) as u64);
     }
 
     /// Run the thread side once, now.
     pub fn poll(&mut self) {
+        self.edges.look(&mut self.switches);
         if let Some(at) = self.kernel.poll(self.instant()) {
             let now = self.now();
             let t = now

@@ -18,7 +18,7 @@ use forja_hal_abstraction::stepper::{Direction, Stepper};
 use forja_hal_abstraction::time::{Duration, Instant};
 
 use crate::config::{HomeDirection, MachineConfig};
-use crate::queue::{Consumer, Event, StepQueue, StopCause};
+use crate::queue::{Consumer, Raw, StepQueue, StopCause, SwitchAlert};
 
 /// No switch for this axis.
 const NO_SWITCH: u8 = u8::MAX;
@@ -37,19 +37,24 @@ enum Mode {
 pub struct StepGenerator<'q, const N: usize, const Q: usize> {
     rx: Consumer<'q, N, Q>,
     mode: Mode,
-    pos: [i32; N],
+    /// Position change of one step of each axis: +1 or -1, by its direction line.
+    step_sign: [i32; N],
     dir_neg: u8,
     high: u8,
-    high_since: Instant,
     /// Raised lines whose rising edge was served late, and when.
     late: u8,
     late_since: Instant,
-    next_ev: Event,
+    next_ev: Raw,
     next_at: Instant,
+    /// Scheduled instant of the last consumed event (or of the start after idle).
+    last_at: Instant,
     wake_at: Instant,
     discard: bool,
     flush_seen: u32,
     consumed_ticks: u32,
+    /// Sample the switches at every rising edge (see [`SwitchAlert`]).
+    watch: bool,
+    edges_seen: u32,
     switch_of: [u8; N],
     has_switch: u8,
     switch_neg: u8,
@@ -74,18 +79,20 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         Self {
             rx: Consumer::new(q),
             mode: Mode::Idle,
-            pos: q.positions(),
+            step_sign: [1; N],
             dir_neg: 0,
             high: 0,
-            high_since: Instant::from_ticks(0),
             late: 0,
             late_since: Instant::from_ticks(0),
-            next_ev: Event::default(),
+            next_ev: Raw::default(),
             next_at: Instant::from_ticks(0),
+            last_at: Instant::from_ticks(q.last_event_at.load(Ordering::Relaxed)),
             wake_at: Instant::from_ticks(0),
             discard: false,
             flush_seen: q.flush_req.load(Ordering::Relaxed),
             consumed_ticks: q.consumed_ticks.load(Ordering::Relaxed),
+            watch: true,
+            edges_seen: q.switch_edges.load(Ordering::Relaxed),
             switch_of,
             has_switch,
             switch_neg,
@@ -101,7 +108,12 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
 
     /// The position of every axis, in steps, counted by this side.
     pub fn positions(&self) -> [i32; N] {
-        self.pos
+        self.rx.q.positions()
+    }
+
+    /// The handle a board's limit switch interrupt reports input edges through.
+    pub fn switch_alert(&self) -> SwitchAlert<'q> {
+        SwitchAlert::new(self.rx.q)
     }
 
     /// Handle the step alarm.
@@ -111,9 +123,15 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
     /// alarm at the returned instant, or leave it disarmed on `None` (idle until the thread
     /// side's `poll` asks for a start).
     ///
+    /// The switches are sampled only while one may matter (see [`SwitchAlert`]): from the
+    /// start of a motion until all read released and settled, during homing, and after the
+    /// board reports an edge. Then every switch is sampled at every event that raises a step
+    /// line, and a triggered one stops motion before the step of its axis towards it.
+    ///
     /// Context: interrupt. Never blocks, never allocates, never panics. A driver or switch
     /// error stops motion with [`crate::Alarm::DriverFault`]; a switch read error counts as
     /// triggered.
+    #[inline]
     pub fn on_alarm<S: Stepper, L: LimitSwitch>(
         &mut self,
         now: Instant,
@@ -121,48 +139,23 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         switches: &mut [L],
     ) -> Option<Instant> {
         let q = self.rx.q;
-        let req = q.flush_req.load(Ordering::Acquire);
-        if req != self.flush_seen {
-            self.flush_seen = req;
-            self.rx.clear();
-            self.discard = false;
-            q.flush_done.store(req, Ordering::Release);
-            return self.wind_down(now, steppers);
-        }
-        if self.discard {
-            self.rx.clear();
-            return self.wind_down(now, steppers);
-        }
-        let ev = match self.mode {
-            Mode::WindDown => return self.wind_down(now, steppers),
-            Mode::Idle => {
-                let Some(ev) = self.rx.peek() else {
-                    return self.go_idle();
-                };
-                // The start is the instant the queued timeline resumes from: the first event is
-                // due its delta after it (a dwell at rest, the first half step of a move).
-                self.mode = Mode::Running;
-                q.last_event_at.store(now.ticks(), Ordering::Relaxed);
-                self.next_ev = ev;
-                self.next_at = now.wrapping_add(Duration::from_ticks(ev.delta));
-                self.wake_at = self.next_at;
-                if !now.is_at_or_after(self.wake_at) {
-                    return Some(self.wake_at);
-                }
-                ev
+        let ev = if self.mode == Mode::Running
+            && q.flush_req.load(Ordering::Acquire) == self.flush_seen
+        {
+            if !now.is_at_or_after(self.wake_at) {
+                return Some(self.wake_at);
             }
-            Mode::Running => {
-                if !now.is_at_or_after(self.wake_at) {
-                    return Some(self.wake_at);
-                }
-                // Peeked by the previous call; only this side removes events, and a flush
-                // was handled above.
-                self.next_ev
+            // Peeked by the previous call; only this side removes events.
+            self.next_ev
+        } else {
+            match self.unusual(now, steppers) {
+                Ok(ev) => ev,
+                Err(next) => return next,
             }
         };
         // A rising edge served late must still get its full pulse before the falling edge (the
         // schedule gives it one only when served on time).
-        if ev.fall & self.late != 0 {
+        if ev.fall() & self.late != 0 {
             let end = self.late_since.wrapping_add(self.pulse);
             if !now.is_at_or_after(end) {
                 self.wake_at = end;
@@ -170,111 +163,205 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
             }
         }
         self.rx.advance();
-        self.consumed_ticks = self.consumed_ticks.wrapping_add(ev.delta);
-        q.consumed_ticks
-            .store(self.consumed_ticks, Ordering::Relaxed);
-        q.last_event_at
-            .store(self.next_at.ticks(), Ordering::Relaxed);
-        if let Err(cause) = self.execute(&ev, now, steppers, switches) {
+        self.consumed_ticks = self.consumed_ticks.wrapping_add(ev.delta());
+        self.last_at = self.next_at;
+        if let Err(cause) = self.execute(ev, now, steppers, switches) {
             return self.stop(now, cause, steppers);
         }
         match self.rx.peek() {
             Some(next) => {
                 self.next_ev = next;
-                self.next_at = self.next_at.wrapping_add(Duration::from_ticks(next.delta));
+                self.next_at = self
+                    .next_at
+                    .wrapping_add(Duration::from_ticks(next.delta()));
                 self.wake_at = self.next_at;
                 Some(self.next_at)
             }
-            None if ev.rest && self.high == 0 => self.go_idle(),
-            None if ev.rest => self.wind_down(now, steppers),
-            None => self.stop(now, StopCause::Underrun, steppers),
+            None => self.ran_dry(now, ev.rest(), steppers),
         }
     }
 
-    #[inline]
+    /// Everything but an event of a running motion: a flush, a stop, the wind-down, the start
+    /// after idle. `Ok` with the event to execute now, or `Err` with what to return.
+    #[cold]
+    #[inline(never)]
+    fn unusual<S: Stepper>(
+        &mut self,
+        now: Instant,
+        steppers: &mut [S; N],
+    ) -> Result<Raw, Option<Instant>> {
+        let q = self.rx.q;
+        let req = q.flush_req.load(Ordering::Acquire);
+        if req != self.flush_seen {
+            self.flush_seen = req;
+            self.rx.clear();
+            self.discard = false;
+            self.publish();
+            q.flush_done.store(req, Ordering::Release);
+            return Err(self.wind_down(now, steppers));
+        }
+        if self.discard {
+            self.rx.clear();
+            return Err(self.wind_down(now, steppers));
+        }
+        match self.mode {
+            Mode::WindDown => Err(self.wind_down(now, steppers)),
+            Mode::Running => Ok(self.next_ev),
+            Mode::Idle => {
+                let Some(ev) = self.rx.peek() else {
+                    return Err(self.go_idle());
+                };
+                // The start is the instant the queued timeline resumes from: the first event is
+                // due its delta after it (a dwell at rest, the first half step of a move).
+                self.mode = Mode::Running;
+                // A switch may have been hit while nothing sampled: sample until all are quiet.
+                self.watch = true;
+                self.last_at = now;
+                self.publish();
+                self.next_ev = ev;
+                self.next_at = now.wrapping_add(Duration::from_ticks(ev.delta()));
+                self.wake_at = self.next_at;
+                if !now.is_at_or_after(self.wake_at) {
+                    return Err(Some(self.wake_at));
+                }
+                Ok(ev)
+            }
+        }
+    }
+
+    /// The queue is empty after an event: the end of a motion, or an underrun.
+    #[cold]
+    #[inline(never)]
+    fn ran_dry<S: Stepper>(
+        &mut self,
+        now: Instant,
+        rest: bool,
+        steppers: &mut [S; N],
+    ) -> Option<Instant> {
+        if !rest {
+            return self.stop(now, StopCause::Underrun, steppers);
+        }
+        if self.high == 0 {
+            return self.go_idle();
+        }
+        self.wind_down(now, steppers)
+    }
+
+    #[inline(always)]
     fn execute<S: Stepper, L: LimitSwitch>(
         &mut self,
-        ev: &Event,
+        ev: Raw,
         now: Instant,
         steppers: &mut [S; N],
         switches: &mut [L],
     ) -> Result<(), StopCause> {
-        let mut m = ev.fall & self.high;
-        self.high &= !ev.fall;
-        self.late &= !ev.fall;
-        while m != 0 {
-            let i = m.trailing_zeros() as usize;
-            m &= m.wrapping_sub(1);
-            if let Some(s) = steppers.get_mut(i) {
-                s.step_end().map_err(|_| StopCause::Fault(i as u8))?;
+        let fall = ev.fall() & self.high;
+        if fall != 0 {
+            self.high &= !fall;
+            self.late &= !fall;
+            for (i, s) in steppers.iter_mut().enumerate() {
+                if fall & (1 << i) != 0 {
+                    s.step_end().map_err(|_| StopCause::Fault(i as u8))?;
+                }
             }
         }
-        let mut m = ev.dir_set;
-        while m != 0 {
-            let i = m.trailing_zeros() as usize;
-            let bit = m & m.wrapping_neg();
-            m &= m.wrapping_sub(1);
-            let neg = ev.dir_neg & bit != 0;
-            if let Some(s) = steppers.get_mut(i) {
-                let d = if neg {
-                    Direction::Negative
-                } else {
-                    Direction::Positive
-                };
-                s.set_direction(d).map_err(|_| StopCause::Fault(i as u8))?;
-            }
-            self.dir_neg = (self.dir_neg & !bit) | (ev.dir_neg & bit);
+        if ev.dir_set() != 0 {
+            self.change_directions(ev, steppers)?;
         }
-        if ev.rise == 0 {
+        let rise = ev.rise();
+        if rise == 0 {
             return Ok(());
         }
-        // Switches first: a tripped switch cancels the whole event.
-        let mut m = ev.rise & self.has_switch;
-        if m != 0 {
-            let homing = self.rx.q.homing_mask.load(Ordering::Relaxed) as u8;
-            let toward = !(self.dir_neg ^ self.switch_neg);
-            m &= toward & (if self.hard_limits { 0xFF } else { homing });
-            while m != 0 {
-                let i = m.trailing_zeros() as usize;
-                let bit = m & m.wrapping_neg();
-                m &= m.wrapping_sub(1);
-                let idx = self.switch_of.get(i).copied().unwrap_or(NO_SWITCH) as usize;
-                let triggered = match switches.get_mut(idx) {
-                    Some(sw) => sw.is_triggered().unwrap_or(true),
-                    None => false,
-                };
-                if triggered {
-                    return Err(if homing & bit != 0 {
-                        StopCause::HomingSwitch(i as u8)
-                    } else {
-                        StopCause::HardLimit(i as u8)
-                    });
-                }
-            }
+        let q = self.rx.q;
+        self.publish();
+        if self.watch || q.switch_edges.load(Ordering::Relaxed) != self.edges_seen {
+            self.check_switches(rise, switches)?;
         }
-        let mut m = ev.rise;
-        while m != 0 {
-            let i = m.trailing_zeros() as usize;
-            let bit = m & m.wrapping_neg();
-            m &= m.wrapping_sub(1);
-            if let (Some(s), Some(p)) = (steppers.get_mut(i), self.pos.get_mut(i)) {
+        for ((i, s), (p, d)) in steppers
+            .iter_mut()
+            .enumerate()
+            .zip(q.positions.iter().zip(self.step_sign.iter()))
+        {
+            if rise & (1 << i) != 0 {
                 s.step_begin().map_err(|_| StopCause::Fault(i as u8))?;
-                *p = if self.dir_neg & bit != 0 {
-                    p.wrapping_sub(1)
-                } else {
-                    p.wrapping_add(1)
-                };
-                if let Some(a) = self.rx.q.positions.get(i) {
-                    a.store(*p, Ordering::Relaxed);
-                }
+                p.store(
+                    p.load(Ordering::Relaxed).wrapping_add(*d),
+                    Ordering::Relaxed,
+                );
             }
         }
-        self.high |= ev.rise;
-        self.high_since = now;
+        self.high |= rise;
         if now != self.next_at {
-            self.late |= ev.rise;
+            self.late |= rise;
             self.late_since = now;
         }
+        Ok(())
+    }
+
+    /// Write the direction lines an event changes.
+    #[cold]
+    #[inline(never)]
+    fn change_directions<S: Stepper>(
+        &mut self,
+        ev: Raw,
+        steppers: &mut [S; N],
+    ) -> Result<(), StopCause> {
+        for ((i, s), sign) in steppers
+            .iter_mut()
+            .enumerate()
+            .zip(self.step_sign.iter_mut())
+        {
+            let bit = 1u8 << i;
+            if ev.dir_set() & bit == 0 {
+                continue;
+            }
+            let (d, step) = if ev.dir_neg() & bit != 0 {
+                (Direction::Negative, -1)
+            } else {
+                (Direction::Positive, 1)
+            };
+            s.set_direction(d).map_err(|_| StopCause::Fault(i as u8))?;
+            *sign = step;
+            self.dir_neg = (self.dir_neg & !bit) | (ev.dir_neg() & bit);
+        }
+        Ok(())
+    }
+
+    /// Sample every switch before the axes of `rise` step: a switch triggered towards the
+    /// motion of its axis (a homing switch, or any with hard limits on) stops motion. Keeps
+    /// sampling at the following steps until every switch reads released and settled and no
+    /// homing move is under way.
+    #[cold]
+    #[inline(never)]
+    fn check_switches<L: LimitSwitch>(
+        &mut self,
+        rise: u8,
+        switches: &mut [L],
+    ) -> Result<(), StopCause> {
+        let q = self.rx.q;
+        // Read before sampling: an edge reported after this read is sampled next time.
+        self.edges_seen = q.switch_edges.load(Ordering::Acquire);
+        let homing = q.homing_mask.load(Ordering::Relaxed) as u8;
+        let toward = !(self.dir_neg ^ self.switch_neg);
+        let stopping =
+            rise & self.has_switch & toward & if self.hard_limits { 0xFF } else { homing };
+        let mut quiet = homing == 0;
+        for (i, idx) in self.switch_of.iter().enumerate() {
+            let Some(sw) = switches.get_mut(usize::from(*idx)) else {
+                continue;
+            };
+            let bit = 1u8 << i;
+            let triggered = sw.is_triggered().unwrap_or(true);
+            if triggered && stopping & bit != 0 {
+                return Err(if homing & bit != 0 {
+                    StopCause::HomingSwitch(i as u8)
+                } else {
+                    StopCause::HardLimit(i as u8)
+                });
+            }
+            quiet &= !triggered && !sw.is_changing();
+        }
+        self.watch = !quiet;
         Ok(())
     }
 
@@ -296,7 +383,14 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
     #[cold]
     fn wind_down<S: Stepper>(&mut self, now: Instant, steppers: &mut [S; N]) -> Option<Instant> {
         if self.high != 0 {
-            let end = self.high_since.wrapping_add(self.pulse);
+            // Raised at or before the last consumed event: at its scheduled instant, or when it
+            // was served if that was late.
+            let since = if self.late != 0 && self.late_since.is_at_or_after(self.last_at) {
+                self.late_since
+            } else {
+                self.last_at
+            };
+            let end = since.wrapping_add(self.pulse);
             if !now.is_at_or_after(end) {
                 self.mode = Mode::WindDown;
                 return Some(end);
@@ -315,8 +409,23 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         self.go_idle()
     }
 
+    /// Tell the thread side how far the timeline has run: the ticks of the consumed events and
+    /// the scheduled instant of the last one. Done at every event that raises a step line and
+    /// on every change of mode, not at the others: the thread side only needs the two to agree
+    /// (the time still queued ahead of now is the same from any consumed event), and they
+    /// are exact whenever it resets its timeline (after a flush or at idle).
+    #[inline(always)]
+    fn publish(&self) {
+        let q = self.rx.q;
+        q.consumed_ticks
+            .store(self.consumed_ticks, Ordering::Relaxed);
+        q.last_event_at
+            .store(self.last_at.ticks(), Ordering::Relaxed);
+    }
+
     fn go_idle(&mut self) -> Option<Instant> {
         self.mode = Mode::Idle;
+        self.publish();
         let q = self.rx.q;
         q.idles
             .store(q.starts.load(Ordering::Acquire), Ordering::Release);

@@ -5,6 +5,7 @@ mod common;
 
 use common::{check_axis, machine, sim};
 use forja_motion::effect::{Effect, StopKind};
+use forja_motion::sim::EdgeWatch;
 use forja_motion::{Alarm, CommandError, MachineState, Reply, StepQueue};
 use forja_protocol::gcode::{Decimal, Line};
 
@@ -173,6 +174,51 @@ fn a_tripped_hard_limit_stops_motion_within_one_step_period() {
     assert_eq!(s.send("G1 X0"), Err(CommandError::Locked));
     s.kernel.reset();
     assert_eq!(s.kernel.homed_axes(), 0);
+}
+
+#[test]
+fn homing_samples_the_switch_at_every_step_without_reported_edges() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    // A board that never reports an edge: the simulation's watch goes to another queue.
+    let other = Box::leak(Box::new(StepQueue::<3, 8>::new()));
+    let (_, other_isr) = forja_motion::split::<3, 4, 8>(
+        other,
+        machine(),
+        HZ,
+        forja_hal_abstraction::stepper::StepTiming::CONSERVATIVE,
+    )
+    .unwrap();
+    s.edges = EdgeWatch::new(other_isr.switch_alert());
+    s.add_switch(0, -1234, true);
+    s.send("G28 X0").expect("ok");
+    assert!(s.run_until_idle(120 * u64::from(HZ)));
+    assert_eq!(s.kernel.state(), MachineState::Idle);
+    assert_eq!(s.kernel.homed_axes(), 0b001);
+    assert_eq!(s.rec.borrow().position[0], -1234 + 80);
+}
+
+#[test]
+fn a_move_towards_a_switch_already_triggered_is_stopped_before_its_first_step() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    // Triggered from the start, before anything sampled or reported it.
+    s.add_switch(0, 0, true);
+    s.add_switch(1, -100_000, true);
+    s.send("G1 X-5 F3000").expect("ok");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(
+        s.kernel.state(),
+        MachineState::Alarm(Alarm::HardLimit { axis: 0 })
+    );
+    assert_eq!(s.rec.borrow().position[0], 0);
+    assert!(s.rec.borrow().steps[0].is_empty());
+    // Away from it is allowed after a reset (hard limits stop motion towards a switch only).
+    s.kernel.reset();
+    s.send("G1 X5 F3000").expect("ok");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(s.kernel.state(), MachineState::Idle);
+    assert_eq!(s.rec.borrow().position[0], 400);
 }
 
 #[test]

@@ -60,7 +60,7 @@ use forja_motion::controller::{
 use forja_motion::job::{JobState, Progress};
 use forja_motion::{
     AxisConfig, AxisKind as KernelAxisKind, HomeDirection, HomingConfig, Kernel,
-    MachineConfig as KernelConfig, MachineState, StepGenerator, StepQueue,
+    MachineConfig as KernelConfig, MachineState, StepGenerator, StepQueue, SwitchAlert,
 };
 
 use crate::config::{AxisKind, MachineConfig, SwitchPolarity, SwitchSide};
@@ -421,6 +421,10 @@ struct Wired<const N: usize> {
     isr: StepGenerator<'static, N, QUEUE_EVENTS>,
     steppers: [StepDir<SimDriverPin, SimDriverPin>; N],
     switches: Vec<Switch>,
+    /// The switch inputs' pin-change interrupt: reports edges to the step interrupt.
+    switch_alert: SwitchAlert<'static>,
+    /// Switch states at the last look ([`SimMachine::switch_states`]).
+    switch_states: u64,
     alarm: SimAlarm,
     machine: SimMachine,
     booted: bool,
@@ -431,6 +435,17 @@ fn storage_error(e: impl fmt::Debug) -> BoardError {
 }
 
 impl<const N: usize> Wired<N> {
+    /// The pin-change interrupt of the switch inputs, as an EXTI line would raise it: report
+    /// an edge when any switch changed since the last look (after each step, and each poll
+    /// for switches a test forces).
+    fn look_at_switches(&mut self) {
+        let states = self.machine.switch_states();
+        if states != self.switch_states {
+            self.switch_states = states;
+            self.switch_alert.notify();
+        }
+    }
+
     fn new(machine: &SimMachine, flash: Flash, program_lines: u16) -> Result<Self, BoardError> {
         let file = machine.config();
         let base = kernel_config::<N>(file)?;
@@ -510,6 +525,8 @@ impl<const N: usize> Wired<N> {
             .with_settings(settings, settings_store);
         Ok(Self {
             controller,
+            switch_alert: isr.switch_alert(),
+            switch_states: machine.switch_states(),
             isr,
             steppers,
             switches,
@@ -602,11 +619,15 @@ fn machine_type(file: &MachineConfig) -> &'static str {
 
 impl<const N: usize> Wiring for Wired<N> {
     fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
-        self.isr
-            .on_alarm(now, &mut self.steppers, &mut self.switches)
+        let next = self
+            .isr
+            .on_alarm(now, &mut self.steppers, &mut self.switches);
+        self.look_at_switches();
+        next
     }
 
     fn poll(&mut self, now: Instant, ports: &mut [Served], active: &mut Option<usize>) {
+        self.look_at_switches();
         let now_ms = (u128::from(self.machine.now_ticks()) * 1000
             / u128::from(self.machine.tick_hz())) as u32;
         for p in ports.iter_mut() {

@@ -100,6 +100,15 @@ impl SimMachine {
         Ok(self.state.borrow().switch_triggered(index))
     }
 
+    /// Every switch's state as a bit mask, bit `i` set while switch `i` (machine file order)
+    /// is triggered: what a pin-change interrupt on the switch inputs compares.
+    pub fn switch_states(&self) -> u64 {
+        let s = self.state.borrow();
+        (0..s.switches.len().min(64))
+            .filter(|&i| s.switch_triggered(i))
+            .fold(0, |m, i| m | 1 << i)
+    }
+
     /// Force the switch on `side` of `axis` to read triggered (`Some(true)`) or released
     /// (`Some(false)`) whatever the position; `None` returns it to following the position.
     pub fn force_switch(

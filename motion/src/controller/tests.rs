@@ -22,7 +22,7 @@ use crate::effect::{Heater, Spindle};
 use crate::job::{JobState, RamStore};
 use crate::kernel::{MachineState, split};
 use crate::queue::StepQueue;
-use crate::sim::{Recorder, SimStepper, SimSwitch, Simulation};
+use crate::sim::{EdgeWatch, Recorder, SimStepper, SimSwitch, Simulation};
 use crate::stepgen::StepGenerator;
 
 const TICK_HZ: u32 = 1_000_000;
@@ -188,6 +188,7 @@ struct Bench {
     isr: StepGenerator<'static, 3, 256>,
     steppers: [SimStepper<3>; 3],
     switches: Vec<SimSwitch<3>>,
+    edges: EdgeWatch<'static>,
     rec: Rc<RefCell<Recorder<3>>>,
     alarm: Option<u64>,
     next_poll: u64,
@@ -229,6 +230,7 @@ impl Bench {
         let isr = sim.isr;
         let steppers = sim.steppers;
         let switches = sim.switches;
+        let edges = sim.edges;
         let rec = sim.rec;
         let fake = Fake::new(switches.clone());
         let mut cfg = ControllerConfig::new("test-bench", timing);
@@ -241,6 +243,7 @@ impl Bench {
             isr,
             steppers,
             switches,
+            edges,
             rec,
             alarm: None,
             next_poll: 0,
@@ -287,6 +290,7 @@ impl Bench {
                 let at = self
                     .isr
                     .on_alarm(self.instant(), &mut self.steppers, &mut self.switches);
+                self.edges.look(&mut self.switches);
                 self.alarm = at.map(|i| self.abs(i));
             } else {
                 self.next_poll = t + 1000;
