@@ -113,6 +113,12 @@ impl<P: InputPin> LimitInput<P> {
         self.triggered
     }
 
+    /// The pin, to configure or acknowledge its pin-change interrupt (reads through it take no
+    /// sample of the switch).
+    pub fn pin_mut(&mut self) -> &mut P {
+        &mut self.pin
+    }
+
     /// Give the pin back.
     pub fn release(self) -> P {
         self.pin

@@ -1,8 +1,10 @@
 //! Limit switch inputs: debounced [`LimitInput`]s, and their EXTI lines.
 //!
-//! The step interrupt polls the switches (homing, hard limits); the EXTI interrupt on either
-//! edge of any switch input wakes the thread side when a switch changes while nothing polls
-//! them, so that a switch hit while idle (a machine pushed by hand) is seen at once.
+//! The EXTI interrupt on either edge of any switch input reports the edge to the step
+//! interrupt ([`SwitchAlert`]), which then samples the switches at each step until they are
+//! all released and settled: a hard limit hit in the middle of a move stops it at the next
+//! step, without a switch read at every step. It also wakes the thread side, so that a switch
+//! hit while idle (a machine pushed by hand) is seen at once.
 //!
 //! In QEMU the GPIO inputs read low and never change: the pin map's polarity makes that the
 //! released state.
@@ -10,6 +12,7 @@
 use core::sync::atomic::{AtomicU32, Ordering};
 
 use forja_drivers::limit::{LimitConfig, LimitInput};
+use forja_motion::SwitchAlert;
 use stm32f4xx_hal::gpio::{Edge, ErasedPin, ExtiPin, Input, PinExt};
 use stm32f4xx_hal::pac::EXTI;
 use stm32f4xx_hal::syscfg::SysCfg;
@@ -28,6 +31,7 @@ static FIRED: AtomicU32 = AtomicU32::new(0);
 /// The EXTI lines of the limit switch inputs.
 pub struct Limits {
     lines: u32,
+    alert: Option<SwitchAlert<'static>>,
 }
 
 impl Limits {
@@ -49,10 +53,18 @@ impl Limits {
             lines |= 1 << pin.pin_id();
             LimitInput::new(pin, config)
         });
-        (Self { lines }, switches)
+        (Self { lines, alert: None }, switches)
     }
 
-    /// Acknowledge the switch lines of an EXTI interrupt and remember them for the thread side.
+    /// Report the edges to the step interrupt through `alert` from now on.
+    ///
+    /// Context: init, once the kernel is split.
+    pub fn attach(&mut self, alert: SwitchAlert<'static>) {
+        self.alert = Some(alert);
+    }
+
+    /// Acknowledge the switch lines of an EXTI interrupt, report the edge to the step
+    /// interrupt and remember the lines for the thread side.
     ///
     /// Context: the EXTI interrupts of the switch lines. Two register accesses.
     pub fn on_interrupt(&mut self) {
@@ -61,6 +73,11 @@ impl Limits {
         let exti = unsafe { &*EXTI::ptr() };
         let pending = exti.pr().read().bits() & self.lines;
         exti.pr().write(|w| unsafe { w.bits(pending) });
+        if pending != 0
+            && let Some(alert) = &self.alert
+        {
+            alert.notify();
+        }
         FIRED.fetch_or(pending, Ordering::Relaxed);
     }
 }

@@ -27,7 +27,7 @@ use forja_hal_abstraction::time::Instant;
 use forja_motion::controller::{
     Controller, ControllerConfig, PollOutcome, RecordProgramStore, Settings,
 };
-use forja_motion::{Kernel, StepGenerator, StepQueue};
+use forja_motion::{Kernel, StepGenerator, StepQueue, SwitchAlert};
 
 use crate::board::{self, AXES, DRIVERS, LIMITS};
 use crate::hardware::{MotorEnable, SetupError, Stepper};
@@ -85,6 +85,11 @@ impl StepSide {
     pub fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
         self.generator
             .on_alarm(now, &mut self.steppers, &mut self.switches)
+    }
+
+    /// The handle the switch lines' EXTI interrupt reports edges through.
+    pub fn switch_alert(&self) -> SwitchAlert<'static> {
+        self.generator.switch_alert()
     }
 }
 

@@ -9,7 +9,7 @@
 //! |---|---|---|---|
 //! | `step_tim2` (`step_systick` under `qemu`) | TIM2 (SysTick) | 4 | step alarm: `StepGenerator::on_alarm`, re-armed from its return; service tick ([`timer`], [`machine::StepSide`]) |
 //! | `host_usart1` (`host_usart6` under `qemu`) | the pin map's UART | 3 | moves bytes between the UART and its queues ([`uart`]) |
-//! | `limit_lines_5_9`, `limit_lines_10_15` | EXTI9_5, EXTI15_10 | 3 | acknowledges limit switch edges ([`limits`]) |
+//! | `limit_lines_5_9`, `limit_lines_10_15` | EXTI9_5, EXTI15_10 | 3 | acknowledges limit switch edges, reports them to the step interrupt ([`limits`]) |
 //! | `controller` | SDIO (no SD card: a free vector) | 1 | `Controller::poll` on the host link; arms the step alarm ([`machine::Firmware`]) |
 //! | `status` | I2C3_EV (free vector) | 1 | every 100 ms: feeds the watchdog |
 //! | `idle` | — | 0 | sleeps until the next interrupt |
@@ -95,13 +95,15 @@ mod app {
             link: HostLink::new(hw.reader, hw.writer),
         })
         .unwrap_or_else(|_| fault::reset());
+        let mut limits = hw.limits;
+        limits.attach(step.switch_alert());
         // The UART is enabled: announce the boot. Sent by the UART interrupt once init returns.
         firmware.boot();
         (
             Shared {
                 timer: hw.timer,
                 step,
-                limits: hw.limits,
+                limits,
                 uart: hw.uart,
             },
             Local {
