@@ -42,6 +42,8 @@ struct Current<const N: usize> {
     next_j: [u32; N],
     /// Exact time (ticks) of the next step of each axis; infinity when none.
     next_t: [f64; N],
+    /// The same rounded to the tick it is emitted at; `u64::MAX` when none.
+    next_tick: [u64; N],
     mm: f64,
     accel: f64,
     nominal: f64,
@@ -52,6 +54,22 @@ struct Current<const N: usize> {
     profile: Profile,
     exit_used: f32,
     hold_used: bool,
+    /// Path length of one step of each axis (0 when it has none).
+    step_mm: [f64; N],
+    /// The steps of each axis inside the profile's constant-speed phase, timed by a line.
+    cruise: [Cruise; N],
+}
+
+/// Steps `first..=last` of one axis fall inside the constant-speed phase of the profile: step
+/// `j` is due at `base + j·interval` ticks, one multiplication and one addition instead of
+/// the profile's division. The range stays two steps clear of the phase's ends, where the
+/// profile decides.
+#[derive(Debug, Clone, Copy, Default)]
+struct Cruise {
+    first: u32,
+    last: u32,
+    base: f64,
+    interval: f64,
 }
 
 impl<const N: usize> Current<N> {
@@ -70,6 +88,44 @@ impl<const N: usize> Current<N> {
         }
     }
 
+    /// Find each axis's steps in the constant-speed phase of the current profile.
+    fn plan_cruise(&mut self, ticks_per_s: f64) {
+        let phase = self.profile.cruise();
+        for ((c, &step_mm), &n) in self
+            .cruise
+            .iter_mut()
+            .zip(self.step_mm.iter())
+            .zip(self.n.iter())
+        {
+            *c = Cruise::default();
+            let Some((start, end, t_start, v)) = phase else {
+                continue;
+            };
+            if step_mm <= 0.0 {
+                continue;
+            }
+            // Step j is at x = step_mm·(j − ½) − s_anchor along the profile.
+            let from = (start + self.s_anchor) / step_mm + 0.5;
+            let to = (end + self.s_anchor) / step_mm + 0.5;
+            if !(from.is_finite() && to.is_finite()) || to - from < 8.0 {
+                continue;
+            }
+            let first = libm::floor(from) + 2.0;
+            let last = (libm::ceil(to) - 2.0).min(f64::from(n));
+            if first < 1.0 || last < first {
+                continue;
+            }
+            let interval = ticks_per_s * step_mm / v;
+            *c = Cruise {
+                first: first as u32,
+                last: last as u32,
+                base: self.t_anchor
+                    + ticks_per_s * (t_start + (-0.5 * step_mm - self.s_anchor - start) / v),
+                interval,
+            };
+        }
+    }
+
     /// Re-plan the rest of the block from the last prepared step.
     fn reanchor(&mut self, exit_sqr: f32, hold: bool, ticks_per_s: f64) {
         let v = self.profile.speed_at(self.last_s - self.s_anchor);
@@ -78,6 +134,7 @@ impl<const N: usize> Current<N> {
         self.exit_used = exit_sqr;
         self.hold_used = hold;
         self.profile = self.profile_for(v, exit_sqr, hold);
+        self.plan_cruise(ticks_per_s);
         for i in 0..N {
             self.refresh(i, ticks_per_s);
         }
@@ -88,17 +145,26 @@ impl<const N: usize> Current<N> {
         let (Some(&j), Some(&n)) = (self.next_j.get(i), self.n.get(i)) else {
             return;
         };
+        let cruise = self.cruise.get(i).copied().unwrap_or_default();
         let t = if j > n {
             f64::INFINITY
+        } else if cruise.first <= j && j <= cruise.last {
+            cruise.base + f64::from(j) * cruise.interval
         } else {
-            let s = self.mm * (f64::from(j) - 0.5) / f64::from(n);
+            let step_mm = self.step_mm.get(i).copied().unwrap_or(0.0);
+            let s = step_mm * (f64::from(j) - 0.5);
             match self.profile.time_at(s - self.s_anchor) {
                 Some(dt) => self.t_anchor + dt * ticks_per_s,
                 None => f64::INFINITY,
             }
         };
-        if let Some(x) = self.next_t.get_mut(i) {
+        if let (Some(x), Some(k)) = (self.next_t.get_mut(i), self.next_tick.get_mut(i)) {
             *x = t;
+            *k = if t.is_finite() {
+                libm::round(t) as u64
+            } else {
+                u64::MAX
+            };
         }
     }
 
@@ -107,7 +173,8 @@ impl<const N: usize> Current<N> {
         let (Some(j), Some(&n)) = (self.next_j.get_mut(i), self.n.get(i)) else {
             return;
         };
-        self.last_s = self.mm * (f64::from(*j) - 0.5) / f64::from(n);
+        let _ = n;
+        self.last_s = self.step_mm.get(i).copied().unwrap_or(0.0) * (f64::from(*j) - 0.5);
         self.last_t = t;
         *j += 1;
         self.refresh(i, ticks_per_s);
@@ -142,15 +209,15 @@ impl<const N: usize> Emitter<N> {
         self.open.map_or(self.last_pushed, |o| o.tick)
     }
 
-    /// The rising edge of axis `i` (direction `neg`) at tick `t`; `next_rise` holds the exact
-    /// next step times of the block's axes. Returns the tick used.
+    /// The rising edge of axis `i` (direction `neg`) at tick `t`; `next_rise` holds the next
+    /// step ticks of the block's axes. Returns the tick used.
     fn rise<const Q: usize>(
         &mut self,
         tx: &mut Producer<'_, N, Q>,
         i: usize,
         neg: u8,
         t: u64,
-        next_rise: &[f64; N],
+        next_rise: &[u64; N],
     ) -> u64 {
         let bit = 1u8 << i;
         let dir_change = self.dir_known & bit == 0 || self.dir_neg & bit != neg;
@@ -187,8 +254,8 @@ impl<const N: usize> Emitter<N> {
                 break;
             }
             let jbit = 1u8 << j;
-            let next = next_rise.get(j).copied().unwrap_or(0.0);
-            if t - f <= self.pulse || next >= (t + self.pulse + 1) as f64 {
+            let next = next_rise.get(j).copied().unwrap_or(0);
+            if t - f <= self.pulse || next > t + self.pulse {
                 folded |= jbit;
                 self.falls &= !jbit;
             } else {
@@ -494,16 +561,17 @@ impl<const N: usize> Prep<N> {
                 cur.reanchor(exit_sqr, hold, tps);
             }
             // The axis whose step comes first.
-            let mut best = (usize::MAX, f64::INFINITY);
-            for (i, t) in cur.next_t.iter().enumerate() {
+            let mut best = (usize::MAX, u64::MAX);
+            for (i, t) in cur.next_tick.iter().enumerate() {
                 if *t < best.1 {
                     best = (i, *t);
                 }
             }
-            let (i, t) = best;
-            if t.is_finite() {
+            let (i, tick) = best;
+            if tick != u64::MAX {
                 let neg = cur.neg & (1 << i);
-                self.em.rise(tx, i, neg, libm::round(t) as u64, &cur.next_t);
+                let t = cur.next_t.get(i).copied().unwrap_or(0.0);
+                self.em.rise(tx, i, neg, tick, &cur.next_tick);
                 cur.advance(i, t, tps);
             } else if cur.done() {
                 // Block done: the next one starts where this profile ends.
@@ -541,6 +609,7 @@ impl<const N: usize> Prep<N> {
             neg,
             next_j: [1; N],
             next_t: [f64::INFINITY; N],
+            next_tick: [u64::MAX; N],
             mm: f64::from(block.mm),
             accel: f64::from(block.accel),
             nominal: sqrt(f64::from(block.nominal_sqr)),
@@ -551,9 +620,18 @@ impl<const N: usize> Prep<N> {
             profile: Profile::plan(0.0, 0.0, 0.0, 0.0, 1.0),
             exit_used: exit_sqr,
             hold_used: self.hold,
+            step_mm: core::array::from_fn(|i| {
+                if n[i] == 0 {
+                    0.0
+                } else {
+                    f64::from(block.mm) / f64::from(n[i])
+                }
+            }),
+            cruise: [Cruise::default(); N],
         };
         self.line = block.line;
         cur.profile = cur.profile_for(self.v_carry, exit_sqr, self.hold);
+        cur.plan_cruise(self.ticks_per_s);
         for i in 0..N {
             cur.refresh(i, self.ticks_per_s);
         }

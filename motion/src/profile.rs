@@ -107,6 +107,13 @@ impl Profile {
     }
 
     /// Length covered, mm (less than the block's rest when a hold stops inside it).
+    /// The constant-speed phase, if any: where it starts and ends (distance from the start),
+    /// the time it starts at and its speed. Within it, `time_at(x)` is
+    /// `t_start + (x - start) / speed`.
+    pub(crate) fn cruise(&self) -> Option<(f64, f64, f64, f64)> {
+        (self.d2 > 0.0 && self.v1 > 0.0).then_some((self.d1, self.d1 + self.d2, self.t1, self.v1))
+    }
+
     pub(crate) fn length(&self) -> f64 {
         self.d1 + self.d2 + self.d3
     }

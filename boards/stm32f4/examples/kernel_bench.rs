@@ -11,7 +11,7 @@
 //!
 //! | marker | what one call runs |
 //! |---|---|
-//! | [`bench_isr`] | `StepGenerator::on_alarm`: one interrupt's worth of step events, pins and switch reads included |
+//! | [`bench_isr`] | `StepGenerator::on_alarm`: one interrupt's worth of step events, pins and switch samples included |
 //! | [`bench_prep`] | `Kernel::poll`: segment preparation (thread side) |
 //! | [`bench_line`] | `Line::parse` and `Kernel::execute` of one G-code line: parse, interpret, plan |
 //!
@@ -24,7 +24,10 @@
 //!    6,000 mm/min, each line parsed, interpreted and planned as it is taken.
 //!
 //! Every axis has a limit switch at its maximum with hard limits on, and every move goes
-//! towards them: the interrupt reads a switch before every step (the most it ever does).
+//! towards them. As on the board, the interrupt samples every switch at the start of each
+//! motion, until all read released and settled (the largest calls of the table), and then
+//! only after an edge is reported by the switch lines' EXTI interrupt (none here: the
+//! switches stay released).
 //! The machine is the one of the host benchmarks (`motion/benches/kernel.rs`); the step
 //! clock runs at the Black Pill's 8 MHz.
 #![no_std]
