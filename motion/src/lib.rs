@@ -28,6 +28,10 @@
 //! - Floats stay on the thread side. The interrupt side is integer-only, allocation-free and
 //!   panic-free; one call handles one event (falling edges, direction changes, switch checks,
 //!   rising edges) in a bounded number of instructions (see `docs/performance.md`).
+//! - The interrupt samples the limit switches only while one may matter: from the start of a
+//!   motion until all are released and settled, during homing, and after the board reports an
+//!   input edge through [`SwitchAlert`] (its pin-change interrupt). A board calls
+//!   [`SwitchAlert::notify`] on every switch edge.
 //! - Every axis steps at its own exact time (rounded to the nearest tick), not on a shared
 //!   Bresenham grid; every move emits exactly its integer step count, so there is no drift.
 //! - A refused G-code line changes nothing; unsupported commands are named in the error.

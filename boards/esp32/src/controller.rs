@@ -3,7 +3,8 @@
 //!
 //! | firmware part | on the ESP32 |
 //! |---|---|
-//! | step interrupt | [`crate::step::on_interrupt`]: `StepGenerator::on_alarm` over `StepDir` drivers on the STEP/DIR outputs and debounced `LimitInput`s on the switch inputs |
+//! | step interrupt | [`crate::step::on_interrupt`]: `StepGenerator::on_alarm` over `StepDir` drivers on the STEP/DIR outputs and debounced `LimitInput`s on the switch inputs, sampled from each motion's start until all are released and settled, during homing and after a reported edge |
+//! | switch interrupt | [`crate::limits::on_interrupt`]: the GPIO interrupt on either edge of a switch input; acknowledges it and reports the edge through the step generator's `SwitchAlert` |
 //! | thread side | [`run`]: `LinkSession` (frames 54/55) through [`WifiLink::poll_session`], `Controller::poll`, the step alarm, the WiFi settings, the watchdog |
 //! | peripherals | `DriverPeripherals`: the shared enable line, the switches read again for `M119`; no heater, fan or spindle |
 //! | storage | the `forja` partition ([`crate::storage`]): the settings in a `FlashRecordStorage`, the uploaded program in a `SlotProgramStore` (one flash read per line) |

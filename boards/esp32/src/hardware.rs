@@ -5,7 +5,7 @@
 use core::fmt;
 
 use esp_hal::clock::CpuClock;
-use esp_hal::gpio::{Input, Output};
+use esp_hal::gpio::{Input, Io, Output};
 use esp_hal::interrupt::InterruptHandler;
 use esp_hal::peripherals::{Peripherals, TIMG0};
 use esp_hal::rng::Rng;
@@ -112,10 +112,15 @@ pub struct Hardware {
     pub watchdog: Watchdog,
 }
 
-/// Bring the board up from reset; `step_interrupt` is bound to the step alarm.
+/// Bring the board up from reset; `step_interrupt` is bound to the step alarm and
+/// `switch_interrupt` to the GPIO interrupt, which the limit switch inputs raise once the step
+/// generator is attached (see [`crate::limits`]).
 ///
 /// Context: the start of `main`, before any task runs. Errors: see [`SetupError`].
-pub fn init(step_interrupt: InterruptHandler) -> Result<Hardware, SetupError> {
+pub fn init(
+    step_interrupt: InterruptHandler,
+    switch_interrupt: InterruptHandler,
+) -> Result<Hardware, SetupError> {
     let p: Peripherals = esp_hal::init(esp_hal::Config::default().with_cpu_clock(CpuClock::max()));
 
     esp_alloc::heap_allocator!(#[esp_hal::ram(reclaimed)] size: HEAP_RECLAIMED);
@@ -132,6 +137,9 @@ pub fn init(step_interrupt: InterruptHandler) -> Result<Hardware, SetupError> {
     #[cfg(not(feature = "esp32"))]
     let timer = StepTimer::new(p.SYSTIMER, step_interrupt);
     let clock = timer.clock();
+
+    // The GPIO interrupt, at `switch_interrupt`'s priority. No pin listens yet.
+    Io::new(p.IO_MUX).set_interrupt_handler(switch_interrupt);
 
     let enable = StepDir::with_enable(NoPin, NoPin, pins.enable, DRIVERS)
         .map_err(|_| SetupError::Stepper)?;

@@ -1,22 +1,38 @@
 //! The limit switches, read by two contexts: the step interrupt (homing, hard limits) and the
 //! controller's `M119`, as on the simulator, where each has its own reader of the same switch.
 //!
-//! The step interrupt owns each switch's [`Input`] in a debounced
-//! [`LimitInput`](forja_drivers::limit::LimitInput). The thread side reads the same pad through
-//! a [`SwitchLevel`]: esp-hal's [`InputSignal`] of the input, a read-only view of its level that
-//! never reconfigures the pin (it is frozen), wrapped in a [`LimitInput`] without debounce, so
-//! that a read from the thread never disturbs the interrupt's filter.
+//! The step interrupt owns each switch's [`Input`] in a debounced [`LimitInput`]. The thread
+//! side reads the same pad through a [`SwitchLevel`]: esp-hal's [`InputSignal`] of the input,
+//! a read-only view of its level that never reconfigures the pin (it is frozen), wrapped in a
+//! [`LimitInput`] without debounce, so that a read from the thread never disturbs the
+//! interrupt's filter.
+//!
+//! # The switch interrupt
+//!
+//! The step interrupt does not read the switches at every step: it samples them from the start
+//! of each motion until they are all released and settled, during homing, and after an edge
+//! is reported through the step generator's [`SwitchAlert`](forja_motion::SwitchAlert). Every
+//! switch input therefore raises esp-hal's GPIO interrupt on both edges ([`listen`], from
+//! `step::attach`), whose handler ([`on_interrupt`], bound in `main.rs` below the step
+//! interrupt's priority) acknowledges the inputs and reports the edge: a hard limit hit in the
+//! middle of a move stops it at the next step.
+//!
+//! The inputs start listening only once the step context holds them and the step generator is
+//! attached: the GPIO interrupt stays raised until its status bits are cleared, and only the
+//! handler, through the step context, can clear them.
 //!
 //! [`Input`]: esp_hal::gpio::Input
 
 use core::convert::Infallible;
 
 use embedded_hal::digital::{ErrorType, InputPin};
-use esp_hal::gpio::Input;
 use esp_hal::gpio::interconnect::InputSignal;
+use esp_hal::gpio::{Event, Input};
 use forja_drivers::limit::{LimitConfig, LimitInput};
 
 use crate::board::LIMIT_POLARITY;
+use crate::hardware::Limit;
+use crate::step::{self, FORJA_STEP_COUNTERS};
 
 /// The level of a switch input, for the thread side.
 pub struct SwitchLevel(InputSignal<'static>);
@@ -52,4 +68,52 @@ pub type ThreadLimit = LimitInput<SwitchLevel>;
 /// Context: init.
 pub fn thread_side(input: &Input<'static>) -> ThreadLimit {
     LimitInput::new(SwitchLevel::of(input), LimitConfig::new(LIMIT_POLARITY, 1))
+}
+
+/// Make each of `switches` raise the GPIO interrupt on both edges (esp-hal clears a stale
+/// interrupt status of the pin first).
+///
+/// Context: init, inside the step context's critical section (`step::attach`), once the
+/// switch interrupt is bound.
+pub fn listen(switches: &mut [Limit]) {
+    for switch in switches {
+        switch.pin_mut().listen(Event::AnyEdge);
+    }
+}
+
+/// Clear the GPIO interrupt status of each of `switches` that has it set; whether any had.
+///
+/// Context: the switch interrupt. Two register accesses per switch.
+pub fn acknowledge(switches: &mut [Limit]) -> bool {
+    let mut fired = false;
+    for switch in switches {
+        let pin = switch.pin_mut();
+        if pin.is_interrupt_set() {
+            pin.clear_interrupt();
+            fired = true;
+        }
+    }
+    fired
+}
+
+/// The body of the switch interrupt: acknowledge the switch inputs and, when one changed,
+/// report the edge to the step interrupt through the step generator's `SwitchAlert`.
+///
+/// The acknowledgement comes first, so an edge after it raises the interrupt again, and the
+/// report after it covers every edge before it.
+///
+/// Context: the switch interrupt (esp-hal's GPIO interrupt, whose handler runs with
+/// interrupts masked). No allocation, no panic; a few register accesses.
+#[inline]
+pub fn on_interrupt() {
+    let fired = step::with(|context| {
+        let fired = acknowledge(&mut context.limits);
+        if fired && let Some(generator) = &context.generator {
+            generator.switch_alert().notify();
+        }
+        fired
+    });
+    if fired == Some(true) {
+        step::bump(&FORJA_STEP_COUNTERS.switch_edges);
+    }
 }

@@ -8,6 +8,7 @@
 //! | context | bound to | priority | does |
 //! |---|---|---|---|
 //! | `step_interrupt` | the step alarm (SYSTIMER comparator 0; TIMG1 on the ESP32) | `Priority::max()` | `StepGenerator::on_alarm`, re-arms the alarm ([`step`]) |
+//! | `switch_interrupt` | the GPIO interrupt, on either edge of a limit switch input | `Priority2` | acknowledges the inputs, reports the edge to the step interrupt (`SwitchAlert`, [`limits`]) |
 //! | WiFi driver, esp-rtos scheduler | their own interrupts | esp-radio's | the radio |
 //! | `wifi_task` | esp-rtos executor | thread | joins the network, falls back to an access point ([`wifi`]) |
 //! | `net_task` (×2) | esp-rtos executor | thread | the station and access point IP stacks ([`net`]) |
@@ -17,11 +18,16 @@
 //!
 //! RTIC's ESP32-C3 backend does not work with esp-hal 1.x, so the step interrupt is a plain
 //! esp-hal interrupt handler at the highest priority, and everything else is an async task
-//! of esp-rtos's executor, which never preempts the step interrupt.
+//! of esp-rtos's executor, which never preempts the step interrupt. The switch interrupt sits
+//! between them: above esp-radio's and esp-rtos's interrupts (priority 1) and the tasks, below
+//! the step interrupt (priority 2 exists on every chip; the Xtensa chips' highest is 3).
 //!
 //! The step interrupt shares the step context (timer, STEP/DIR lines, switches, step
-//! generator) with the controller task through a `critical_section::Mutex`; the controller
-//! task only takes it to arm the alarm. The kernel and the step generator talk through their
+//! generator) with the controller task and the switch interrupt through a
+//! `critical_section::Mutex`; the controller task only takes it to arm the alarm, the switch
+//! interrupt to acknowledge the switch inputs. The step interrupt samples the switches only
+//! from each motion's start until they are all released and settled, during homing, and after
+//! the switch interrupt reports an edge. The kernel and the step generator talk through their
 //! lock-free step queue.
 #![no_std]
 #![no_main]
@@ -58,9 +64,15 @@ fn step_interrupt() {
     step::on_interrupt();
 }
 
+/// The switch interrupt: esp-hal's GPIO interrupt, raised by an edge of a limit switch input.
+#[esp_hal::handler(priority = esp_hal::interrupt::Priority::Priority2)]
+fn switch_interrupt() {
+    limits::on_interrupt();
+}
+
 #[esp_rtos::main]
 async fn main(spawner: Spawner) -> ! {
-    let hw = hardware::init(step_interrupt).unwrap_or_else(|_| fault::reset());
+    let hw = hardware::init(step_interrupt, switch_interrupt).unwrap_or_else(|_| fault::reset());
     let clock = hw.clock;
     step::install(hw.step);
     if step::self_test(clock).await.is_err() {

@@ -4,20 +4,25 @@
 //! (`Priority::max()`, bound in `main.rs`), raised by the step alarm of [`crate::timer`]. It
 //! owns the [`StepTimer`], the motion kernel's [`StepGenerator`], the STEP/DIR lines and the
 //! limit switch inputs, kept in [`STEP`] behind a critical section so that the thread side can
-//! reach the timer too (the controller task arms the alarm to start motion, [`arm`]).
+//! reach the timer too (the controller task arms the alarm to start motion, [`arm`]), and the
+//! switch interrupt the switch inputs ([`crate::limits::on_interrupt`]).
 //! Everything it runs is integer-only, allocation-free and panic-free: acknowledge the timer,
-//! `StepGenerator::on_alarm` (pin writes and switch reads), re-arm the timer. The interrupt
-//! has a budget of a few microseconds.
+//! `StepGenerator::on_alarm` (pin writes, and switch reads while the generator samples the
+//! switches: from each motion's start until they are all released and settled, during homing,
+//! and after the switch interrupt reports an edge), re-arm the timer. The interrupt has a
+//! budget of a few microseconds.
 //!
 //! The step generator is handed over with [`attach`] once the kernel is built from the stored
-//! settings; before that (and in [`self_test`], at every boot) the handler only acknowledges
-//! the timer. [`FORJA_STEP_COUNTERS`] counts the alarms; a debugger can read it.
+//! settings, and the switch inputs start raising the switch interrupt then; before that (and
+//! in [`self_test`], at every boot) the handler only acknowledges the timer.
+//! [`FORJA_STEP_COUNTERS`] counts the alarms and the switch edges; a debugger can read it.
 //!
 //! # Latency
 //!
 //! esp-hal's critical sections mask every interrupt, this one included: flash operations of
 //! the store (which run in a critical section with the cache off, see [`crate::storage`]) and
-//! the WiFi driver's short critical sections delay the step interrupt by as long as they last.
+//! the WiFi driver's short critical sections delay the step interrupt by as long as they last,
+//! and so does the switch interrupt, which esp-hal runs with interrupts masked.
 
 use core::cell::RefCell;
 use core::sync::atomic::{AtomicU32, Ordering};
@@ -30,6 +35,7 @@ use forja_motion::StepGenerator;
 
 use crate::board::{AXES, LIMITS};
 use crate::hardware::{Limit, SetupError, Stepper};
+use crate::limits;
 use crate::timer::{StepClock, StepTimer};
 
 /// Events of the step queue between the kernel and the step interrupt (a power of two; 8 KiB,
@@ -45,7 +51,8 @@ pub struct StepContext {
     pub timer: StepTimer,
     /// The STEP and DIR lines of each motor driver, in axis order.
     pub steppers: [Stepper; AXES],
-    /// The limit switches, indexed by each homed axis's `homing.switch`.
+    /// The limit switches, indexed by each homed axis's `homing.switch`; the switch interrupt
+    /// acknowledges their GPIO interrupt here.
     pub limits: [Limit; LIMITS],
     /// The kernel's step generator, once [`attach`]ed.
     pub generator: Option<Generator>,
@@ -54,24 +61,31 @@ pub struct StepContext {
 /// The step context, once installed.
 pub static STEP: Mutex<RefCell<Option<StepContext>>> = Mutex::new(RefCell::new(None));
 
-/// Counters of the step interrupt, wrapping, at a symbol a debugger can find.
+/// Counters of the step and switch interrupts, wrapping, at a symbol a debugger can find.
 #[repr(C)]
 pub struct StepCounters {
     /// Step alarms handled.
     pub alarms: AtomicU32,
     /// Interrupts with no alarm due (spurious or cleared ones).
     pub spurious: AtomicU32,
+    /// Switch interrupts that acknowledged a switch edge (counted by the switch interrupt).
+    pub switch_edges: AtomicU32,
 }
 
-/// The step interrupt's counters.
+/// The step and switch interrupts' counters.
 #[unsafe(no_mangle)]
 pub static FORJA_STEP_COUNTERS: StepCounters = StepCounters {
     alarms: AtomicU32::new(0),
     spurious: AtomicU32::new(0),
+    switch_edges: AtomicU32::new(0),
 };
 
-fn bump(counter: &AtomicU32) {
-    // Single writer (the step interrupt): load and store, no read-modify-write atomics.
+/// Add one to `counter`, wrapping.
+///
+/// Context: the one interrupt that writes `counter`.
+pub(crate) fn bump(counter: &AtomicU32) {
+    // Single writer per counter (the step interrupt, or the switch interrupt for
+    // `switch_edges`): load and store, no read-modify-write atomics.
     counter.store(
         counter.load(Ordering::Relaxed).wrapping_add(1),
         Ordering::Relaxed,
@@ -85,11 +99,17 @@ pub fn install(context: StepContext) {
     critical_section::with(|cs| STEP.borrow(cs).replace(Some(context)));
 }
 
-/// Hand the kernel's step generator to the step interrupt.
+/// Hand the kernel's step generator to the step interrupt, and make the switch inputs raise
+/// the switch interrupt on every edge ([`limits::listen`]), which reports them through the
+/// generator's `SwitchAlert`.
 ///
-/// Context: init, after [`install`] and [`self_test`], before the first [`arm`].
+/// Context: init, after [`install`] and [`self_test`], before the first [`arm`], with the
+/// switch interrupt bound.
 pub fn attach(generator: Generator) {
-    with(|context| context.generator = Some(generator));
+    with(|context| {
+        context.generator = Some(generator);
+        limits::listen(&mut context.limits);
+    });
 }
 
 /// Arm the step alarm at `at` (an instant already past fires at once): what the controller
