@@ -170,11 +170,10 @@ impl<const N: usize> Current<N> {
 
     /// Axis `i` has stepped at exact time `t`.
     fn advance(&mut self, i: usize, t: f64, ticks_per_s: f64) {
-        let (Some(j), Some(&n)) = (self.next_j.get_mut(i), self.n.get(i)) else {
+        let (Some(j), Some(&step_mm)) = (self.next_j.get_mut(i), self.step_mm.get(i)) else {
             return;
         };
-        let _ = n;
-        self.last_s = self.step_mm.get(i).copied().unwrap_or(0.0) * (f64::from(*j) - 0.5);
+        self.last_s = step_mm * (f64::from(*j) - 0.5);
         self.last_t = t;
         *j += 1;
         self.refresh(i, ticks_per_s);

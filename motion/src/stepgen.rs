@@ -206,6 +206,8 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         }
         match self.mode {
             Mode::WindDown => Err(self.wind_down(now, steppers)),
+            // Only reached from the fast path's own conditions, never here; kept correct anyway.
+            Mode::Running if !now.is_at_or_after(self.wake_at) => Err(Some(self.wake_at)),
             Mode::Running => Ok(self.next_ev),
             Mode::Idle => {
                 let Some(ev) = self.rx.peek() else {

@@ -18,10 +18,9 @@ use forja_tests::{Replies, Rig};
 /// machine.
 fn rig() -> (Rig, forja_sim::link::MemoryHost, Replies) {
     let mut rig = Rig::new("default", BoardConfig::default());
-    let (link, host) = MemoryLink::pair();
+    let (link, mut host) = MemoryLink::pair();
     rig.board.add_port(link, true);
     let mut replies = Replies::default();
-    let mut host = host;
     rig.exchange(&mut host, &mut replies, 50);
     (rig, host, replies)
 }
