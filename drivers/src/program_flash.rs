@@ -13,20 +13,30 @@
 //! |---|---|
 //! | 0..2 | the line's index, `u16` little-endian, 1-based |
 //! | 2 | the text's length, 0..=[`MAX_LINE_LEN`] |
-//! | 3..3+len | the text; the rest up to byte 60 is 0 |
+//! | 3..3+len | the text; the rest up to byte 42 is 0 |
+//! | 42..44 | the program's total number of lines, `u16` little-endian |
+//! | 44..48 | the program's digest through this line ([`digest_line`]), `u32` little-endian |
+//! | 48..60 | 0 |
 //! | 60..64 | CRC-32 (IEEE) of bytes 0..60, little-endian |
 //!
 //! A slot is valid when its CRC, index and length check. [`SLOT_LEN`] (64) divides the erase
 //! sector of every common flash and is a multiple of its read and write sizes, so no slot
 //! straddles a sector; [`SlotProgramStore::open`] refuses a flash for which it is not.
-//! There is no header: the program is the run of valid slots from slot 0.
+//! There is no header: the program is the run of valid slots from slot 0 that carry the total
+//! of slot 0 and whose digests chain (each is the digest of the one before continued over its
+//! own line), up to the total. It is complete when that run reaches the total: the "complete"
+//! mark is the last line itself, written last, so a power cut in the middle of an upload
+//! leaves an incomplete program (never a complete one), and a slot of another upload can
+//! never extend a program (its digest does not chain). Slots of the earlier layout (no total)
+//! open as no program.
 //!
 //! # Writing and erasing
 //!
 //! Each slot is written once after its sector was erased. The region is erased sector by
 //! sector as the program grows, never all at once:
-//! - [`ProgramStore::clear`] (the controller calls it when line 1 of a new program arrives)
-//!   erases sector 0, which removes the old program's first line and so the whole old program;
+//! - [`ProgramStore::begin`] (the controller calls it when line 1 of a new program arrives)
+//!   and [`ProgramStore::clear`] erase sector 0, which removes the old program's first line and
+//!   so the whole old program;
 //! - [`ProgramStore::store`] makes sure that the slot it writes *and the slot after it* lie in
 //!   sectors erased for this program, erasing the next sector ahead when the line is the last
 //!   of its sector, then writes the slot.
@@ -60,8 +70,8 @@
 //! - [`ProgramStore::store`]: one write of [`SLOT_LEN`] bytes, plus one sector erase for the
 //!   first line and then once every `ERASE_SIZE / SLOT_LEN` lines (64 lines for 4 KiB).
 //! - [`ProgramStore::clear`]: one sector erase (none when the store is already empty).
-//! - [`SlotProgramStore::open`]: one slot read per stored line, plus one when the store is not
-//!   full: at most [`SlotProgramStore::capacity`] reads (9 999 for a 9999-line program).
+//! - [`SlotProgramStore::open`]: one slot read per stored line, plus one when the program is
+//!   incomplete: at most [`SlotProgramStore::capacity`] reads (9 999 for a 9999-line program).
 //!
 //! # Execution context
 //!
@@ -71,7 +81,10 @@ use core::ops::Range;
 
 use embedded_storage::nor_flash::{NorFlash, NorFlashError};
 use forja_motion::error::StoreError;
-use forja_motion::job::{MAX_LINE_LEN, MAX_LINES, ProgramStore, check_next_line};
+use forja_motion::job::{
+    MAX_LINE_LEN, MAX_LINES, ProgramStore, check_next_line, check_total, crc32_update, digest_line,
+    digest_start,
+};
 
 use crate::storage::StorageError;
 
@@ -82,25 +95,29 @@ pub const SLOT_LEN: usize = 64;
 const LEN_AT: usize = 2;
 /// Offset of the text in a slot.
 const TEXT_AT: usize = 3;
+/// Offset of the program's total in a slot.
+const TOTAL_AT: usize = TEXT_AT + MAX_LINE_LEN;
+/// Offset of the digest in a slot.
+const DIGEST_AT: usize = TOTAL_AT + 2;
 /// Offset of the CRC in a slot: the bytes before it are checked.
 const CRC_AT: usize = SLOT_LEN - 4;
 
-/// CRC-32 (IEEE 802.3, reflected, as zlib's `crc32`), bitwise: 60 bytes per slot do not need
-/// a table.
+/// CRC-32 of a slot's bytes.
 fn crc32(bytes: &[u8]) -> u32 {
-    let mut crc = !0u32;
-    for &b in bytes {
-        crc ^= u32::from(b);
-        for _ in 0..8 {
-            let mask = (crc & 1).wrapping_neg();
-            crc = (crc >> 1) ^ (0xEDB8_8320 & mask);
-        }
-    }
-    !crc
+    crc32_update(0, bytes)
 }
 
-/// Encode line `index` (1-based) with `text` (at most [`MAX_LINE_LEN`] bytes) into a slot.
-fn encode(index: u16, text: &[u8]) -> [u8; SLOT_LEN] {
+/// What a slot holds besides its index.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Slot<'a> {
+    text: &'a [u8],
+    total: u16,
+    digest: u32,
+}
+
+/// Encode line `index` (1-based) of a program of `total` lines, with `text` (at most
+/// [`MAX_LINE_LEN`] bytes) and the program's `digest` through it, into a slot.
+fn encode(index: u16, total: u16, digest: u32, text: &[u8]) -> [u8; SLOT_LEN] {
     let mut slot = [0u8; SLOT_LEN];
     let len = text.len().min(MAX_LINE_LEN);
     if let Some(dst) = slot.get_mut(..LEN_AT) {
@@ -112,6 +129,12 @@ fn encode(index: u16, text: &[u8]) -> [u8; SLOT_LEN] {
     if let (Some(dst), Some(src)) = (slot.get_mut(TEXT_AT..TEXT_AT + len), text.get(..len)) {
         dst.copy_from_slice(src);
     }
+    if let Some(dst) = slot.get_mut(TOTAL_AT..DIGEST_AT) {
+        dst.copy_from_slice(&total.to_le_bytes());
+    }
+    if let Some(dst) = slot.get_mut(DIGEST_AT..DIGEST_AT + 4) {
+        dst.copy_from_slice(&digest.to_le_bytes());
+    }
     let crc = crc32(slot.get(..CRC_AT).unwrap_or(&[]));
     if let Some(dst) = slot.get_mut(CRC_AT..) {
         dst.copy_from_slice(&crc.to_le_bytes());
@@ -119,8 +142,8 @@ fn encode(index: u16, text: &[u8]) -> [u8; SLOT_LEN] {
     slot
 }
 
-/// The text of `slot` if it is a valid slot of line `index`.
-fn decode(index: u16, slot: &[u8; SLOT_LEN]) -> Option<&[u8]> {
+/// The contents of `slot` if it is a valid slot of line `index`.
+fn decode(index: u16, slot: &[u8; SLOT_LEN]) -> Option<Slot<'_>> {
     let (body, crc) = slot.split_at_checked(CRC_AT)?;
     let crc = u32::from_le_bytes(crc.try_into().ok()?);
     if crc32(body) != crc {
@@ -131,7 +154,13 @@ fn decode(index: u16, slot: &[u8; SLOT_LEN]) -> Option<&[u8]> {
     if stored != index || len > MAX_LINE_LEN {
         return None;
     }
-    body.get(TEXT_AT..TEXT_AT + len)
+    let total = u16::from_le_bytes(body.get(TOTAL_AT..DIGEST_AT)?.try_into().ok()?);
+    let digest = u32::from_le_bytes(body.get(DIGEST_AT..DIGEST_AT + 4)?.try_into().ok()?);
+    Some(Slot {
+        text: body.get(TEXT_AT..TEXT_AT + len)?,
+        total,
+        digest,
+    })
 }
 
 fn is_erased(slot: &[u8; SLOT_LEN]) -> bool {
@@ -152,6 +181,10 @@ pub struct SlotProgramStore<F> {
     region_len: u32,
     capacity: u16,
     count: u16,
+    /// The program's total (0 with none).
+    total: u16,
+    /// The digest of the lines stored (0 with no program).
+    digest: u32,
     /// Bytes from the start of the region erased for the current program: every slot from
     /// slot `count` up to here is erased (except slot `count` when `tail_dirty`).
     erased_end: u32,
@@ -161,9 +194,10 @@ pub struct SlotProgramStore<F> {
 
 impl<F: NorFlash> SlotProgramStore<F> {
     /// Open the program kept in `region` of `flash` (absolute byte offsets): the run of valid
-    /// slots from slot 0, found by reading them in turn (one read per stored line, plus one
-    /// when the store is not full). Anything else in the region (an empty flash, another
-    /// format's data) is an empty store.
+    /// slots from slot 0 that carry the same total and whose digests chain, up to the total,
+    /// found by reading them in turn (one read per stored line, plus one when the program is
+    /// incomplete). Anything else in the region (an empty flash, another format's data) is an
+    /// empty store.
     ///
     /// Errors: [`StorageError::BadRegion`] when the region is empty, not a whole number of
     /// erase sectors, or beyond the flash, or when [`SLOT_LEN`] is not a multiple of the
@@ -193,17 +227,32 @@ impl<F: NorFlash> SlotProgramStore<F> {
             region_len,
             capacity,
             count: 0,
+            total: 0,
+            digest: 0,
             erased_end: 0,
             tail_dirty: false,
         };
         let mut slot = [0u8; SLOT_LEN];
-        while store.count < capacity {
+        while store.count < capacity && (store.count == 0 || store.count < store.total) {
             let index = store.count + 1;
             store.read_slot(store.count, &mut slot)?;
-            if decode(index, &slot).is_none() {
+            let next = decode(index, &slot).filter(|s| {
+                let total = if index == 1 { s.total } else { store.total };
+                let prev = if index == 1 {
+                    digest_start(total)
+                } else {
+                    store.digest
+                };
+                s.total == total
+                    && (1..=capacity).contains(&total)
+                    && s.digest == digest_line(prev, index, s.text)
+            });
+            let Some(next) = next else {
                 store.tail_dirty = !is_erased(&slot);
                 break;
-            }
+            };
+            store.total = next.total;
+            store.digest = next.digest;
             store.count = index;
         }
         if store.count > 0 {
@@ -216,6 +265,8 @@ impl<F: NorFlash> SlotProgramStore<F> {
                 .min(region_len);
         } else {
             store.tail_dirty = false;
+            store.total = 0;
+            store.digest = 0;
         }
         Ok(store)
     }
@@ -259,11 +310,47 @@ impl<F: NorFlash> SlotProgramStore<F> {
         }
         Ok(())
     }
+
+    /// Erase sector 0 (unless the store is empty with sector 0 erased already): the old
+    /// program goes. Nothing changes when the erase fails.
+    fn erase_first(&mut self) -> Result<(), StoreError> {
+        if self.count == 0 && !self.tail_dirty && self.erased_end > 0 {
+            return Ok(());
+        }
+        let erased_end = self.erased_end;
+        self.erased_end = 0;
+        let sector = F::ERASE_SIZE as u32;
+        if let Err(e) = self.erase_to(sector.min(self.region_len)) {
+            // Erasing only sets bits: what was erased before still is.
+            self.erased_end = erased_end;
+            return Err(e);
+        }
+        self.tail_dirty = false;
+        self.count = 0;
+        Ok(())
+    }
 }
 
 impl<F: NorFlash> ProgramStore for SlotProgramStore<F> {
     fn len(&self) -> u16 {
         self.count
+    }
+
+    fn total(&self) -> u16 {
+        self.total
+    }
+
+    fn digest(&self) -> u32 {
+        self.digest
+    }
+
+    /// Erases sector 0, as [`clear`](ProgramStore::clear); the total is written with each line.
+    fn begin(&mut self, total: u16) -> Result<(), StoreError> {
+        check_total(total, self.capacity)?;
+        self.erase_first()?;
+        self.total = total;
+        self.digest = digest_start(total);
+        Ok(())
     }
 
     /// One flash read of [`SLOT_LEN`] bytes.
@@ -274,16 +361,16 @@ impl<F: NorFlash> ProgramStore for SlotProgramStore<F> {
         let mut slot = [0u8; SLOT_LEN];
         self.read_slot(index - 1, &mut slot)
             .map_err(|_| StoreError::Device)?;
-        let text = decode(index, &slot).ok_or(StoreError::Device)?;
+        let text = decode(index, &slot).ok_or(StoreError::Device)?.text;
         let dst = buf.get_mut(..text.len()).ok_or(StoreError::Device)?;
         dst.copy_from_slice(text);
         Ok(text.len())
     }
 
-    /// Line 1 erases sector 0 unless [`clear`](ProgramStore::clear) just did; the last line
+    /// Line 1 erases sector 0 unless [`begin`](ProgramStore::begin) just did; the last line
     /// of each sector erases the next one first.
     fn store(&mut self, index: u16, text: &[u8]) -> Result<(), StoreError> {
-        check_next_line(self.count, self.capacity, index, text.len())?;
+        check_next_line(self.count, self.total, self.capacity, index, text.len())?;
         let slot = index - 1;
         if self.tail_dirty {
             if slot != 0 {
@@ -298,30 +385,22 @@ impl<F: NorFlash> ProgramStore for SlotProgramStore<F> {
         let end = (start + ahead * SLOT_LEN as u32).min(self.region_len);
         self.erase_to(end)?;
         self.tail_dirty = false;
-        let bytes = encode(index, text);
+        let digest = digest_line(self.digest, index, text);
+        let bytes = encode(index, self.total, digest, text);
         if self.flash.write(self.base + start, &bytes).is_err() {
             self.tail_dirty = true;
             return Err(StoreError::Device);
         }
         self.count = index;
+        self.digest = digest;
         Ok(())
     }
 
     /// Erases sector 0: the old program's first line goes, and with it the whole program.
     fn clear(&mut self) -> Result<(), StoreError> {
-        if self.count == 0 && !self.tail_dirty && self.erased_end > 0 {
-            return Ok(());
-        }
-        let erased_end = self.erased_end;
-        self.erased_end = 0;
-        let sector = F::ERASE_SIZE as u32;
-        if let Err(e) = self.erase_to(sector.min(self.region_len)) {
-            // Erasing only sets bits: what was erased before still is.
-            self.erased_end = erased_end;
-            return Err(e);
-        }
-        self.tail_dirty = false;
-        self.count = 0;
+        self.erase_first()?;
+        self.total = 0;
+        self.digest = 0;
         Ok(())
     }
 }
@@ -342,7 +421,11 @@ mod tests {
     }
 
     fn load(s: &mut SlotProgramStore<Flash>, tag: &str, lines: u16) {
-        s.clear().unwrap();
+        if lines == 0 {
+            s.clear().unwrap();
+        } else {
+            s.begin(lines).unwrap();
+        }
         for k in 1..=lines {
             s.store(k, &line(tag, k)).unwrap();
         }
@@ -365,9 +448,17 @@ mod tests {
     #[test]
     fn slot_layout_and_crc() {
         assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
-        let slot = encode(7, b"G0 X1");
+        let slot = encode(7, 9, 0x1234_5678, b"G0 X1");
         assert_eq!(&slot[..8], &[7, 0, 5, b'G', b'0', b' ', b'X', b'1']);
-        assert_eq!(decode(7, &slot), Some(&b"G0 X1"[..]));
+        assert_eq!(&slot[42..48], &[9, 0, 0x78, 0x56, 0x34, 0x12]);
+        assert_eq!(
+            decode(7, &slot),
+            Some(Slot {
+                text: b"G0 X1",
+                total: 9,
+                digest: 0x1234_5678
+            })
+        );
         assert_eq!(decode(8, &slot), None, "another line's slot");
         let mut torn = slot;
         torn[4] ^= 1;
@@ -380,23 +471,28 @@ mod tests {
         let mut s = SlotProgramStore::open(Flash::new(), REGION).unwrap();
         assert_eq!(s.capacity(), 28);
         assert!(s.is_empty());
-        load(&mut s, "a", 10);
+        s.begin(13).unwrap();
+        for k in 1..=10 {
+            s.store(k, &line("a", k)).unwrap();
+        }
         s.store(11, b"").unwrap();
         s.store(12, &[b'Z'; MAX_LINE_LEN]).unwrap();
         let mut expected = program("a", 10);
         expected.push(Vec::new());
         expected.push(vec![b'Z'; MAX_LINE_LEN]);
         assert_eq!(read_all(&mut s), expected);
+        let digest = s.digest();
         let mut s = SlotProgramStore::open(s.into_inner(), REGION).unwrap();
-        assert_eq!(s.len(), 12);
+        assert_eq!((s.len(), s.total(), s.is_complete()), (12, 13, false));
+        assert_eq!(s.digest(), digest);
         assert_eq!(read_all(&mut s), expected);
         let mut buf = [0; MAX_LINE_LEN];
         assert_eq!(s.read(0, &mut buf), Err(StoreError::NoSuchLine));
         assert_eq!(s.read(13, &mut buf), Err(StoreError::NoSuchLine));
-        // Lines go on after a reopen.
+        // Lines go on after a reopen; the last one completes the program.
         s.store(13, b"M2").unwrap();
         let mut s = SlotProgramStore::open(s.into_inner(), REGION).unwrap();
-        assert_eq!(s.len(), 13);
+        assert_eq!((s.len(), s.is_complete()), (13, true));
         assert_eq!(s.read(13, &mut buf), Ok(2));
     }
 
@@ -416,6 +512,10 @@ mod tests {
     #[test]
     fn errors_leave_the_store_unchanged() {
         let mut s = SlotProgramStore::open(Flash::new(), REGION).unwrap();
+        assert_eq!(s.store(1, b"G1 X1"), Err(StoreError::NoUpload));
+        assert_eq!(s.begin(29), Err(StoreError::Full));
+        assert_eq!(s.begin(0), Err(StoreError::Full));
+        s.begin(28).unwrap();
         assert_eq!(
             s.store(2, b"G1 X1"),
             Err(StoreError::OutOfOrder {
@@ -423,7 +523,9 @@ mod tests {
                 got: 2
             })
         );
-        load(&mut s, "a", 27);
+        for k in 1..=27 {
+            s.store(k, &line("a", k)).unwrap();
+        }
         let before = *s.flash_mut().as_bytes();
         assert_eq!(
             s.store(27, b"G1"),
@@ -436,12 +538,12 @@ mod tests {
         s.store(28, b"last").unwrap();
         let full = *s.flash_mut().as_bytes();
         assert_ne!(before, full);
-        assert_eq!(s.store(29, b"G1"), Err(StoreError::Full));
+        assert_eq!(s.store(29, b"G1"), Err(StoreError::NoUpload));
         assert_eq!(s.len(), 28);
         assert_eq!(s.flash_mut().as_bytes(), &full);
         let mut s = SlotProgramStore::open(s.into_inner(), REGION).unwrap();
         assert_eq!(s.len(), 28);
-        assert_eq!(s.store(29, b"G1"), Err(StoreError::Full));
+        assert_eq!(s.store(29, b"G1"), Err(StoreError::NoUpload));
         // A failing device: clear reports it and keeps the program.
         s.flash_mut().cut_power_after(0);
         assert_eq!(s.clear(), Err(StoreError::Device));
@@ -460,7 +562,11 @@ mod tests {
             let r = seed >> 8;
             let len = ram.len();
             match r % 16 {
-                0 => assert_eq!(flash.clear(), ram.clear()),
+                0 if r & 0x10 == 0 => assert_eq!(flash.clear(), ram.clear()),
+                0 => {
+                    let total = (r >> 5) as u16 % 31;
+                    assert_eq!(flash.begin(total), ram.begin(total));
+                }
                 1 => {
                     let index = (r >> 4) as u16 % 32;
                     assert_eq!(flash.store(index, b"G0"), ram.store(index, b"G0"));
@@ -483,6 +589,8 @@ mod tests {
                 }
             }
             assert_eq!(flash.len(), ram.len());
+            assert_eq!(flash.total(), ram.total());
+            assert_eq!(flash.digest(), ram.digest());
         }
     }
 
@@ -501,7 +609,7 @@ mod tests {
         type Big = RamNorFlash<{ 704 * 1024 }, 4, 4096>;
         let mut s = SlotProgramStore::open(Big::new(), 0..704 * 1024).unwrap();
         assert_eq!(s.capacity(), MAX_LINES);
-        s.clear().unwrap();
+        s.begin(MAX_LINES).unwrap();
         for k in 1..=MAX_LINES {
             s.store(k, b"G1 X12.300 Y6.150 F3000").unwrap();
         }
@@ -590,9 +698,13 @@ mod tests {
                     "cut after {k}: {n} vs {acked}"
                 );
                 new_seen[usize::from(n)] += 1;
+                // Complete exactly when every line is there.
+                assert_eq!(s.is_complete(), n == NEW, "cut after {k}");
                 // Going on from the next line works unless that slot was torn.
                 match s.store(n + 1, &line("new", n + 1)) {
                     Ok(()) => assert_eq!(read_all(&mut s), program("new", n + 1)),
+                    // Nothing to go on with: complete, or no line 1 (no upload).
+                    Err(e) if n == NEW || n == 0 => assert_eq!(e, StoreError::NoUpload),
                     Err(e) => assert_eq!(e, StoreError::Device, "cut after {k}"),
                 }
             }
@@ -604,10 +716,10 @@ mod tests {
         assert!(new_seen.iter().all(|&c| c > 0), "{new_seen:?}");
     }
 
-    /// Clear, then store lines 1..=`lines` of program "new" until the first error; `None`
-    /// when the clear failed, else how many lines were acknowledged.
+    /// Begin, then store lines 1..=`lines` of program "new" until the first error; `None`
+    /// when the begin failed, else how many lines were acknowledged.
     fn upload_ref(s: &mut SlotProgramStore<&mut Flash>, lines: u16) -> Option<u16> {
-        s.clear().ok()?;
+        s.begin(lines).ok()?;
         let mut done = 0;
         for k in 1..=lines {
             if s.store(k, &line("new", k)).is_err() {
@@ -616,5 +728,26 @@ mod tests {
             done = k;
         }
         Some(done)
+    }
+
+    /// An upload cut after 4 of 10 lines reopens incomplete; a line 5 written by another
+    /// upload of the same total (its digest chains from other lines) never extends it.
+    #[test]
+    fn an_interrupted_upload_stays_incomplete_and_takes_no_foreign_line() {
+        let mut s = SlotProgramStore::open(Flash::new(), REGION).unwrap();
+        s.begin(10).unwrap();
+        for k in 1..=4 {
+            s.store(k, &line("a", k)).unwrap();
+        }
+        // Program "b", same total: its line 5 in slot 4, as a splice would put it.
+        let mut other = digest_start(10);
+        for k in 1..=5 {
+            other = digest_line(other, k, &line("b", k));
+        }
+        let foreign = encode(5, 10, other, &line("b", 5));
+        let at = REGION.start + 4 * SLOT_LEN as u32;
+        s.flash_mut().write(at, &foreign).unwrap();
+        let s = SlotProgramStore::open(s.into_inner(), REGION).unwrap();
+        assert_eq!((s.len(), s.total(), s.is_complete()), (4, 10, false));
     }
 }

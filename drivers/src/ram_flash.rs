@@ -32,6 +32,9 @@ pub enum RamFlashError {
     PowerLost,
     /// A word was written twice without an erase in between.
     WordWrittenTwice,
+    /// The medium that keeps a board's flash failed (the host simulator's state file could
+    /// not be written); the flash refuses every later operation, as after a power cut.
+    MediumFailed,
 }
 
 impl fmt::Display for RamFlashError {
@@ -41,6 +44,7 @@ impl fmt::Display for RamFlashError {
             Self::OutOfBounds => "flash access out of bounds",
             Self::PowerLost => "flash lost power",
             Self::WordWrittenTwice => "flash word written twice without erase",
+            Self::MediumFailed => "flash medium failed",
         })
     }
 }
@@ -50,7 +54,9 @@ impl NorFlashError for RamFlashError {
         match self {
             Self::NotAligned => NorFlashErrorKind::NotAligned,
             Self::OutOfBounds => NorFlashErrorKind::OutOfBounds,
-            Self::PowerLost | Self::WordWrittenTwice => NorFlashErrorKind::Other,
+            Self::PowerLost | Self::WordWrittenTwice | Self::MediumFailed => {
+                NorFlashErrorKind::Other
+            }
         }
     }
 }
@@ -293,6 +299,11 @@ mod tests {
         assert_eq!(buf, [0xFF; 8]);
         assert_eq!(f.capacity(), 1024);
         assert_eq!(RamFlashError::PowerLost.kind(), NorFlashErrorKind::Other);
+        assert_eq!(RamFlashError::MediumFailed.kind(), NorFlashErrorKind::Other);
+        assert_eq!(
+            format!("{}", RamFlashError::MediumFailed),
+            "flash medium failed"
+        );
     }
 
     #[test]

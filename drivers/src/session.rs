@@ -1,5 +1,6 @@
 //! Session rules of connection-oriented links (the ESP32's WiFi/TCP link, the simulator's TCP
-//! link): one controlling client at a time, a greeting on connect, periodic keep-alives.
+//! link): one controlling client at a time, a greeting on connect, periodic keep-alives, and
+//! optionally an idle time-out for a controlling client that has gone silent.
 //!
 //! [`LinkSession`] is sans-IO. The caller owns the sockets and the clock: it reports
 //! connections and disconnections, calls [`LinkSession::poll`] with the time, and carries out
@@ -22,6 +23,34 @@
 //! assert_eq!(session.poll_at(), Some(2_000));
 //! ```
 //!
+//! # Idle time-out
+//!
+//! With [`LinkSession::with_idle_timeout`], a controlling client that is not heard from for
+//! that long loses control: [`LinkSession::poll_idle`] ends the session and the caller closes
+//! the client's connection. What keeps a client in control is the caller's to report with
+//! [`LinkSession::on_input`]: any byte received from it, and every moment the controller owes
+//! it an answer (a held line, a homing cycle, a heater wait), so that a client waiting for an
+//! answer is never dropped for its silence. A client that only watches must therefore poll
+//! (`M105`, `?`, a frame 04) more often than the time-out.
+//!
+//! ```
+//! use forja_drivers::session::{LinkSession, SessionAction};
+//!
+//! let mut session = LinkSession::new(1_000).with_idle_timeout(5_000);
+//! assert_eq!(session.on_connect(0), SessionAction::SendConnected);
+//! session.on_input(3_000);
+//! assert!(!session.poll_idle(7_999));
+//! assert!(session.poll_idle(8_000), "silent for 5 s");
+//! assert!(!session.is_connected());
+//! assert_eq!(session.on_connect(8_010), SessionAction::SendConnected);
+//! ```
+//!
+//! # Several links, one machine
+//!
+//! A board with several links (the simulator's TCP port and its pseudo-terminal) keeps one
+//! controlling host across all of them: while another link's host is in control, the session
+//! is [locked](LinkSession::set_locked) and refuses every client, as it refuses a second one.
+//!
 //! Times are milliseconds of a wrapping `u32` clock; deadlines compare correctly while they are
 //! less than 2³¹ ms (24 days) apart.
 //!
@@ -39,8 +68,9 @@ pub enum SessionAction {
     /// Send message 55 (keep-alive) carrying this counter, which starts at 0 for each session
     /// and increments (wrapping) with each keep-alive.
     SendKeepAlive(u32),
-    /// A client connected while another is in control: send it the refusal message and close
-    /// its connection.
+    /// A client connected while another is in control (on this link, or on another link of
+    /// the board: [`LinkSession::set_locked`]): send it the refusal message and close its
+    /// connection.
     RefuseSecondClient,
 }
 
@@ -51,6 +81,12 @@ pub struct LinkSession {
     connected: bool,
     next_keep_alive_ms: u32,
     counter: u32,
+    /// Silence after which the controlling client loses control, ms (`None`: never).
+    idle_timeout_ms: Option<u32>,
+    /// When the controlling client was last heard from.
+    heard_ms: u32,
+    /// Another link of the board has the machine.
+    locked: bool,
 }
 
 /// `true` when `a` is at or after `b` on a wrapping millisecond clock.
@@ -71,20 +107,77 @@ impl LinkSession {
             connected: false,
             next_keep_alive_ms: 0,
             counter: 0,
+            idle_timeout_ms: None,
+            heard_ms: 0,
+            locked: false,
+        }
+    }
+
+    /// The same session, where a controlling client that is not heard from for `timeout_ms`
+    /// (at least 1 ms, less than 2³¹ ms) loses control: see [`LinkSession::poll_idle`].
+    pub const fn with_idle_timeout(mut self, timeout_ms: u32) -> Self {
+        self.idle_timeout_ms = Some(if timeout_ms == 0 { 1 } else { timeout_ms });
+        self
+    }
+
+    /// The idle time-out, if any.
+    pub const fn idle_timeout_ms(&self) -> Option<u32> {
+        self.idle_timeout_ms
+    }
+
+    /// Another link of the board has its controlling host (`true`) or no longer has
+    /// (`false`): while locked, every client that connects is refused. The controlling client
+    /// of this session, if any, is untouched.
+    pub fn set_locked(&mut self, locked: bool) {
+        self.locked = locked;
+    }
+
+    /// Whether another link of the board has the machine.
+    pub fn is_locked(&self) -> bool {
+        self.locked
+    }
+
+    /// The controlling client was heard from at `now_ms` (it sent a byte), or is waiting for
+    /// an answer the controller owes it: its silence starts again from `now_ms`. Ignored
+    /// without a controlling client.
+    pub fn on_input(&mut self, now_ms: u32) {
+        if self.connected {
+            self.heard_ms = now_ms;
+        }
+    }
+
+    /// Whether the controlling client has been silent for the idle time-out at `now_ms`. If
+    /// so, the session ends (as [`LinkSession::on_disconnect`]) and the caller closes the
+    /// client's connection; the next client to connect is admitted. Always `false` without a
+    /// time-out or a controlling client.
+    pub fn poll_idle(&mut self, now_ms: u32) -> bool {
+        match self.idle_timeout_ms {
+            Some(timeout) if self.connected => {
+                let due = self.heard_ms.wrapping_add(timeout);
+                if at_or_after(now_ms, due) {
+                    self.connected = false;
+                    true
+                } else {
+                    false
+                }
+            }
+            _ => false,
         }
     }
 
     /// A client connected at `now_ms`. The first one becomes the controller
-    /// ([`SessionAction::SendConnected`]; its first keep-alive is due one interval later); any
-    /// other, while one is in control, is refused ([`SessionAction::RefuseSecondClient`]) and
-    /// does not change the session.
+    /// ([`SessionAction::SendConnected`]; its first keep-alive is due one interval later, its
+    /// silence counts from now); any other, while one is in control or the session is
+    /// [locked](LinkSession::set_locked), is refused ([`SessionAction::RefuseSecondClient`])
+    /// and does not change the session.
     pub fn on_connect(&mut self, now_ms: u32) -> SessionAction {
-        if self.connected {
+        if self.connected || self.locked {
             return SessionAction::RefuseSecondClient;
         }
         self.connected = true;
         self.counter = 0;
         self.next_keep_alive_ms = now_ms.wrapping_add(self.keep_alive_interval_ms);
+        self.heard_ms = now_ms;
         SessionAction::SendConnected
     }
 
@@ -122,8 +215,16 @@ impl LinkSession {
     }
 
     /// When [`LinkSession::poll`] has something to do next; `None` while nobody is connected.
+    /// (The idle time-out, if any, is due at [`LinkSession::idle_at`].)
     pub fn poll_at(&self) -> Option<u32> {
         self.connected.then_some(self.next_keep_alive_ms)
+    }
+
+    /// When [`LinkSession::poll_idle`] ends the session unless the client is heard from
+    /// before; `None` without a time-out or a controlling client.
+    pub fn idle_at(&self) -> Option<u32> {
+        let timeout = self.idle_timeout_ms?;
+        self.connected.then(|| self.heard_ms.wrapping_add(timeout))
     }
 }
 
@@ -203,6 +304,52 @@ mod tests {
         assert_eq!(s.poll(u32::MAX), None);
         assert_eq!(s.poll_at(), Some(499));
         assert_eq!(s.poll(499), Some(SessionAction::SendKeepAlive(0)));
+    }
+
+    #[test]
+    fn a_silent_controller_times_out_and_input_keeps_it() {
+        let mut s = LinkSession::new(1_000).with_idle_timeout(3_000);
+        assert_eq!(s.idle_timeout_ms(), Some(3_000));
+        assert!(!s.poll_idle(10_000), "nobody to time out");
+        assert_eq!(s.on_connect(100), SessionAction::SendConnected);
+        assert_eq!(s.idle_at(), Some(3_100));
+        s.on_input(2_000);
+        assert!(!s.poll_idle(4_999));
+        assert!(s.is_connected());
+        assert!(s.poll_idle(5_000));
+        assert!(!s.is_connected(), "the session ended");
+        assert_eq!(s.state(), LinkState::Disconnected);
+        assert!(!s.poll_idle(9_000), "once");
+        assert_eq!(s.poll(9_000), None, "no keep-alive after it");
+        s.on_disconnect();
+        assert_eq!(s.on_connect(9_000), SessionAction::SendConnected);
+        assert!(
+            !s.poll_idle(11_999),
+            "the new client's silence starts at its connection"
+        );
+        assert!(s.poll_idle(12_000));
+    }
+
+    #[test]
+    fn without_a_time_out_silence_is_allowed() {
+        let mut s = LinkSession::new(1_000);
+        s.on_connect(0);
+        assert!(!s.poll_idle(u32::MAX / 2));
+        assert_eq!(s.idle_at(), None);
+        assert!(s.is_connected());
+    }
+
+    #[test]
+    fn a_locked_session_refuses_every_client() {
+        let mut s = LinkSession::new(1_000);
+        s.set_locked(true);
+        assert!(s.is_locked());
+        assert_eq!(s.on_connect(0), SessionAction::RefuseSecondClient);
+        assert!(!s.is_connected());
+        s.set_locked(false);
+        assert_eq!(s.on_connect(1), SessionAction::SendConnected);
+        s.set_locked(true);
+        assert!(s.is_connected(), "locking leaves the controller in place");
     }
 
     #[test]

@@ -31,7 +31,7 @@ fn owned(event: Event<'_>) -> Owned {
             let _ = ControllerMessage::parse(&frame);
             Owned::Frame(frame.as_bytes().to_vec())
         }
-        Event::Garbage { skipped } => {
+        Event::Garbage { skipped, .. } => {
             assert!(skipped > 0);
             Owned::Garbage(skipped)
         }

@@ -8,7 +8,8 @@ use std::io;
 use std::sync::mpsc::{Receiver, TryRecvError};
 use std::time::{Duration, Instant};
 
-use forja_protocol::gcode::Line;
+use forja_protocol::gcode::{Check, Line};
+use forja_protocol::reply::{LINE_CHECK, Reply};
 
 use crate::codes;
 use crate::link::{Connection, Incoming};
@@ -181,14 +182,46 @@ pub fn drain(conn: &mut Connection, limit: Duration) -> io::Result<()> {
     Ok(())
 }
 
-/// Stream `program` over `conn` and wait until the controller has taken every line.
+/// How long [`send_program`] waits for the `M115` answer.
+const PROBE_LIMIT: Duration = Duration::from_secs(2);
+
+/// Ask the controller with `M115` which check it takes on numbered lines: [`Check::Crc16`]
+/// when its answer announces `LINE_CHECK:CRC16`, else [`Check::Xor`] (another firmware, or no
+/// answer within `limit`). Reads until the answer's `ok` line.
+pub fn probe_line_check(conn: &mut Connection, limit: Duration) -> io::Result<Check> {
+    conn.send(b"\r\nM115\r\n")?;
+    let end = Instant::now() + limit;
+    while let Some(wait) = end.checked_duration_since(Instant::now()) {
+        let Some(Incoming::Line(line)) = conn.receive(wait)? else {
+            continue;
+        };
+        match Reply::parse(&line) {
+            Ok(Reply::Capabilities(kv)) => {
+                let (key, value) = LINE_CHECK;
+                return Ok(if kv.get(key) == Some(value) {
+                    Check::Crc16
+                } else {
+                    Check::Xor
+                });
+            }
+            Ok(Reply::Ok | Reply::OkWith(_)) => return Ok(Check::Xor),
+            _ => {}
+        }
+    }
+    Ok(Check::Xor)
+}
+
+/// Stream `program` over `conn` and wait until the controller has taken every line. The
+/// controller is first asked which check it takes ([`probe_line_check`]); lines go with the
+/// CRC-16 when it announces it.
 pub fn send_program(
     conn: &mut Connection,
     program: &Program,
     config: Config,
     observer: &mut dyn Observer,
 ) -> Result<SendReport, SendError> {
-    let mut streamer = Streamer::new(config);
+    let check = probe_line_check(conn, PROBE_LIMIT)?;
+    let mut streamer = Streamer::new(Config { check, ..config });
     for line in &program.lines {
         // Program lines were checked when loaded: they always encode.
         streamer.push(&line.text).map_err(|e| {
@@ -302,8 +335,10 @@ pub type ConsoleError = SendError;
 
 /// An interactive session: each line received on `input` is checked, sent with a line number
 /// and checksum (resent if damaged), and every reply of the controller is written to `output`
-/// as it comes (its resend requests excepted). Ends when `input` closes and every line was
-/// taken.
+/// as it comes (its resend requests excepted). While the person types nothing, a lone line end
+/// goes out every [`crate::link::KEEP_ALIVE_PERIOD`] ([`Connection::keep_alive`]), so that the
+/// board's idle time-out does not end the session. Ends when `input` closes and every line
+/// was taken.
 pub fn console(
     conn: &mut Connection,
     input: &Receiver<String>,
@@ -318,6 +353,8 @@ pub fn console(
         out.clear();
         streamer.transmit(now, &mut out);
         conn.send(&out)?;
+        // The person may type nothing for a long while: the board must not take them for gone.
+        conn.keep_alive()?;
         while let Some(event) = streamer.next_event() {
             match event {
                 Event::Alarm { code, text } => {

@@ -205,6 +205,11 @@ impl<'c> FrameClient<'c> {
         Ok(())
     }
 
+    /// Keep the session while nothing is asked: see [`Connection::keep_alive`].
+    pub fn keep_alive(&mut self) -> io::Result<bool> {
+        self.conn.keep_alive()
+    }
+
     /// Send one frame.
     pub fn send(&mut self, msg: &ClientMessage<'_>) -> Result<(), FrameError> {
         let mut out = Vec::with_capacity(FRAME_LEN + 1);

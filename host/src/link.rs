@@ -266,6 +266,16 @@ pub enum Incoming {
     Garbage(usize),
 }
 
+/// What [`Connection::keep_alive`] sends: a lone line end, an empty record, which the
+/// controller neither answers nor counts as a line and which changes nothing (a line already
+/// sent is always whole: its own terminator went before it).
+pub const KEEP_ALIVE: &[u8] = b"\n";
+
+/// How long a [`Connection`] may send nothing before [`Connection::keep_alive`] sends
+/// [`KEEP_ALIVE`]: a third of the boards' idle time-out (60 s), after which a silent host
+/// loses control.
+pub const KEEP_ALIVE_PERIOD: Duration = Duration::from_secs(20);
+
 /// A link with the stream decoder: reply lines and frames in, bytes out.
 pub struct Connection {
     link: Box<dyn Link>,
@@ -277,6 +287,10 @@ pub struct Connection {
     bytes_read: u64,
     /// Everything written and read, for `--verbose`-style logs: `(sent, bytes)`.
     transcript: Option<Vec<(bool, Vec<u8>)>>,
+    /// When bytes were last written.
+    last_sent: Instant,
+    /// See [`Connection::set_keep_alive_period`].
+    keep_alive_period: Duration,
 }
 
 impl fmt::Debug for Connection {
@@ -302,6 +316,8 @@ impl Connection {
             bytes_written: 0,
             bytes_read: 0,
             transcript: None,
+            last_sent: Instant::now(),
+            keep_alive_period: KEEP_ALIVE_PERIOD,
         }
     }
 
@@ -336,11 +352,34 @@ impl Connection {
             return Ok(());
         }
         self.link.write_all(bytes)?;
+        self.last_sent = self.last_sent.max(Instant::now());
         self.bytes_written += bytes.len() as u64;
         if let Some(t) = &mut self.transcript {
             t.push((true, bytes.to_vec()));
         }
         Ok(())
+    }
+
+    /// Send [`KEEP_ALIVE`] after this long without writing (default [`KEEP_ALIVE_PERIOD`]).
+    pub fn set_keep_alive_period(&mut self, period: Duration) {
+        self.keep_alive_period = period;
+    }
+
+    /// Keep the session of an idle operator: send [`KEEP_ALIVE`] if nothing was written for
+    /// the keep-alive period. Returns whether it was sent. Call it from every loop that may
+    /// wait on the person (the console, `forja status`), at least once a period.
+    pub fn keep_alive(&mut self) -> io::Result<bool> {
+        self.keep_alive_at(Instant::now())
+    }
+
+    /// [`Connection::keep_alive`] as at `now`.
+    pub fn keep_alive_at(&mut self, now: Instant) -> io::Result<bool> {
+        if now.saturating_duration_since(self.last_sent) < self.keep_alive_period {
+            return Ok(false);
+        }
+        self.send(KEEP_ALIVE)?;
+        self.last_sent = self.last_sent.max(now);
+        Ok(true)
     }
 
     /// The next record, waiting at most `timeout` for it. `Ok(None)` when nothing complete
@@ -392,7 +431,7 @@ fn push_event(pending: &mut VecDeque<Incoming>, event: Event<'_>) {
     match event {
         Event::Line(bytes) => pending.push_back(Incoming::Line(bytes.to_vec())),
         Event::Frame(frame) => pending.push_back(Incoming::Frame(*frame.as_bytes())),
-        Event::Garbage { skipped } => pending.push_back(Incoming::Garbage(skipped)),
+        Event::Garbage { skipped, .. } => pending.push_back(Incoming::Garbage(skipped)),
         Event::TooLong { len } => pending.push_back(Incoming::Garbage(len)),
         _ => {}
     }

@@ -4,7 +4,7 @@
 use std::io::{self, BufRead, IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 use clap::{Args, Parser, Subcommand};
@@ -434,7 +434,12 @@ fn status(link: &LinkArgs, count: Option<u64>, interval_ms: u64) -> Result<ExitC
         if count.is_some_and(|c| shown >= c) {
             break;
         }
-        std::thread::sleep(Duration::from_millis(interval_ms));
+        // A long interval must not let the board's idle time-out end the session.
+        let next = Instant::now() + Duration::from_millis(interval_ms);
+        while let Some(left) = next.checked_duration_since(Instant::now()) {
+            std::thread::sleep(left.min(Duration::from_secs(1)));
+            frames.keep_alive()?;
+        }
     }
     if live {
         writeln!(stdout)?;

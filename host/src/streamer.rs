@@ -68,7 +68,7 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-use forja_protocol::gcode::{EncodeError, MAX_LINE_LEN, write_numbered};
+use forja_protocol::gcode::{Check, EncodeError, MAX_LINE_LEN, write_checked};
 use forja_protocol::reply::Reply;
 
 /// How much may be in flight: sent to the controller and not yet answered.
@@ -113,6 +113,11 @@ pub struct Config {
     pub quiet_timeout: Duration,
     /// A `!!` not followed by a line's `ok` within this long is an alarm.
     pub alarm_grace: Duration,
+    /// The check written after `*` on every numbered line, the handshake's `M110` included:
+    /// [`Check::Crc16`] for a controller that announces `LINE_CHECK:CRC16` in its `M115`
+    /// answer (see [`crate::client::probe_line_check`]), which then refuses a damaged line
+    /// that the XOR would let through.
+    pub check: Check,
 }
 
 impl Default for Config {
@@ -124,6 +129,7 @@ impl Default for Config {
             handshake_attempts: 10,
             quiet_timeout: Duration::from_millis(500),
             alarm_grace: Duration::from_millis(500),
+            check: Check::Xor,
         }
     }
 }
@@ -332,7 +338,7 @@ impl Streamer {
 
     fn push_numbered(&mut self, number: u32, body: &[u8]) -> Result<(), EncodeError> {
         let mut buf = [0u8; MAX_LINE_LEN + 2];
-        let n = write_numbered(number, body, &mut buf)?;
+        let n = write_checked(number, body, self.config.check, &mut buf)?;
         let mut line = buf.get(..n).unwrap_or_default().to_vec();
         line.extend_from_slice(TERMINATOR);
         self.lines.push(line.into_boxed_slice());
@@ -437,7 +443,7 @@ impl Streamer {
             return 0;
         }
         let mut buf = [0u8; 32];
-        let n = write_numbered(0, b"M110 N0", &mut buf).unwrap_or(0);
+        let n = write_checked(0, b"M110 N0", self.config.check, &mut buf).unwrap_or(0);
         let start = out.len();
         out.extend_from_slice(TERMINATOR);
         out.extend_from_slice(buf.get(..n).unwrap_or_default());
@@ -938,6 +944,16 @@ mod tests {
         numbering: LineNumbering,
         /// The numbers of the lines run, in order.
         executed: Vec<u32>,
+        /// What they held: their words in canonical form.
+        bodies: Vec<Vec<u8>>,
+    }
+
+    /// The canonical form of a line's words, without number or check.
+    fn body_of(line: &Line<'_>) -> Vec<u8> {
+        let bare = Line::from_parts(None, line.words(), line.text_arg()).unwrap();
+        let mut out = [0u8; 512];
+        let n = bare.encode(&mut out).unwrap();
+        out[..n].to_vec()
     }
 
     impl ModelController {
@@ -946,6 +962,7 @@ mod tests {
                 decoder: Decoder::new(),
                 numbering: LineNumbering::new(),
                 executed: Vec::new(),
+                bodies: Vec::new(),
             }
         }
 
@@ -953,6 +970,7 @@ mod tests {
             let mut replies = Vec::new();
             let numbering = &mut self.numbering;
             let executed = &mut self.executed;
+            let bodies = &mut self.bodies;
             self.decoder.feed_all(bytes, |event| {
                 let recovery = match event {
                     StreamEvent::Line(bytes) => match Line::parse(bytes) {
@@ -963,6 +981,7 @@ mod tests {
                                     .filter(|_| !line.is_empty() && !line.is_command(b'M', 110))
                                 {
                                     executed.push(n);
+                                    bodies.push(body_of(&line));
                                 }
                                 replies.push("ok".to_string());
                                 None
@@ -979,6 +998,7 @@ mod tests {
                 };
                 match recovery {
                     Some(Recovery::Resend(n)) => replies.push(format!("rs {n}")),
+                    Some(Recovery::Drop) => {}
                     Some(_) => {
                         replies.push("// E8 refused".into());
                         replies.push("ok".into());
@@ -1017,9 +1037,23 @@ mod tests {
         drop: f64,
         window: Window,
     ) -> (Vec<u32>, Vec<u32>, Stats) {
+        let (ran, _, refused, stats) = run_checked(texts, seed, corrupt, drop, window, Check::Xor);
+        (ran, refused, stats)
+    }
+
+    /// [`run_faulty`] with the check of choice, also giving what the lines run held.
+    fn run_checked(
+        texts: &[String],
+        seed: u64,
+        corrupt: f64,
+        drop: f64,
+        window: Window,
+        check: Check,
+    ) -> (Vec<u32>, Vec<Vec<u8>>, Vec<u32>, Stats) {
         let mut rng = Rng(seed | 1);
         let config = Config {
             window,
+            check,
             ..Config::default()
         };
         let mut s = Streamer::new(config);
@@ -1061,6 +1095,7 @@ mod tests {
                                     .filter(|_| !line.is_empty() && !line.is_command(b'M', 110))
                                 {
                                     c.executed.push(n);
+                                    c.bodies.push(body_of(&line));
                                 }
                                 "ok".to_string()
                             }
@@ -1071,10 +1106,13 @@ mod tests {
                         },
                         Err(e) => match numbering.recover(&e) {
                             Recovery::Resend(n) => format!("rs {n}"),
+                            Recovery::Drop => String::new(),
                             _ => "ok".into(),
                         },
                     };
-                    replies.push_back(r);
+                    if !r.is_empty() {
+                        replies.push_back(r);
+                    }
                 }
             }
             for _ in 0..(rng.next() % 4) {
@@ -1090,7 +1128,7 @@ mod tests {
                 }
             }
             if s.phase() == Phase::Done {
-                return (c.executed, refused, s.stats());
+                return (c.executed, c.bodies, refused, s.stats());
             }
             assert!(
                 matches!(s.phase(), Phase::Handshake | Phase::Streaming),
@@ -1122,6 +1160,34 @@ mod tests {
                 let expected: Vec<u32> = (1..=texts.len() as u32).collect();
                 assert!(all == expected, "{context}: refused {refused:?}");
                 assert!(stats.lines_sent < 2 * texts.len() as u64, "{context}");
+            }
+        }
+    }
+
+    #[test]
+    fn with_the_crc_every_line_runs_exactly_once_in_order_as_sent() {
+        // Damage the XOR misses (two flips of the same bit, two equal bytes lost) would run a
+        // wrong line, or a copy of the line before under the next number ("one line ran twice
+        // and one was skipped"). The CRC-16 refuses it: every line runs once, as sent, in order.
+        let texts: Vec<String> = (0..400)
+            .map(|i| format!("G1X{}.{}Y-{}F3000", i, i % 10, i * 3 + 1))
+            .collect();
+        let expected: Vec<Vec<u8>> = texts
+            .iter()
+            .map(|t| body_of(&Line::parse(t.as_bytes()).unwrap()))
+            .collect();
+        for seed in 1..=12 {
+            for window in [Window::UART, Window::PING_PONG, Window::TCP] {
+                let (ran, bodies, refused, stats) =
+                    run_checked(&texts, seed, 0.01, 0.005, window, Check::Crc16);
+                let context = format!("seed {seed}, window {window:?}, {stats:?}");
+                let numbers: Vec<u32> = (1..=texts.len() as u32).collect();
+                assert_eq!(ran, numbers, "{context}");
+                assert!(refused.is_empty(), "{context}: refused {refused:?}");
+                assert!(
+                    bodies == expected,
+                    "{context}: a line ran other words than sent"
+                );
             }
         }
     }

@@ -6,7 +6,7 @@ use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use forja_host::client::{self, Quiet};
 use forja_host::frames::{FrameClient, UploadOptions};
@@ -24,6 +24,8 @@ struct Seen {
     ran: Vec<u32>,
     /// Texts of the program lines stored, in order.
     stored: Vec<String>,
+    /// Lone line ends received (a line end right after another): the client's keep-alives.
+    keep_alives: usize,
 }
 
 /// How the model damages what it receives (a fixed seed: the same bytes, the same damage).
@@ -44,6 +46,7 @@ fn serve(listener: TcpListener, damage: Damage, seen: Arc<Mutex<Seen>>) {
     let mut rng = 0x2545_f491_4f6c_dd1du64;
     let mut buf = [0u8; 4096];
     let mut total = 0u16;
+    let mut last = 0u8;
     stream.write_all(b"start\n").unwrap();
     loop {
         let n = match stream.read(&mut buf) {
@@ -51,7 +54,12 @@ fn serve(listener: TcpListener, damage: Damage, seen: Arc<Mutex<Seen>>) {
             Ok(n) => n,
         };
         let mut received = Vec::with_capacity(n);
+        let mut keep_alives = 0;
         for &b in &buf[..n] {
+            if b == b'\n' && last == b'\n' {
+                keep_alives += 1;
+            }
+            last = b;
             let mut draw = || {
                 rng ^= rng << 13;
                 rng ^= rng >> 7;
@@ -69,6 +77,7 @@ fn serve(listener: TcpListener, damage: Damage, seen: Arc<Mutex<Seen>>) {
         }
         let mut out: Vec<u8> = Vec::new();
         let mut seen = seen.lock().unwrap();
+        seen.keep_alives += keep_alives;
         decoder.feed_all(&received, |event| {
             let recovery = match event {
                 Event::Line(bytes) => match Line::parse(bytes) {
@@ -278,4 +287,67 @@ fn a_silent_controller_is_reported() {
     };
     let e = client::send_program(&mut conn, &program(3), config, &mut Quiet).unwrap_err();
     assert!(e.to_string().contains("does not answer"), "{e}");
+}
+
+/// The board ends the session of a controlling host that sends nothing for 60 s: an idle
+/// console was cut off. It now sends a lone line end every keep-alive period while the person
+/// types nothing — not a line: the numbering goes on undisturbed and nothing shows.
+#[test]
+fn an_idle_console_keeps_its_session_with_lone_line_ends() {
+    let (addr, seen) = controller(Damage {
+        flip: 0.0,
+        drop: 0.0,
+    });
+    let mut conn = connect(&addr);
+    conn.set_keep_alive_period(Duration::from_millis(20));
+    let (tx, rx) = mpsc::channel();
+    tx.send("M114".to_string()).unwrap();
+    // The person types nothing more until the controller has had three keep-alives (the
+    // deadline only guards against a hang).
+    let s = Arc::clone(&seen);
+    let typist = std::thread::spawn(move || {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while s.lock().unwrap().keep_alives < 3 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        tx.send("G1 X2".to_string()).unwrap();
+    });
+    let mut out = Vec::new();
+    client::console(&mut conn, &rx, &mut out, Config::default()).unwrap();
+    typist.join().unwrap();
+    let seen = seen.lock().unwrap();
+    assert!(seen.keep_alives >= 3, "{} keep-alives", seen.keep_alives);
+    assert_eq!(seen.ran, [1, 2]);
+    let out = String::from_utf8(out).unwrap();
+    assert!(out.contains("ok C: X:1.0 Y:2.0"), "{out}");
+    assert!(!out.lines().any(str::is_empty), "{out:?}");
+}
+
+#[test]
+fn a_keep_alive_goes_out_only_after_a_period_without_writing() {
+    let (addr, seen) = controller(Damage {
+        flip: 0.0,
+        drop: 0.0,
+    });
+    let mut conn = connect(&addr);
+    let t0 = Instant::now();
+    let period = forja_host::link::KEEP_ALIVE_PERIOD;
+    assert!(
+        period <= Duration::from_secs(30),
+        "well inside the 60 s idle time-out"
+    );
+    conn.send(b"M114\n").unwrap();
+    assert!(!conn.keep_alive_at(t0 + period / 2).unwrap());
+    assert!(conn.keep_alive_at(t0 + period * 2).unwrap());
+    assert!(!conn.keep_alive_at(t0 + period * 2 + period / 2).unwrap());
+    assert!(conn.keep_alive_at(t0 + period * 3 + period / 10).unwrap());
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while seen.lock().unwrap().keep_alives < 2 && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert_eq!(seen.lock().unwrap().keep_alives, 2);
+    assert_eq!(
+        conn.bytes_written(),
+        5 + 2 * forja_host::link::KEEP_ALIVE.len() as u64
+    );
 }

@@ -23,6 +23,7 @@ use common::{Pin, Switch, config, program};
 fn plan(c: &mut Criterion) {
     let lines = program(2000);
     let mut store = RamStore::<2000>::new();
+    store.begin(lines.len() as u16).expect("fits");
     for (i, l) in lines.iter().enumerate() {
         store.store(i as u16 + 1, l.as_bytes()).expect("fits");
     }

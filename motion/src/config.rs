@@ -226,7 +226,8 @@ impl<const N: usize> MachineConfig<N> {
         if !positive(self.arc_tolerance_mm) {
             return Err(ConfigError::ArcTolerance);
         }
-        if !positive(self.jog_feed_mm_min) || !positive(self.default_feed_mm_min) {
+        let min_feed = crate::interp::MIN_FEED_MM_MIN;
+        if !(self.jog_feed_mm_min >= min_feed && self.default_feed_mm_min >= min_feed) {
             return Err(ConfigError::JogFeed);
         }
         if !(2..=1000).contains(&self.queue_lead_ms) {

@@ -19,7 +19,7 @@
 //! | 110 | [`ConfigError::StepRate`] | maximum rate × steps/mm needs step pulses closer than three pulse widths, or more than half the clock |
 //! | 111 | [`ConfigError::JunctionDeviation`] | junction deviation negative or not finite |
 //! | 112 | [`ConfigError::ArcTolerance`] | arc tolerance not finite and positive |
-//! | 113 | [`ConfigError::JogFeed`] | jog or default feed not finite and positive |
+//! | 113 | [`ConfigError::JogFeed`] | jog or default feed not finite, or below 1 mm/min |
 //! | 114 | [`ConfigError::QueueLead`] | segment queue lead outside 2..=1000 ms |
 //! | 115 | [`ConfigError::TickRate`] | the clock's tick rate is zero |
 //! | 116 | [`ConfigError::Encoding`] | a stored configuration does not decode |
@@ -33,6 +33,8 @@
 //! | 127 | [`CommandError::UnknownAxis`] | a letter that names no axis of this machine |
 //! | 128 | [`CommandError::NotIdle`] | the command needs the machine at rest (jog, homing during a job) |
 //! | 129 | [`CommandError::ModalConflict`] | two commands of the same modal group on one line |
+//! | 130 | [`CommandError::RepeatedWord`] | a word (other than `G`/`M`) given twice on one line |
+//! | 131 | [`CommandError::OutOfReach`] | a move longer than the axis travel, or ending where a position cannot be counted in steps or reported (beyond ±99999.9999 mm) |
 //! | 150 | [`Alarm::HardLimit`] | a limit switch tripped during motion; motion stopped at once |
 //! | 151 | [`Alarm::HomingSwitchNotFound`] | homing travelled the whole axis without finding the switch |
 //! | 152 | [`Alarm::HomingSwitchStuck`] | the switch stayed triggered after the back-off |
@@ -44,11 +46,16 @@
 //! | 172 | [`StoreError::TooLong`] | a program line is longer than 39 bytes |
 //! | 173 | [`StoreError::NoSuchLine`] | a line index outside the stored program |
 //! | 174 | [`StoreError::Device`] | the storage device failed |
+//! | 175 | [`StoreError::NoUpload`] | a program line that continues no upload in progress (send line 1 first) |
 //! | 180 | [`JobError::Empty`] | start asked with no program stored |
 //! | 181 | [`JobError::NotRunning`] | pause or resume with no job running |
 //! | 182 | [`JobError::Busy`] | the action needs the job stopped (load, rewind, jog) |
 //! | 183 | [`JobError::Line`] | a stored line failed: the job stopped at it (see the inner error) |
 //! | 184 | [`JobError::Syntax`] | a stored line does not parse as G-code, or cannot be read |
+//! | 185 | [`JobError::Incomplete`] | start asked while the program's upload is not complete |
+//! | 186 | [`JobError::NothingToResume`] | resume (`M1000`) with no interrupted job recorded |
+//! | 187 | [`JobError::NotHomed`] | resume (`M1000`) before the machine is homed |
+//! | 188 | [`JobError::ProgramChanged`] | resume (`M1000`) of a job whose program has changed since |
 //!
 //! Codes not listed are reserved. A code is never reused for a different meaning.
 //!
@@ -95,7 +102,7 @@ pub enum ConfigError {
     JunctionDeviation,
     /// `arc_tolerance_mm`.
     ArcTolerance,
-    /// `jog_feed_mm_min` or `default_feed_mm_min`.
+    /// `jog_feed_mm_min` or `default_feed_mm_min` (at least 1 mm/min, the slowest `F`).
     JogFeed,
     /// `queue_lead_ms`.
     QueueLead,
@@ -165,7 +172,7 @@ impl fmt::Display for ConfigError {
                 return f.write_str("config: junction_deviation_mm (>= 0)");
             }
             Self::ArcTolerance => return f.write_str("config: arc_tolerance_mm (> 0)"),
-            Self::JogFeed => return f.write_str("config: jog/default feed (> 0)"),
+            Self::JogFeed => return f.write_str("config: jog/default feed (>= 1 mm/min)"),
             Self::QueueLead => return f.write_str("config: queue_lead_ms (2..=1000)"),
             Self::TickRate => return f.write_str("config: tick rate (> 0)"),
             Self::Encoding => return f.write_str("config: stored configuration does not decode"),
@@ -219,6 +226,19 @@ pub enum CommandError {
     NotIdle,
     /// Two commands of one modal group on one line (two motion commands, or `G20 G21`).
     ModalConflict,
+    /// A word other than `G` or `M` given twice on one line (`G1 X5 X50`; `X0x10` reads as
+    /// `X0 X10`).
+    RepeatedWord {
+        /// The repeated word's letter.
+        letter: u8,
+    },
+    /// The move cannot be right on this machine: it travels further than the axis's whole
+    /// travel, or it ends beyond the positions the kernel counts (steps in `i32`) and reports
+    /// (±99999.9999 mm, the width of frame 51).
+    OutOfReach {
+        /// The axis index.
+        axis: AxisIndex,
+    },
 }
 
 impl CommandError {
@@ -235,6 +255,8 @@ impl CommandError {
             Self::UnknownAxis { .. } => 127,
             Self::NotIdle => 128,
             Self::ModalConflict => 129,
+            Self::RepeatedWord { .. } => 130,
+            Self::OutOfReach { .. } => 131,
         }
     }
 }
@@ -273,6 +295,8 @@ impl fmt::Display for CommandError {
             Self::UnknownAxis { letter } => write!(f, "no axis {}", Letter(letter)),
             Self::NotIdle => f.write_str("machine busy: command needs it at rest"),
             Self::ModalConflict => f.write_str("two commands of one modal group"),
+            Self::RepeatedWord { letter } => write!(f, "word {} given twice", Letter(letter)),
+            Self::OutOfReach { axis } => write!(f, "axis {axis}: move beyond the machine's reach"),
         }
     }
 }
@@ -364,6 +388,10 @@ pub enum StoreError {
     NoSuchLine,
     /// The storage device failed.
     Device,
+    /// A line other than line 1 while no upload is in progress: the store holds a complete
+    /// program or none, or the upload was interrupted (a restart, another host): a new upload
+    /// starts with line 1.
+    NoUpload,
 }
 
 impl StoreError {
@@ -375,6 +403,7 @@ impl StoreError {
             Self::TooLong => 172,
             Self::NoSuchLine => 173,
             Self::Device => 174,
+            Self::NoUpload => 175,
         }
     }
 }
@@ -389,6 +418,7 @@ impl fmt::Display for StoreError {
             Self::TooLong => f.write_str("line-too-long"),
             Self::NoSuchLine => f.write_str("no-such-line"),
             Self::Device => f.write_str("store-device"),
+            Self::NoUpload => f.write_str("no-upload"),
         }
     }
 }
@@ -415,6 +445,19 @@ pub enum JobError {
         /// What was wrong with it.
         error: CommandError,
     },
+    /// The stored program's upload is not complete: `stored` of its `total` lines arrived.
+    Incomplete {
+        /// Lines stored.
+        stored: u16,
+        /// Lines the program has.
+        total: u16,
+    },
+    /// Resume (`M1000`) with no interrupted job recorded.
+    NothingToResume,
+    /// Resume (`M1000`) before every axis with a homing cycle is homed.
+    NotHomed,
+    /// Resume (`M1000`) of a job whose program is no longer the stored one.
+    ProgramChanged,
 }
 
 impl JobError {
@@ -426,6 +469,10 @@ impl JobError {
             Self::Busy => 182,
             Self::Line { .. } => 183,
             Self::Syntax { .. } => 184,
+            Self::Incomplete { .. } => 185,
+            Self::NothingToResume => 186,
+            Self::NotHomed => 187,
+            Self::ProgramChanged => 188,
         }
     }
 }
@@ -438,6 +485,15 @@ impl fmt::Display for JobError {
             Self::Busy => f.write_str("job: stop it first"),
             Self::Line { line, error } => write!(f, "job: line {line:04}: {error}"),
             Self::Syntax { line } => write!(f, "job: line {line:04}: not G-code"),
+            Self::Incomplete { stored, total } => {
+                write!(
+                    f,
+                    "job: program incomplete ({stored} of {total} lines stored)"
+                )
+            }
+            Self::NothingToResume => f.write_str("job: nothing to resume"),
+            Self::NotHomed => f.write_str("job: home the machine first"),
+            Self::ProgramChanged => f.write_str("job: the program changed since it ran"),
         }
     }
 }
@@ -485,6 +541,8 @@ impl WireError for CommandError {
             Self::UnknownAxis { .. } => "unknown-axis",
             Self::NotIdle => "not-idle",
             Self::ModalConflict => "modal-conflict",
+            Self::RepeatedWord { .. } => "repeated-word",
+            Self::OutOfReach { .. } => "out-of-reach",
         }
     }
 }
@@ -516,6 +574,7 @@ impl WireError for StoreError {
             Self::TooLong => "line-too-long",
             Self::NoSuchLine => "no-such-line",
             Self::Device => "store-device",
+            Self::NoUpload => "no-upload",
         }
     }
 }
@@ -531,6 +590,10 @@ impl WireError for JobError {
             Self::Busy => "job-busy",
             Self::Line { .. } => "job-line",
             Self::Syntax { .. } => "job-syntax",
+            Self::Incomplete { .. } => "program-incomplete",
+            Self::NothingToResume => "no-resume",
+            Self::NotHomed => "not-homed",
+            Self::ProgramChanged => "program-changed",
         }
     }
 }
@@ -573,6 +636,8 @@ mod tests {
             CommandError::UnknownAxis { letter: b'Q' }.code(),
             CommandError::NotIdle.code(),
             CommandError::ModalConflict.code(),
+            CommandError::RepeatedWord { letter: b'X' }.code(),
+            CommandError::OutOfReach { axis: 0 }.code(),
             Alarm::HardLimit { axis: 0 }.code(),
             Alarm::HomingSwitchNotFound { axis: 0 }.code(),
             Alarm::HomingSwitchStuck { axis: 0 }.code(),
@@ -588,6 +653,7 @@ mod tests {
             StoreError::TooLong.code(),
             StoreError::NoSuchLine.code(),
             StoreError::Device.code(),
+            StoreError::NoUpload.code(),
             JobError::Empty.code(),
             JobError::NotRunning.code(),
             JobError::Busy.code(),
@@ -597,6 +663,14 @@ mod tests {
             }
             .code(),
             JobError::Syntax { line: 1 }.code(),
+            JobError::Incomplete {
+                stored: 1,
+                total: 2,
+            }
+            .code(),
+            JobError::NothingToResume.code(),
+            JobError::NotHomed.code(),
+            JobError::ProgramChanged.code(),
         ];
         for (i, c) in codes.iter().enumerate() {
             assert!((100..=199).contains(c), "{c}");

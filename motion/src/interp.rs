@@ -34,6 +34,9 @@ use crate::error::CommandError;
 pub(crate) const NM_PER_MM: f64 = 1e6;
 /// Largest position magnitude accepted, nm (100 m).
 const MAX_NM: i64 = 100_000_000_000;
+/// The slowest feed accepted, mm/min (grblHAL's `MINIMUM_FEED_RATE`): slower `F` words are
+/// refused. Faster ones are capped by the axes' maximum rates when the move is planned.
+pub(crate) const MIN_FEED_MM_MIN: f32 = 1.0;
 
 /// What one line asks for.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -139,6 +142,30 @@ fn set_once<T>(slot: &mut Option<T>, v: T) -> Result<(), CommandError> {
     Ok(())
 }
 
+/// The `S` of `M3`/`M4`: a speed, never negative. Above the spindle's maximum, the spindle
+/// driver caps it, as grbl does.
+fn spindle_speed(s: Option<Decimal>) -> Result<Option<Decimal>, CommandError> {
+    match s {
+        Some(v) if v.mantissa() < 0 || v.to_f64() > f64::from(u32::MAX) => {
+            Err(CommandError::BadValue { letter: b'S' })
+        }
+        other => Ok(other),
+    }
+}
+
+/// Refuse a word that is neither an axis of the machine nor `G`/`F` (for `G28`, `G92`).
+fn only_axis_words<const N: usize>(
+    line: &Line<'_>,
+    config: &MachineConfig<N>,
+) -> Result<(), CommandError> {
+    for w in line.words() {
+        if !matches!(w.letter, b'G' | b'F') && config.axis_index(w.letter).is_none() {
+            return Err(CommandError::UnknownAxis { letter: w.letter });
+        }
+    }
+    Ok(())
+}
+
 fn small_int(v: Decimal, letter: u8, max: u32) -> Result<u32, CommandError> {
     v.as_u32()
         .filter(|n| *n <= max)
@@ -196,6 +223,14 @@ impl<const N: usize> Interpreter<N> {
         let mut distance: Option<bool> = None;
         let mut plane: Option<Plane> = None;
         let mut feed_mode: Option<()> = None;
+        // A word given twice (`X5 X50`, or `X0x10` read as `X0 X10`) has no single meaning;
+        // G and M words may repeat across modal groups (checked below).
+        for (i, w) in line.words().iter().enumerate() {
+            let earlier = line.words().get(..i).unwrap_or(&[]);
+            if !matches!(w.letter, b'G' | b'M') && earlier.iter().any(|e| e.letter == w.letter) {
+                return Err(CommandError::RepeatedWord { letter: w.letter });
+            }
+        }
         for w in line.words() {
             if !matches!(w.letter, b'G' | b'M' | b'T') {
                 continue;
@@ -248,7 +283,7 @@ impl<const N: usize> Interpreter<N> {
         }
         if let Some(f) = line.get(b'F') {
             let per_min = f.to_f32() * if self.inches { 25.4 } else { 1.0 };
-            if !(per_min.is_finite() && per_min > 0.0) {
+            if !(per_min.is_finite() && per_min >= MIN_FEED_MM_MIN) {
                 return Err(CommandError::BadValue { letter: b'F' });
             }
             self.feed_mm_min = per_min;
@@ -291,11 +326,13 @@ impl<const N: usize> Interpreter<N> {
             if let Some(v) = line.get(a.letter) {
                 let nm = to_nm(v, self.inches, a.letter)?;
                 target[i] = if self.is_relative(a.kind) {
-                    self.pos[i] + nm
+                    self.pos[i].saturating_add(nm)
                 } else {
-                    nm - self.offset[i]
+                    nm.saturating_sub(self.offset[i])
                 };
-                if target[i].abs() > MAX_NM {
+                // An extruder's position grows with the filament fed (a long print feeds more
+                // than 100 m); the kernel bounds it by its step count instead.
+                if a.kind != AxisKind::Extruder && target[i].abs() > MAX_NM {
                     return Err(CommandError::BadValue { letter: a.letter });
                 }
             }
@@ -394,6 +431,7 @@ impl<const N: usize> Interpreter<N> {
                 }
             }
             (b'G', 28) => {
+                only_axis_words(line, config)?;
                 let mut mask = 0u8;
                 let named = config.axes.iter().any(|a| line.has(a.letter));
                 for (i, a) in config.axes.iter().enumerate() {
@@ -411,6 +449,8 @@ impl<const N: usize> Interpreter<N> {
                 Action::Home { mask }
             }
             (b'G', 92) => {
+                // `G92 E0` on a machine without E must not act as a bare `G92` (all axes to 0).
+                only_axis_words(line, config)?;
                 let named = config.axes.iter().any(|a| line.has(a.letter));
                 for (i, a) in config.axes.iter().enumerate() {
                     let value = match line.get(a.letter) {
@@ -458,8 +498,12 @@ impl<const N: usize> Interpreter<N> {
                 Action::SetStepsPerMm(out)
             }
             (b'M', 114) => Action::Report,
-            (b'M', 3) => Action::Effect(Effect::Spindle(Spindle::Clockwise { rpm: s })),
-            (b'M', 4) => Action::Effect(Effect::Spindle(Spindle::CounterClockwise { rpm: s })),
+            (b'M', 3) => Action::Effect(Effect::Spindle(Spindle::Clockwise {
+                rpm: spindle_speed(s)?,
+            })),
+            (b'M', 4) => Action::Effect(Effect::Spindle(Spindle::CounterClockwise {
+                rpm: spindle_speed(s)?,
+            })),
             (b'M', 5) => Action::Effect(Effect::Spindle(Spindle::Off)),
             (b'M', 104 | 109 | 140) => {
                 let celsius = s.ok_or(CommandError::MissingValue { letter: b'S' })?;
@@ -549,6 +593,15 @@ impl<const N: usize> Interpreter<N> {
     /// After a stop or a homing: the commanded position is where the machine is.
     pub(crate) fn set_machine_position(&mut self, pos: [Nm; N]) {
         self.pos = pos;
+    }
+
+    /// Take `pos` as the commanded machine position of axis `axis` while keeping its work
+    /// position, as `G92` does (a resumed job's extruder, which is not moved back).
+    pub(crate) fn rebase_axis(&mut self, axis: usize, pos: Nm) {
+        if let (Some(p), Some(o)) = (self.pos.get_mut(axis), self.offset.get_mut(axis)) {
+            *o += *p - pos;
+            *p = pos;
+        }
     }
 }
 

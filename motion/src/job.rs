@@ -26,29 +26,58 @@ pub const MAX_LINES: u16 = 9999;
 
 /// Where programs are kept.
 ///
-/// Lines are numbered from 1 and stored strictly in order: storing line `k` is accepted only
-/// when `k` is one more than the number of lines stored. To load a new program, [`clear`]
-/// first (a controller does so when a line 1 arrives). Every error leaves the store as it was.
+/// A program is uploaded as a whole: [`begin`] starts a program of `total` lines (removing the
+/// old one), then lines are stored strictly in order: storing line `k` is accepted only when
+/// `k` is one more than the number of lines stored and at most the total. The program is
+/// *complete* ([`is_complete`]) once its last line is stored; only a complete program runs.
+/// Stores that keep the program across a restart record completeness durably: after a power
+/// cut in the middle of an upload the store reopens incomplete (or empty), never complete.
+/// Every error leaves the store as it was.
+///
+/// Each store also keeps the program's [`digest`], a CRC-32 chained over the total and every
+/// stored line ([`digest_start`], [`digest_line`]): two programs with the same digest are, for
+/// any practical purpose, the same program (a resumed job checks it).
 ///
 /// Context: thread. Flash-backed stores may block while they write.
 ///
-/// [`clear`]: ProgramStore::clear
+/// [`begin`]: ProgramStore::begin
+/// [`is_complete`]: ProgramStore::is_complete
+/// [`digest`]: ProgramStore::digest
 pub trait ProgramStore {
     /// The number of lines stored.
     fn len(&self) -> u16;
+
+    /// The number of lines of the program being stored or stored (as [`ProgramStore::begin`]
+    /// gave it); 0 with no program.
+    fn total(&self) -> u16;
+
+    /// The digest of the lines stored so far (see [`digest_line`]); [`digest_start`] of the
+    /// total before the first line, 0 with no program.
+    fn digest(&self) -> u32;
 
     /// Whether no line is stored.
     fn is_empty(&self) -> bool {
         self.len() == 0
     }
 
+    /// Whether a program is stored whole: every line of its total.
+    fn is_complete(&self) -> bool {
+        !self.is_empty() && self.len() == self.total()
+    }
+
+    /// Remove the program and start one of `total` lines (1..=[`MAX_LINES`]).
+    /// Errors: [`StoreError::Full`] when `total` is 0 or beyond the store's room,
+    /// [`StoreError::Device`].
+    fn begin(&mut self, total: u16) -> Result<(), StoreError>;
+
     /// Copy line `index` (1-based) into `buf`; returns its length.
     /// Errors: [`StoreError::NoSuchLine`], [`StoreError::Device`].
     fn read(&mut self, index: u16, buf: &mut [u8; MAX_LINE_LEN]) -> Result<usize, StoreError>;
 
-    /// Store line `index`, which must be `len() + 1`.
-    /// Errors: [`StoreError::OutOfOrder`], [`StoreError::Full`], [`StoreError::TooLong`],
-    /// [`StoreError::Device`].
+    /// Store line `index`, which must be `len() + 1` and at most `total()`.
+    /// Errors: [`StoreError::NoUpload`] when no program is being stored (none begun, or the
+    /// program is complete), [`StoreError::OutOfOrder`], [`StoreError::TooLong`],
+    /// [`StoreError::Full`], [`StoreError::Device`].
     fn store(&mut self, index: u16, text: &[u8]) -> Result<(), StoreError>;
 
     /// Remove every line. Errors: [`StoreError::Device`].
@@ -58,6 +87,15 @@ pub trait ProgramStore {
 impl<T: ProgramStore + ?Sized> ProgramStore for &mut T {
     fn len(&self) -> u16 {
         T::len(self)
+    }
+    fn total(&self) -> u16 {
+        T::total(self)
+    }
+    fn digest(&self) -> u32 {
+        T::digest(self)
+    }
+    fn begin(&mut self, total: u16) -> Result<(), StoreError> {
+        T::begin(self, total)
     }
     fn read(&mut self, index: u16, buf: &mut [u8; MAX_LINE_LEN]) -> Result<usize, StoreError> {
         T::read(self, index, buf)
@@ -71,15 +109,20 @@ impl<T: ProgramStore + ?Sized> ProgramStore for &mut T {
 }
 
 /// The rule every [`ProgramStore`] applies before it stores line `index` of `len` bytes, holding
-/// `count` lines with room for `capacity`: lines come strictly in order (1, 2, …), are at most
+/// `count` lines of a program of `total` with room for `capacity`: a program is being stored
+/// (begun and not complete), lines come strictly in order (1, 2, …), are at most
 /// [`MAX_LINE_LEN`] bytes, and fit. The errors come in that order, and a refused line leaves the
 /// store as it was.
 pub fn check_next_line(
     count: u16,
+    total: u16,
     capacity: u16,
     index: u16,
     len: usize,
 ) -> Result<(), StoreError> {
+    if count >= total {
+        return Err(StoreError::NoUpload);
+    }
     let expected = count.saturating_add(1);
     if index != expected {
         return Err(StoreError::OutOfOrder {
@@ -96,11 +139,51 @@ pub fn check_next_line(
     Ok(())
 }
 
+/// The rule of [`ProgramStore::begin`]: a program of `total` lines fits a store with room for
+/// `capacity` lines. Error: [`StoreError::Full`].
+pub fn check_total(total: u16, capacity: u16) -> Result<(), StoreError> {
+    if total == 0 || total > capacity.min(MAX_LINES) {
+        return Err(StoreError::Full);
+    }
+    Ok(())
+}
+
+/// CRC-32 (IEEE 802.3, reflected, as zlib's `crc32`) continued from `crc` over `bytes`;
+/// `crc32_update(0, bytes)` is the CRC-32 of `bytes`. Bitwise: the stores check lines of at
+/// most a few hundred bytes, which do not need a table.
+pub fn crc32_update(crc: u32, bytes: &[u8]) -> u32 {
+    let mut crc = !crc;
+    for &b in bytes {
+        crc ^= u32::from(b);
+        for _ in 0..8 {
+            let mask = (crc & 1).wrapping_neg();
+            crc = (crc >> 1) ^ (0xEDB8_8320 & mask);
+        }
+    }
+    !crc
+}
+
+/// The digest of a program of `total` lines before its first line.
+pub fn digest_start(total: u16) -> u32 {
+    crc32_update(0, &total.to_le_bytes())
+}
+
+/// The digest after line `index` with `text`, from the digest `prev` of the lines before it:
+/// a CRC-32 continued over the index (little-endian), the length and the text.
+pub fn digest_line(prev: u32, index: u16, text: &[u8]) -> u32 {
+    let len = text.len().min(MAX_LINE_LEN) as u8;
+    let crc = crc32_update(prev, &index.to_le_bytes());
+    let crc = crc32_update(crc, &[len]);
+    crc32_update(crc, text.get(..usize::from(len)).unwrap_or(&[]))
+}
+
 /// A program store in RAM with room for `L` lines (at most [`MAX_LINES`] are ever accepted).
 pub struct RamStore<const L: usize> {
     lines: [[u8; MAX_LINE_LEN]; L],
     lens: [u8; L],
     count: u16,
+    total: u16,
+    digest: u32,
 }
 
 impl<const L: usize> Default for RamStore<L> {
@@ -116,6 +199,8 @@ impl<const L: usize> RamStore<L> {
             lines: [[0; MAX_LINE_LEN]; L],
             lens: [0; L],
             count: 0,
+            total: 0,
+            digest: 0,
         }
     }
 }
@@ -123,6 +208,22 @@ impl<const L: usize> RamStore<L> {
 impl<const L: usize> ProgramStore for RamStore<L> {
     fn len(&self) -> u16 {
         self.count
+    }
+
+    fn total(&self) -> u16 {
+        self.total
+    }
+
+    fn digest(&self) -> u32 {
+        self.digest
+    }
+
+    fn begin(&mut self, total: u16) -> Result<(), StoreError> {
+        check_total(total, Self::capacity())?;
+        self.count = 0;
+        self.total = total;
+        self.digest = digest_start(total);
+        Ok(())
     }
 
     fn read(&mut self, index: u16, buf: &mut [u8; MAX_LINE_LEN]) -> Result<usize, StoreError> {
@@ -138,8 +239,7 @@ impl<const L: usize> ProgramStore for RamStore<L> {
     }
 
     fn store(&mut self, index: u16, text: &[u8]) -> Result<(), StoreError> {
-        let capacity = u16::try_from(L).unwrap_or(MAX_LINES).min(MAX_LINES);
-        check_next_line(self.count, capacity, index, text.len())?;
+        check_next_line(self.count, self.total, Self::capacity(), index, text.len())?;
         let k = usize::from(self.count);
         let (Some(line), Some(len)) = (self.lines.get_mut(k), self.lens.get_mut(k)) else {
             return Err(StoreError::Full);
@@ -150,12 +250,21 @@ impl<const L: usize> ProgramStore for RamStore<L> {
         }
         *len = text.len() as u8;
         self.count = index;
+        self.digest = digest_line(self.digest, index, text);
         Ok(())
     }
 
     fn clear(&mut self) -> Result<(), StoreError> {
         self.count = 0;
+        self.total = 0;
+        self.digest = 0;
         Ok(())
+    }
+}
+
+impl<const L: usize> RamStore<L> {
+    fn capacity() -> u16 {
+        u16::try_from(L).unwrap_or(MAX_LINES).min(MAX_LINES)
     }
 }
 
@@ -179,11 +288,13 @@ pub struct Progress {
     pub elapsed_s: u32,
     /// Estimated duration of the whole job, seconds, from the plan.
     pub estimated_s: u32,
-    /// Lines in the program.
+    /// Lines stored: the program's lines once it is complete; the lines stored so far while
+    /// its upload is incomplete.
     pub total_lines: u16,
     /// The line whose motion runs now while the job runs or is paused; the next line to run
     /// when it is idle (after a stop, a rewind, or before the first start); the last line once
-    /// the program has finished. 1-based; 0 with no program stored.
+    /// the program has finished. 1-based; 0 with no program stored or an incomplete one (so
+    /// `total_lines > 0` with `current_line == 0` reads "upload incomplete, nothing to run").
     pub current_line: u16,
 }
 
@@ -196,6 +307,40 @@ impl From<Progress> for forja_protocol::frame::Progress {
             current_line: u32::from(p.current_line),
         }
     }
+}
+
+/// What the resume record should say now (see [`Job::checkpoint`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Checkpoint {
+    /// Lines `1..=line` have run, their motion finished (0: none yet).
+    Done(u16),
+    /// The program has finished: nothing is left to resume.
+    Finished,
+}
+
+/// The progress the job has recorded, for [`Job::checkpoint`].
+#[derive(Debug, Clone, Copy)]
+struct Tracking {
+    /// Whether the running job records its progress (from a start until it finishes or an
+    /// alarm cuts its motion).
+    on: bool,
+    recorded: Option<u16>,
+    /// A line seen done while running, and when (ms): it is recorded once it has been done
+    /// for the settle time.
+    pending: Option<(u16, u32)>,
+    /// The last line that has been done for the settle time, not yet recorded.
+    settled: Option<u16>,
+    last_write_ms: Option<u32>,
+}
+
+impl Tracking {
+    const OFF: Self = Self {
+        on: false,
+        recorded: None,
+        pending: None,
+        settled: None,
+        last_write_ms: None,
+    };
 }
 
 /// Runs a stored program through the kernel.
@@ -211,6 +356,8 @@ pub struct Job {
     /// (the start line until one is).
     first_fed: u16,
     last_fed: u16,
+    tracking: Tracking,
+    recovery: Option<bool>,
 }
 
 impl Default for Job {
@@ -232,6 +379,8 @@ impl Job {
             tick_hz: 1,
             first_fed: 1,
             last_fed: 0,
+            tracking: Tracking::OFF,
+            recovery: None,
         }
     }
 
@@ -270,12 +419,50 @@ impl Job {
         if store.is_empty() {
             return Err(JobError::Empty);
         }
+        if !store.is_complete() {
+            return Err(JobError::Incomplete {
+                stored: store.len(),
+                total: store.total(),
+            });
+        }
         if self.next_line > store.len() {
             self.next_line = 1;
         }
         if !kernel.is_idle() {
             return Err(JobError::Busy);
         }
+        self.run_from_here(kernel, store, now)
+    }
+
+    /// Start a resumed job at `line` (1-based) of the complete program in `store`, the
+    /// kernel's modal state and position having been restored for it (the moves to the
+    /// resumed line's start may still be running: they come first).
+    pub fn start_resumed<P: ProgramStore, const N: usize, const B: usize, const Q: usize>(
+        &mut self,
+        kernel: &mut Kernel<'_, N, B, Q>,
+        store: &mut P,
+        line: u16,
+        now: Instant,
+    ) -> Result<(), JobError> {
+        if matches!(self.state, JobState::Running | JobState::Paused) {
+            return Err(JobError::Busy);
+        }
+        if !store.is_complete() {
+            return Err(JobError::Incomplete {
+                stored: store.len(),
+                total: store.total(),
+            });
+        }
+        self.next_line = line.max(1);
+        self.run_from_here(kernel, store, now)
+    }
+
+    fn run_from_here<P: ProgramStore, const N: usize, const B: usize, const Q: usize>(
+        &mut self,
+        kernel: &mut Kernel<'_, N, B, Q>,
+        store: &mut P,
+        now: Instant,
+    ) -> Result<(), JobError> {
         self.estimated_s = estimate_seconds(kernel, store, self.next_line)?;
         self.tick_hz = kernel.tick_hz().max(1);
         self.started = Some(now);
@@ -284,7 +471,100 @@ impl Job {
         self.first_fed = self.next_line;
         self.last_fed = self.next_line;
         self.state = JobState::Running;
+        self.tracking = Tracking {
+            on: true,
+            ..Tracking::OFF
+        };
         Ok(())
+    }
+
+    /// Whether power-loss recovery records this job's progress: `None` until the controller
+    /// has read its setting.
+    pub fn recovery(&self) -> Option<bool> {
+        self.recovery
+    }
+
+    /// Set whether power-loss recovery records the progress of jobs.
+    pub fn set_recovery(&mut self, on: bool) {
+        self.recovery = Some(on);
+    }
+
+    /// What to write to the resume record now, if anything; call it at every poll with the
+    /// time in ms. A line is recorded as done only when it certainly is:
+    /// - while the job runs, the lines before the one whose motion is being prepared, once
+    ///   they have been so for `settle_ms` (more than the step queue holds: their last steps
+    ///   have been executed), and at most once per `period_ms` (flash wear);
+    /// - at once when the job is paused or stopped with the machine at rest;
+    /// - never after an alarm cut the motion (steps may be lost): the record keeps the last
+    ///   settled line, and the job records nothing more until it is started again.
+    ///
+    /// The first call after a start reports the lines before the start line at once, so that
+    /// the record of an earlier run never outlives the start. A finished program reports
+    /// [`Checkpoint::Finished`] once. Nothing is reported while no job was started since
+    /// [`Job::new`].
+    pub fn checkpoint<const N: usize, const B: usize, const Q: usize>(
+        &mut self,
+        kernel: &Kernel<'_, N, B, Q>,
+        now_ms: u32,
+        settle_ms: u32,
+        period_ms: u32,
+    ) -> Option<Checkpoint> {
+        if !self.tracking.on {
+            return None;
+        }
+        let machine = kernel.state();
+        if matches!(machine, MachineState::Alarm(_) | MachineState::Halted) {
+            self.tracking = Tracking::OFF;
+            return None;
+        }
+        let Some(done) = self.done_line(kernel) else {
+            self.tracking = Tracking::OFF;
+            return Some(Checkpoint::Finished);
+        };
+        let at_rest = matches!(
+            machine,
+            MachineState::Idle | MachineState::Paused | MachineState::Hold { stopped: true }
+        );
+        let t = &mut self.tracking;
+        if t.recorded.is_none() {
+            // A start: the lines before the first one of this run are done; an older record
+            // (of a run that went further) must not survive it.
+            let first = self.first_fed.saturating_sub(1);
+            t.recorded = Some(first);
+            t.last_write_ms = Some(now_ms);
+            return Some(Checkpoint::Done(first));
+        }
+        if self.state != JobState::Running && at_rest {
+            t.pending = None;
+            if t.recorded == Some(done) {
+                return None;
+            }
+            t.recorded = Some(done);
+            t.last_write_ms = Some(now_ms);
+            return Some(Checkpoint::Done(done));
+        }
+        if let Some((line, seen)) = t.pending
+            && now_ms.wrapping_sub(seen) >= settle_ms
+        {
+            t.settled = Some(line);
+            t.pending = None;
+        }
+        let known = t.settled.max(t.recorded).unwrap_or(0);
+        if t.pending.is_none() && done > known {
+            t.pending = Some((done, now_ms));
+        }
+        let due = t
+            .last_write_ms
+            .is_none_or(|w| now_ms.wrapping_sub(w) >= period_ms);
+        match t.settled {
+            Some(line) if due && t.recorded.is_none_or(|r| line > r) => {
+                t.settled = None;
+                t.recorded = Some(line);
+                t.last_write_ms = Some(now_ms);
+                Some(Checkpoint::Done(line))
+            }
+            _ => None,
+        }
     }
 
     /// Action `Pause`: feed hold (decelerate on the path, no step lost).
@@ -314,6 +594,34 @@ impl Job {
             }
         }
         self.state = JobState::Idle;
+    }
+
+    /// Make `line` (1-based) the next line to run, for a resumed job. Only while not running.
+    pub fn seek(&mut self, line: u16) -> Result<(), JobError> {
+        if matches!(self.state, JobState::Running | JobState::Paused) {
+            return Err(JobError::Busy);
+        }
+        self.next_line = line.max(1);
+        self.state = JobState::Idle;
+        Ok(())
+    }
+
+    /// The last line whose motion is finished, as far as the job can tell now: the lines
+    /// before the one whose motion is being prepared while the job runs or is paused (the
+    /// step queue may still hold the end of that line's motion: see the controller's
+    /// checkpoints), the lines before the next one when it is idle; `None` once the program
+    /// has finished. 0 when no line is done.
+    pub fn done_line<const N: usize, const B: usize, const Q: usize>(
+        &self,
+        kernel: &Kernel<'_, N, B, Q>,
+    ) -> Option<u16> {
+        match self.state {
+            JobState::Finished => None,
+            JobState::Idle => Some(self.next_line.saturating_sub(1)),
+            JobState::Running | JobState::Paused => {
+                Some(self.running_line(kernel).saturating_sub(1))
+            }
+        }
     }
 
     /// Action `Rewind`: back to line 1. Only while not running.
@@ -432,7 +740,9 @@ impl Job {
         store: &P,
     ) -> Progress {
         let current = match self.state {
-            _ if store.is_empty() => 0,
+            // Nothing runs: no program, or an upload not complete (`NL` then counts the lines
+            // stored so far).
+            _ if !store.is_complete() => 0,
             JobState::Finished => store.len(),
             // What `start` will run first.
             JobState::Idle if self.next_line > store.len() => 1,
@@ -588,6 +898,7 @@ mod tests {
     #[test]
     fn ram_store_is_strictly_ordered_and_bounded() {
         let mut s = RamStore::<3>::new();
+        s.begin(3).expect("begin");
         assert_eq!(
             s.store(2, b"G1 X1"),
             Err(StoreError::OutOfOrder {
@@ -607,7 +918,8 @@ mod tests {
         );
         assert_eq!(s.store(3, &[b'X'; 40]), Err(StoreError::TooLong));
         s.store(3, &[b'X'; 39]).expect("39 bytes fit");
-        assert_eq!(s.store(4, b"G1"), Err(StoreError::Full));
+        assert!(s.is_complete());
+        assert_eq!(s.store(4, b"G1"), Err(StoreError::NoUpload));
         assert_eq!(s.len(), 3);
         let mut buf = [0; MAX_LINE_LEN];
         assert_eq!(s.read(2, &mut buf), Ok(5));

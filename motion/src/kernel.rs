@@ -8,7 +8,7 @@ use forja_hal_abstraction::time::{Duration, Instant};
 use forja_protocol::gcode::{Decimal, Line};
 
 use crate::arc::{ArcCutter, Nm};
-use crate::config::{HomeDirection, MachineConfig, SoftLimits};
+use crate::config::{AxisKind, HomeDirection, MachineConfig, SoftLimits};
 use crate::effect::{Effect, StopKind};
 use crate::error::{Alarm, CommandError, ConfigError};
 use crate::interp::{Action, Interpreter, NM_PER_MM, nm_to_steps, steps_to_nm};
@@ -16,6 +16,12 @@ use crate::planner::{MoveRequest, Planner};
 use crate::prep::Prep;
 use crate::queue::{MAX_DELTA, Producer, StepQueue, StopCause};
 use crate::stepgen::StepGenerator;
+
+/// The largest machine position magnitude a move may reach, mm: ±99999.9999 mm, the widest
+/// value a frame 51 position field holds. Axes whose steps/mm would overflow `i32` steps
+/// before that have a smaller bound. An extruder is bound by its `i32` steps only: its
+/// position grows with every millimetre of filament fed, and a long print feeds more.
+pub(crate) const MAX_POSITION_MM: f64 = 99_999.999_9;
 
 /// The answer to one G-code line.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -209,7 +215,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
         if self.hold {
             return MachineState::Hold {
-                stopped: self.isr_idle() && self.tx.len() == 0 && !self.moving_planned(),
+                stopped: self.at_rest(),
             };
         }
         if self.paused {
@@ -222,7 +228,8 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
     }
 
-    /// Whether every queued move has finished and the steppers are at rest.
+    /// Whether every queued move has finished and the steppers are at rest. A feed hold with
+    /// motion behind it is not idle: that motion runs on [`Kernel::resume`].
     pub fn is_idle(&self) -> bool {
         !self.moving_planned()
             && self.arc.is_none()
@@ -232,7 +239,14 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     }
 
     fn moving_planned(&self) -> bool {
-        (!self.planner.is_empty() || self.prep.is_busy()) && !self.prep.is_held()
+        !self.planner.is_empty() || self.prep.is_busy()
+    }
+
+    /// Whether the steppers are at rest with nothing queued for the interrupt: idle, or a feed
+    /// hold that has come to rest on the path.
+    fn at_rest(&self) -> bool {
+        let prepared_rest = self.prep.is_held() || !self.moving_planned();
+        prepared_rest && self.flush.is_none() && self.tx.len() == 0 && self.isr_idle()
     }
 
     fn isr_idle(&self) -> bool {
@@ -280,6 +294,12 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         self.interp
     }
 
+    /// Take `interp` as the interpreter's state (a resumed job's modal state). Its commanded
+    /// position must be where the last queued move ends.
+    pub(crate) fn set_interpreter(&mut self, interp: Interpreter<N>) {
+        self.interp = interp;
+    }
+
     /// Where the last queued move ends, in machine steps.
     pub(crate) fn commanded_steps(&self) -> [i32; N] {
         self.steps
@@ -294,6 +314,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             && self.homing.is_none()
             && self.flush.is_none()
             && !self.paused
+            && !self.stop_requested
     }
 
     /// Blocks waiting in the planner.
@@ -335,7 +356,13 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         if self.halted {
             return Err(CommandError::Halted);
         }
-        if self.arc.is_some() || self.homing.is_some() || self.flush.is_some() || self.paused {
+        // Lines after a stop wait for it to complete (it drops only what came before it).
+        if self.arc.is_some()
+            || self.homing.is_some()
+            || self.flush.is_some()
+            || self.paused
+            || self.stop_requested
+        {
             self.drain_arc();
             return Ok(Reply::Busy);
         }
@@ -348,6 +375,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 ramp,
             } => {
                 self.check_soft_limits(&target, &target)?;
+                self.check_reach(&target, &target)?;
                 if self.planner.is_full() {
                     return Ok(Reply::Busy);
                 }
@@ -361,6 +389,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             } => {
                 let (lo, hi) = cutter.bounds();
                 self.check_soft_limits(&lo, &hi)?;
+                self.check_reach(&lo, &hi)?;
                 self.arc = Some(PendingArc {
                     cutter,
                     feed_mm_min,
@@ -438,7 +467,8 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         if self.halted {
             return Err(CommandError::Halted);
         }
-        if self.homing.is_some() || self.arc.is_some() || self.flush.is_some() {
+        // A jog during a feed hold would wait for the resume behind the held motion: refused.
+        if self.homing.is_some() || self.arc.is_some() || self.flush.is_some() || self.hold {
             return Err(CommandError::NotIdle);
         }
         let den = 10i128
@@ -449,6 +479,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         let mut target = self.interp.pos;
         target[axis] = target[axis].saturating_add(nm);
         self.check_soft_limits(&target, &target)?;
+        self.check_reach(&target, &target)?;
         if self.planner.is_full() {
             return Ok(Reply::Busy);
         }
@@ -499,8 +530,9 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     }
 
     /// Stop motion and drop everything queued, keeping the position: a feed hold, then the
-    /// planner is flushed once at rest. The commanded position becomes where the machine
-    /// stopped.
+    /// planner, the block in preparation and the step queue are flushed once at rest. The
+    /// commanded position becomes where the steppers stopped; a later [`Kernel::resume`]
+    /// revives nothing. During a hold already at rest this happens at once.
     pub fn stop(&mut self) {
         self.arc = None;
         self.paused = false;
@@ -509,8 +541,8 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             self.abort(true, false);
             return;
         }
-        if self.is_idle() {
-            self.planner.clear();
+        if self.at_rest() {
+            self.abort(false, false);
             return;
         }
         self.hold = true;
@@ -528,7 +560,8 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// (position kept, `G92` offsets cleared). When motion was cut, the axes lose their homed
     /// state (steps may have been lost).
     pub fn reset(&mut self) {
-        let moving = !self.is_idle();
+        // A hold at rest lost no step: the homed axes stay homed.
+        let moving = !self.at_rest();
         self.abort(moving, false);
         self.alarm = None;
         self.halted = false;
@@ -600,6 +633,28 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             let (min, max) = self.travel_nm(i);
             if checked && (lo[i] < min || hi[i] > max) {
                 return Err(CommandError::SoftLimit { axis: i as u8 });
+            }
+        }
+        Ok(())
+    }
+
+    /// Refuse a move from the commanded position over `lo..=hi` (machine nm) that cannot be
+    /// right whether homed or not: longer on an axis than that axis's whole travel, or ending
+    /// beyond what is counted in `i32` steps and reported ([`MAX_POSITION_MM`]).
+    fn check_reach(&self, lo: &[Nm; N], hi: &[Nm; N]) -> Result<(), CommandError> {
+        let from = self.interp.pos;
+        for (i, a) in self.config.axes.iter().enumerate() {
+            let low = lo[i].min(from[i]);
+            let high = hi[i].max(from[i]);
+            let (min, max) = self.travel_nm(i);
+            let counted = f64::from(i32::MAX) / f64::from(a.steps_per_mm);
+            let bound_mm = match a.kind {
+                AxisKind::Extruder => counted,
+                _ => MAX_POSITION_MM.min(counted),
+            };
+            let bound = libm::floor(bound_mm * NM_PER_MM) as Nm;
+            if high.saturating_sub(low) > max.saturating_sub(min) || low < -bound || high > bound {
+                return Err(CommandError::OutOfReach { axis: i as u8 });
             }
         }
         Ok(())
@@ -685,8 +740,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             self.homing_step();
         }
         self.drain_arc();
-        let at_rest = self.prep.is_held() || (!self.prep.is_busy() && self.planner.is_empty());
-        if self.stop_requested && at_rest && self.isr_idle() && self.tx.len() == 0 {
+        if self.stop_requested && self.at_rest() {
             self.stop_requested = false;
             self.abort(false, false);
             return self.start_interrupt(now, true);

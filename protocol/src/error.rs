@@ -44,10 +44,11 @@ impl<T: WireError + ?Sized> WireError for &T {
 
 /// Why a G-code line was refused.
 ///
-/// The first seven variants concern the line's framing (its length, `N` and `*` fields and its
-/// place in the numbering): the line may have been damaged on the link and a resend repairs it.
-/// The others concern its body: the line arrived intact (its checksum matched, if it had one) but
-/// is not valid G-code; `line` is then its number, if it had one.
+/// The variants for which [`is_framing`](LineError::is_framing) holds concern the line's framing
+/// (its length, `N` and `*` fields, its check and its place in the numbering): the line may have
+/// been damaged on the link and a resend repairs it. The others concern its body: the line
+/// arrived intact (its check matched, if it had one) but is not valid G-code; `line` is then its
+/// number, if it had one.
 /// [`LineNumbering::recover`](crate::gcode::LineNumbering::recover) turns either into a reply.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -104,6 +105,22 @@ pub enum LineError {
         /// The line's number, if it had one.
         line: Option<u32>,
     },
+    /// The CRC-16 after `*` (five digits, see [`crc16`](crate::gcode::crc16)) is not the CRC of
+    /// the bytes before it. Code 13.
+    CrcMismatch {
+        /// The CRC of the bytes before `*`.
+        computed: u16,
+        /// The number written after `*`.
+        received: u16,
+    },
+    /// A numbered line with only the XOR checksum from a host that sends the CRC-16: once a
+    /// line with the CRC is accepted, every numbered line must carry it, until the next `M110`.
+    /// Code 14.
+    WeakChecksum,
+    /// The record holds nothing but a checksum (one to five digits): the rest of a numbered line
+    /// whose `*` was damaged into a line end, the line itself having arrived (and been answered)
+    /// as a record of its own. Code 15.
+    Fragment,
 }
 
 impl LineError {
@@ -130,6 +147,9 @@ impl LineError {
                 | Self::BadChecksum
                 | Self::BadLineNumber
                 | Self::OutOfOrder { .. }
+                | Self::CrcMismatch { .. }
+                | Self::WeakChecksum
+                | Self::Fragment
         )
     }
 
@@ -160,6 +180,9 @@ impl LineError {
             Self::NumberOutOfRange { .. } => 10,
             Self::TooManyWords { .. } => 11,
             Self::UnclosedComment { .. } => 12,
+            Self::CrcMismatch { .. } => 13,
+            Self::WeakChecksum => 14,
+            Self::Fragment => 15,
         }
     }
 
@@ -178,6 +201,9 @@ impl LineError {
             Self::NumberOutOfRange { .. } => "number-range",
             Self::TooManyWords { .. } => "too-many-words",
             Self::UnclosedComment { .. } => "open-comment",
+            Self::CrcMismatch { .. } => "crc-mismatch",
+            Self::WeakChecksum => "weak-checksum",
+            Self::Fragment => "line-fragment",
         }
     }
 }
@@ -347,7 +373,7 @@ pub(crate) fn split_code(text: &str) -> Option<(u32, &str)> {
 mod tests {
     use super::*;
 
-    fn all() -> [&'static dyn WireError; 25] {
+    fn all() -> [&'static dyn WireError; 28] {
         [
             &LineError::TooLong,
             &LineError::ChecksumMismatch {
@@ -367,6 +393,12 @@ mod tests {
             &LineError::NumberOutOfRange { line: None },
             &LineError::TooManyWords { line: None },
             &LineError::UnclosedComment { line: None },
+            &LineError::CrcMismatch {
+                computed: 0,
+                received: 1,
+            },
+            &LineError::WeakChecksum,
+            &LineError::Fragment,
             &FrameError::Length,
             &FrameError::Structure,
             &FrameError::UnknownType { message_type: 9 },
@@ -404,7 +436,7 @@ mod tests {
 
     #[test]
     fn the_code_table_is_stable() {
-        let table: [(u16, &str); 24] = [
+        let table: [(u16, &str); 27] = [
             (1, "line-too-long"),
             (2, "checksum-mismatch"),
             (3, "no-checksum"),
@@ -417,6 +449,9 @@ mod tests {
             (10, "number-range"),
             (11, "too-many-words"),
             (12, "open-comment"),
+            (13, "crc-mismatch"),
+            (14, "weak-checksum"),
+            (15, "line-fragment"),
             (20, "frame-length"),
             (21, "frame"),
             (22, "frame-type"),

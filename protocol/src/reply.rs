@@ -36,8 +36,15 @@ pub const FIRMWARE_URL: &str = "https%3A//github.com/forja-firmware/forja";
 /// `PROTOCOL_VERSION` in the `M115` reply: the version of what `docs/protocol.md` describes.
 pub const PROTOCOL_VERSION: &str = "0.1";
 
+/// The `M115` key that announces the strong line check: `LINE_CHECK:CRC16` means numbered lines
+/// may carry the [`crc16`](crate::gcode::crc16) after `*` (five digits; see
+/// [`write_checked`](crate::gcode::write_checked)), and that once one does, every numbered line
+/// must until the next `M110`. A host that sees it should send the CRC; one that does not can go
+/// on with the XOR.
+pub const LINE_CHECK: (&str, &str) = ("LINE_CHECK", "CRC16");
+
 /// The keys every Forja `M115` reply starts with; a board appends its own (`MACHINE_TYPE`,
-/// `EXTRUDER_COUNT`, …).
+/// `EXTRUDER_COUNT`, …), and [`LINE_CHECK`].
 pub const FORJA_CAPABILITIES: [(&str, &str); 4] = [
     ("FIRMWARE_NAME", FIRMWARE_NAME),
     ("FIRMWARE_VERSION", FIRMWARE_VERSION),

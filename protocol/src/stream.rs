@@ -26,19 +26,30 @@
 //!   [`Event::Line`], the terminator stripped. A frame needs no terminator: one is complete when
 //!   its 53rd byte is followed by a terminator, by `N` (the next frame) or by a control byte;
 //!   [`Decoder::flush`] completes one at the end of the input.
+//! - A 53-byte record that has the shape of a frame but [parses](crate::gcode::Line::parse) as a
+//!   numbered, checksummed G-code line (`N12 G1 X5*71 ; …F`) is a line: no frame parses as one
+//!   (a frame's `*` padding is not a checksum, and a frame without padding has no `*`), so the
+//!   line is answered as a line and its resend ends.
 //! - A record longer than [`MAX_LINE_LEN`](crate::gcode::MAX_LINE_LEN) is discarded to its
 //!   terminator and reported once as [`Event::TooLong`], never truncated.
 //! - A control byte (other than tab, CR, LF) is garbage: the record it falls in is discarded,
 //!   and so is everything up to the next terminator or `N`, where decoding resumes. The run is
-//!   reported once as [`Event::Garbage`] with its length. Bytes before a frame at the end of a
+//!   reported once as [`Event::Garbage`] with its length, and whether printable bytes were
+//!   among them (a line, or part of one, was lost). Bytes before a frame at the end of a
 //!   record (`xyzN02…F`) are garbage too.
 //! - Memory is one [`MAX_LINE_LEN`](crate::gcode::MAX_LINE_LEN) buffer; no input can make it
 //!   grow, loop or panic.
 
 use heapless::Vec;
 
-use crate::frame::{FRAME_LEN, Frame, START, is_frame};
-use crate::gcode::MAX_LINE_LEN;
+use crate::frame::{FRAME_LEN, Frame, START};
+use crate::gcode::{Line, MAX_LINE_LEN};
+
+/// Whether `bytes` is a frame record: it [is a frame](crate::frame::is_frame) and does not
+/// parse as a numbered, checksummed G-code line (see the module's rules).
+pub fn is_frame_record(bytes: &[u8]) -> bool {
+    crate::frame::is_frame(bytes) && !Line::parse(bytes).is_ok_and(|l| l.check().is_some())
+}
 
 /// One record, or one report, out of the stream.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -51,10 +62,15 @@ pub enum Event<'a> {
     /// A structurally valid frame. Decode it with [`crate::frame::ClientMessage::parse`] on the
     /// controller or [`crate::frame::ControllerMessage::parse`] on the client.
     Frame(Frame<'a>),
-    /// Bytes were dropped (report as [`crate::error::FrameError::Structure`], code 21).
+    /// Bytes were dropped (report as [`crate::error::FrameError::Structure`], code 21, to a
+    /// frame client; to a G-code host, a lost line is [`crate::error::LineError::UnexpectedCharacter`],
+    /// code 8).
     Garbage {
         /// How many.
         skipped: usize,
+        /// Whether printable bytes were among them: a record (a line, or part of one) was lost,
+        /// not only control bytes between records.
+        text: bool,
     },
     /// A line longer than [`MAX_LINE_LEN`](crate::gcode::MAX_LINE_LEN) was dropped (report as
     /// [`crate::error::LineError::TooLong`], code 1).
@@ -94,7 +110,7 @@ enum State {
     /// Accumulating a record into the buffer.
     Record,
     /// Dropping garbage until a terminator or `N`.
-    Skip { skipped: usize },
+    Skip { skipped: usize, text: bool },
     /// Dropping a too-long line until its terminator.
     Overlong { len: usize },
 }
@@ -104,7 +120,7 @@ enum State {
 enum Ready {
     Line,
     Frame,
-    Garbage(usize),
+    Garbage(usize, bool),
     TooLong(usize),
 }
 
@@ -175,6 +191,20 @@ impl Decoder {
         self.stats.garbage_bytes
     }
 
+    /// The record taken so far and not yet given: what [`flush`](Self::flush) would give as a
+    /// line or a frame now. Empty between records and while dropping garbage or a too-long
+    /// line. (A controller takes an unterminated record only when it is whole: a frame, or a
+    /// numbered line whose check verifies.)
+    pub fn partial(&self) -> &[u8] {
+        if self.clear || self.start_with_n || self.pending_frame.is_some() {
+            return &[];
+        }
+        match self.state {
+            State::Record => &self.buf,
+            _ => &[],
+        }
+    }
+
     /// Take bytes until one event is complete. Call again with
     /// [`remaining`](FeedResult::remaining) until `event` is `None`: then all of `input` has
     /// been taken and nothing is pending.
@@ -241,7 +271,7 @@ impl Decoder {
         }
         self.prepare();
         let ready = match self.state {
-            State::Skip { skipped } => Some(Ready::Garbage(skipped)),
+            State::Skip { skipped, text } => Some(Ready::Garbage(skipped, text)),
             State::Overlong { len } => Some(Ready::TooLong(len)),
             State::Record => self.end_record(),
         };
@@ -294,13 +324,15 @@ impl Decoder {
                 let _ = self.buf.extend_from_slice(rest.get(..n).unwrap_or(&[]));
                 n
             }
-            State::Skip { skipped } => {
-                let n = rest
+            State::Skip { skipped, text } => {
+                let run = rest
                     .iter()
-                    .take_while(|&&b| !is_terminator(b) && b != START)
-                    .count();
+                    .take_while(|&&b| !is_terminator(b) && b != START);
+                let (n, printable) =
+                    run.fold((0, false), |(n, p), &b| (n + 1, p || !is_garbage(b)));
                 self.state = State::Skip {
                     skipped: skipped.saturating_add(n),
+                    text: text || printable,
                 };
                 n
             }
@@ -317,14 +349,15 @@ impl Decoder {
     /// One byte through the state machine.
     fn step(&mut self, b: u8) -> Option<Ready> {
         match self.state {
-            State::Skip { skipped } => {
+            State::Skip { skipped, text } => {
                 if is_terminator(b) || b == START {
                     self.state = State::Record;
                     self.start_with_n = b == START;
-                    return Some(Ready::Garbage(skipped));
+                    return Some(Ready::Garbage(skipped, text));
                 }
                 self.state = State::Skip {
                     skipped: skipped.saturating_add(1),
+                    text: text || !is_garbage(b),
                 };
                 None
             }
@@ -342,10 +375,11 @@ impl Decoder {
                 if is_terminator(b) {
                     return self.end_record();
                 }
-                let frame_done = is_frame(&self.buf);
+                let frame_done = is_frame_record(&self.buf);
                 if is_garbage(b) {
                     self.state = State::Skip {
                         skipped: if frame_done { 1 } else { self.buf.len() + 1 },
+                        text: !frame_done && !self.buf.is_empty(),
                     };
                     if frame_done {
                         return Some(Ready::Frame);
@@ -374,14 +408,14 @@ impl Decoder {
         if len == 0 {
             return None;
         }
-        if is_frame(&self.buf) {
+        if is_frame_record(&self.buf) {
             return Some(Ready::Frame);
         }
         if let Some(at) = len.checked_sub(FRAME_LEN).filter(|&at| at > 0)
-            && self.buf.get(at..).is_some_and(is_frame)
+            && self.buf.get(at..).is_some_and(is_frame_record)
         {
             self.pending_frame = Some(at);
-            return Some(Ready::Garbage(at));
+            return Some(Ready::Garbage(at, true));
         }
         Some(Ready::Line)
     }
@@ -403,12 +437,12 @@ impl Decoder {
                 // Unreachable: `Ready::Frame` is only given for a buffer that is a frame.
                 Err(_) => Event::Line(&self.buf),
             },
-            Ready::Garbage(skipped) => {
+            Ready::Garbage(skipped, text) => {
                 stats.garbage_runs = stats.garbage_runs.wrapping_add(1);
                 stats.garbage_bytes = stats
                     .garbage_bytes
                     .wrapping_add(u32::try_from(skipped).unwrap_or(u32::MAX));
-                Event::Garbage { skipped }
+                Event::Garbage { skipped, text }
             }
             Ready::TooLong(len) => {
                 stats.too_long = stats.too_long.wrapping_add(1);
@@ -439,7 +473,7 @@ mod tests {
         match event {
             Event::Line(b) => Owned::Line(b.to_vec()),
             Event::Frame(f) => Owned::Frame(f.as_bytes().to_vec()),
-            Event::Garbage { skipped } => Owned::Garbage(skipped),
+            Event::Garbage { skipped, .. } => Owned::Garbage(skipped),
             Event::TooLong { len } => Owned::TooLong(len),
         }
     }
@@ -584,6 +618,56 @@ mod tests {
         for sizes in [&[1usize][..], &[255], &[1000]] {
             assert_eq!(run(&input, sizes), expected, "{sizes:?}");
         }
+    }
+
+    #[test]
+    fn a_checksummed_line_shaped_like_a_frame_is_a_line() {
+        // 53 bytes, `N`, two digits, `F` at the end: the shape of a frame, but a valid numbered
+        // line (a comment after the checksum).
+        let mut body = b"N12 G1 X5".to_vec();
+        let cs = crate::gcode::checksum(&body);
+        body.extend_from_slice(std::format!("*{cs} ;").as_bytes());
+        while body.len() < FRAME_LEN - 1 {
+            body.push(b'x');
+        }
+        body.push(b'F');
+        assert!(crate::frame::is_frame(&body));
+        assert!(!is_frame_record(&body));
+        let mut input = body.clone();
+        input.extend_from_slice(b"\r\n");
+        for sizes in [&[1usize][..], &[53], &[1000]] {
+            assert_eq!(run(&input, sizes), [line(&body)], "{sizes:?}");
+            assert_eq!(run(&body, sizes), [line(&body)], "{sizes:?}");
+        }
+        // Frames stay frames, whatever their padding.
+        assert!(is_frame_record(ZERO));
+        let mut bare = b"N03".to_vec();
+        bare.resize(FRAME_LEN - 1, b'7');
+        bare.push(b'F');
+        assert!(is_frame_record(&bare));
+    }
+
+    #[test]
+    fn garbage_tells_whether_text_was_lost() {
+        let mut decoder = Decoder::new();
+        let mut seen = StdVec::new();
+        decoder.feed_all(b"M114\x00\n\x00\x01\nG28\n\x00G1\n", |e| {
+            if let Event::Garbage { skipped, text } = e {
+                seen.push((skipped, text));
+            }
+        });
+        assert_eq!(seen, [(5, true), (2, false), (3, true)]);
+    }
+
+    #[test]
+    fn the_partial_record_is_what_a_flush_would_give() {
+        let mut decoder = Decoder::new();
+        decoder.feed_all(b"G28\nM11", |_| {});
+        assert_eq!(decoder.partial(), b"M11");
+        decoder.feed_all(b"4\n", |_| {});
+        assert_eq!(decoder.partial(), b"");
+        decoder.feed_all(b"G1\x00X", |_| {});
+        assert_eq!(decoder.partial(), b"");
     }
 
     #[test]

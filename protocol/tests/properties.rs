@@ -276,7 +276,7 @@ fn run(input: &[u8], sizes: &[usize]) -> Vec<Owned> {
         events.push(match e {
             Event::Line(b) => Owned::Line(b.to_vec()),
             Event::Frame(f) => Owned::Frame(f.as_bytes().to_vec()),
-            Event::Garbage { skipped } => Owned::Garbage(skipped),
+            Event::Garbage { skipped, .. } => Owned::Garbage(skipped),
             Event::TooLong { len } => Owned::TooLong(len),
             _ => unreachable!(),
         })

@@ -12,11 +12,14 @@
 //! | `frames.rs` | the operator's client over TCP: settings, homing, jog, program upload and run, pause, resume, stop, progress, a restart |
 //! | `faults.rs` | 1 % of the bytes from the host corrupted or dropped: every move of a 1,000-line job runs exactly once |
 //! | `limits.rs` | limit switches through the board's pin-change interrupt: a hard limit stops motion at the switch and locks the machine |
+//! | `invariants.rs` | arbitrary interleavings of lines, realtime frames, `M112`, jogs, homing, refused and damaged lines ([`invariants`]): acknowledged moves run once, positions stay true |
 //! | `bad_input.rs` | garbage, over-long lines, wrong numbers, broken frames, bad program lines, a full store: always an error reply, nothing changed |
 //!
 //! Virtual time runs as fast as the computer does; waits on the host side are bounded by the
 //! wall clock ([`Rig::run_until`]), so that a broken firmware fails a test rather than hanging
 //! it.
+
+pub mod invariants;
 
 use std::fs::{File, OpenOptions};
 use std::io::ErrorKind;

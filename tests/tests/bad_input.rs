@@ -167,7 +167,8 @@ fn bad_input_gets_an_error_reply_and_changes_nothing() {
         );
     }
 
-    // A full store: a new program of four lines keeps its first three, the fourth is refused.
+    // A full store: a new program of four lines is refused at its line 1 (no room), the old
+    // program kept whole; its later lines are another program's (issue 11, item 7).
     replies.clear();
     let longer = ["G91", "G1 Y2 F600", "G90", "G1 Y3"];
     for (i, text) in longer.iter().enumerate() {
@@ -178,7 +179,12 @@ fn bad_input_gets_an_error_reply_and_changes_nothing() {
         }));
     }
     rig.exchange(&mut host, &mut replies, 30);
-    assert_eq!(replies.error_codes(), [171], "{:?}", replies.lines);
+    assert_eq!(
+        replies.error_codes(),
+        [171, 193, 193, 193],
+        "{:?}",
+        replies.lines
+    );
     assert!(
         !replies
             .frames()
@@ -186,15 +192,7 @@ fn bad_input_gets_an_error_reply_and_changes_nothing() {
             .any(|m| matches!(m, ControllerMessage::Confirm { .. }))
     );
     let stored_now = stored(&mut rig);
-    assert_eq!(
-        stored_now,
-        [
-            Some("G91".into()),
-            Some("G1 Y2 F600".into()),
-            Some("G90".into()),
-            None
-        ]
-    );
+    assert_eq!(stored_now, program_before);
     // A program line that is not G-code is refused before anything is cleared.
     replies.clear();
     host.send(&frame(&ClientMessage::LoadLine {
@@ -218,11 +216,6 @@ fn bad_input_gets_an_error_reply_and_changes_nothing() {
     assert_eq!(replies.lines, ["ok"]);
     assert_eq!(
         rig.machine.positions_mm(),
-        [
-            position[0] + 10.0,
-            position[1] + 2.0,
-            position[2],
-            position[3]
-        ]
+        [position[0] + 11.0, position[1], position[2], position[3]]
     );
 }

@@ -142,3 +142,207 @@ fn a_printer_job_over_the_pseudo_terminal() {
     assert!(rig.machine.temperature_c(hot).unwrap() < 200.0);
     assert_eq!(rig.board.status().stats.faults, 0);
 }
+
+/// Lines damaged on the link, one controller on an in-memory link (issue 11, items 3, 4, 9).
+mod damaged {
+    use forja_protocol::gcode::{Check, checksum, write_checked};
+    use forja_sim::board::BoardConfig;
+    use forja_sim::link::{MemoryHost, MemoryLink};
+    use forja_tests::{Replies, Rig};
+
+    /// A numbered line with its XOR checksum, without terminator.
+    fn numbered(n: i64, body: &str) -> String {
+        let head = format!("N{n} {body}");
+        format!("{head}*{}", checksum(head.as_bytes()))
+    }
+
+    /// A numbered line with its CRC-16, without terminator.
+    fn strong(n: u32, body: &str) -> String {
+        let mut buf = [0u8; 300];
+        let len = write_checked(n, body.as_bytes(), Check::Crc16, &mut buf).unwrap();
+        String::from_utf8(buf[..len].to_vec()).unwrap()
+    }
+
+    /// A rig on the default machine, its link, the host numbering from line 0.
+    fn numbered_rig() -> (Rig, MemoryHost, Replies) {
+        let mut rig = Rig::new("default", BoardConfig::default());
+        let (link, mut host) = MemoryLink::pair();
+        rig.board.add_port(link, false);
+        let mut replies = Replies::default();
+        host.send(format!("{}\n", numbered(-1, "M110 N-1")).as_bytes());
+        rig.exchange(&mut host, &mut replies, 20);
+        assert_eq!(replies.lines, ["start", "ok"]);
+        replies.clear();
+        (rig, host, replies)
+    }
+
+    fn send(rig: &mut Rig, host: &mut MemoryHost, replies: &mut Replies, bytes: &str) {
+        host.send(bytes.as_bytes());
+        rig.exchange(host, replies, 50);
+    }
+
+    #[test]
+    fn an_interpreter_refusal_of_a_numbered_line_is_asked_again_once() {
+        let (mut rig, mut host, mut replies) = numbered_rig();
+        // `X` damaged into `Q`, the checksum still matching: asked again, not refused.
+        let damaged = numbered(0, "G1 Q5 F600");
+        send(&mut rig, &mut host, &mut replies, &format!("{damaged}\n"));
+        assert_eq!(replies.lines, ["rs 0"]);
+        // The same line again: refused, its number used up.
+        send(&mut rig, &mut host, &mut replies, &format!("{damaged}\n"));
+        assert_eq!(replies.lines, ["rs 0", "!! E127 unknown-axis Q", "ok"]);
+        replies.clear();
+        // The resent line is taken in order the first time it is intact.
+        let line = numbered(2, "G1 Z1 F600");
+        send(
+            &mut rig,
+            &mut host,
+            &mut replies,
+            &format!("{}\n", numbered(1, "G91")),
+        );
+        send(
+            &mut rig,
+            &mut host,
+            &mut replies,
+            &format!("{}\n", numbered(2, "G1 M3 Q")),
+        );
+        assert_eq!(replies.lines, ["ok", "rs 2"]);
+        let z = rig.machine.positions_mm()[2];
+        send(&mut rig, &mut host, &mut replies, &format!("{line}\n"));
+        rig.settle(&mut host, &mut replies);
+        assert_eq!(replies.lines, ["ok", "rs 2", "ok"]);
+        assert!((rig.machine.positions_mm()[2] - z - 1.0).abs() < 1e-3);
+    }
+
+    #[test]
+    fn a_line_cut_in_two_by_a_damaged_star_gets_one_reply_and_does_not_run() {
+        let (mut rig, mut host, mut replies) = numbered_rig();
+        let before = rig.machine.positions_mm();
+        for line in [numbered(0, "G1 X5 F600"), strong(0, "G1 X5 F600")] {
+            let cut = line.replacen('*', "\n", 1);
+            send(&mut rig, &mut host, &mut replies, &format!("{cut}\r\n"));
+            assert_eq!(replies.lines, ["rs 0"], "{cut:?}");
+            replies.clear();
+        }
+        assert_eq!(rig.machine.positions_mm(), before);
+        // On a link that does not number its lines, a checksum alone is bad input.
+        let mut rig = Rig::new("default", BoardConfig::default());
+        let (link, mut host) = MemoryLink::pair();
+        rig.board.add_port(link, false);
+        let mut replies = Replies::default();
+        send(&mut rig, &mut host, &mut replies, "71\n");
+        assert_eq!(replies.lines, ["start", "!! E15 line-fragment", "ok"]);
+    }
+
+    #[test]
+    fn an_unnumbered_line_cut_by_a_pause_waits_for_its_end() {
+        let (mut rig, mut host, mut replies) = numbered_rig();
+        send(
+            &mut rig,
+            &mut host,
+            &mut replies,
+            &format!("{}\n", numbered(0, "G91")),
+        );
+        replies.clear();
+        host.send(b"G1 X1");
+        rig.exchange(&mut host, &mut replies, 200);
+        assert!(replies.lines.is_empty(), "{:?}", replies.lines);
+        let x = rig.machine.positions_mm()[0];
+        send(&mut rig, &mut host, &mut replies, "0 F3000\n");
+        rig.settle(&mut host, &mut replies);
+        assert_eq!(replies.lines, ["ok"]);
+        assert!((rig.machine.positions_mm()[0] - x - 10.0).abs() < 1e-3);
+        replies.clear();
+        for b in b"M114\n" {
+            host.send(&[*b]);
+            rig.exchange(&mut host, &mut replies, 60);
+        }
+        assert_eq!(replies.lines.len(), 1, "{:?}", replies.lines);
+        assert!(replies.lines[0].contains(" X:"), "{:?}", replies.lines);
+        // A numbered line whose terminator was lost is still taken once the link is quiet.
+        replies.clear();
+        host.send(numbered(1, "G1 X-10").as_bytes());
+        rig.exchange(&mut host, &mut replies, 200);
+        rig.settle(&mut host, &mut replies);
+        assert_eq!(replies.lines, ["ok"]);
+        assert!((rig.machine.positions_mm()[0] - x).abs() < 1e-3);
+    }
+
+    #[test]
+    fn a_numbered_line_shaped_like_a_frame_is_a_line() {
+        let (mut rig, mut host, mut replies) = numbered_rig();
+        // Frames have two digits after `N`: number the lines from 10.
+        send(
+            &mut rig,
+            &mut host,
+            &mut replies,
+            &format!("{}\n", numbered(9, "M110")),
+        );
+        replies.clear();
+        let mut line = numbered(10, "G91");
+        line.push_str(" ;");
+        while line.len() < 52 {
+            line.push('x');
+        }
+        line.push('F');
+        assert!(forja_protocol::frame::is_frame(line.as_bytes()));
+        send(&mut rig, &mut host, &mut replies, &format!("{line}\n"));
+        assert_eq!(replies.lines, ["ok"]);
+        // The next line is in order: the frame-shaped line was taken as line 10.
+        send(
+            &mut rig,
+            &mut host,
+            &mut replies,
+            &format!("{}\n", numbered(11, "G90")),
+        );
+        assert_eq!(replies.lines, ["ok", "ok"]);
+    }
+
+    #[test]
+    fn garbage_in_a_gcode_line_gets_a_reply_a_gcode_host_reads() {
+        let mut rig = Rig::new("default", BoardConfig::default());
+        let (link, mut host) = MemoryLink::pair();
+        rig.board.add_port(link, false);
+        let mut replies = Replies::default();
+        send(&mut rig, &mut host, &mut replies, "M105\n");
+        replies.clear();
+        send(&mut rig, &mut host, &mut replies, "M114\x00\n");
+        assert_eq!(replies.lines, ["!! E8 bad-character", "ok"]);
+        assert!(replies.frames().is_empty());
+        // Control bytes alone between lines cost no line: no reply.
+        replies.clear();
+        send(&mut rig, &mut host, &mut replies, "\x00\x01\n");
+        assert!(replies.lines.is_empty(), "{:?}", replies.lines);
+        // A host that numbers its lines is asked to resend.
+        let (mut rig, mut host, mut replies) = numbered_rig();
+        send(&mut rig, &mut host, &mut replies, "N0 M1\x0014*99\n");
+        assert_eq!(replies.lines, ["rs 0"]);
+    }
+
+    #[test]
+    fn the_crc_is_announced_and_a_line_that_fails_it_is_asked_again() {
+        let (mut rig, mut host, mut replies) = numbered_rig();
+        send(&mut rig, &mut host, &mut replies, "M115\n");
+        assert!(
+            replies.lines[0].contains("LINE_CHECK:CRC16"),
+            "{:?}",
+            replies.lines
+        );
+        replies.clear();
+        let line = strong(0, "G91");
+        // Two digits swapped in the body: the XOR could not see it.
+        let damaged = line.replacen("G91", "G19", 1);
+        send(&mut rig, &mut host, &mut replies, &format!("{damaged}\n"));
+        assert_eq!(replies.lines, ["rs 0"]);
+        send(&mut rig, &mut host, &mut replies, &format!("{line}\n"));
+        assert_eq!(replies.lines, ["rs 0", "ok"]);
+        // Once the CRC is used, a numbered line with the XOR alone is asked again.
+        send(
+            &mut rig,
+            &mut host,
+            &mut replies,
+            &format!("{}\n", numbered(1, "G90")),
+        );
+        assert_eq!(replies.lines, ["rs 0", "ok", "rs 1"]);
+    }
+}

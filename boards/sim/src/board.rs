@@ -4,9 +4,9 @@
 //! | firmware part | on the simulator |
 //! |---|---|
 //! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`crate::SimStepDirPins`], and `forja_drivers::limit::LimitInput`s on [`crate::SimSwitchPin`]s (the homing switch of each homed axis) |
-//! | thread side | [`Firmware::poll`]: the links, one `LinkSession` per port (admission of TCP clients, frames 54/55), `Controller::poll` |
+//! | thread side | [`Firmware::poll`]: the links, one `LinkSession` per port (admission of TCP clients, frames 54/55, the idle time-out), one controlling host across the ports, `Controller::poll` with at most [`READ_BUDGET`] bytes of input |
 //! | peripherals | `forja_drivers::peripherals::DriverPeripherals`: PID `HeaterChannel`s over the simulated heaters, fans and the spindle on the PWM outputs, the drivers' enable lines, the switches read again for `M119` |
-//! | storage | two `FlashRecordStorage`s on `RamNorFlash`es ([`Flash`]): the settings, and the uploaded program (`RecordProgramStore`) |
+//! | storage | two `FlashRecordStorage`s on NOR flashes ([`Flash`], [`HeapFlash`]): the settings, and the uploaded program (`RecordProgramStore`); kept in a file with `--state` ([`crate::state`]) |
 //!
 //! The kernel's [`forja_motion::MachineConfig`] is made from the machine file
 //! ([`kernel_config`]), then the settings stored in the flash are applied over it, as a
@@ -14,18 +14,36 @@
 //!
 //! # Links
 //!
-//! A board has one controller, which serves one host at a time. [`SimBoard::add_port`] adds a
-//! link (TCP with a session, a pseudo-terminal, an in-memory pair); the first port with a
-//! host connected (or bytes waiting) is served until its host has gone and its bytes are read,
-//! then the next. Each new host starts afresh (line 1 expected, no held line); on a port with
-//! a session it is greeted with frame 54 and kept alive with frame 55 every `keep_alive_ms`.
-//! The first host of a port without a session receives `start`.
+//! A board has one controller, which serves one host at a time, across all its ports.
+//! [`SimBoard::add_port`] adds a link (TCP with a session, a pseudo-terminal, an in-memory
+//! pair). Each turn:
 //!
-//! Each port has one `forja_drivers::session::LinkSession`, used as the ESP32 board uses its
-//! own: every turn the link reports to it the controlling client that closed and the clients
-//! that connected ([`HostLink::admit`]), and carries out its answer (a TCP client is admitted,
-//! or sent the busy message and closed); the session's `SendConnected` is the greeting (frame
-//! 54, when the port is served), its `SendKeepAlive` the frames 55 of the served port.
+//! 1. Every link is polled, and its `forja_drivers::session::LinkSession` decides on the TCP
+//!    clients that connected ([`HostLink::admit`]). While another port's host is in control
+//!    the session is locked: the client is sent the busy message and closed.
+//! 2. The controlling host's session goes on, or ends:
+//!    - its host left (closed, hung up, dropped for not reading): what it sent before leaving
+//!      still runs, in its session (its replies are discarded), until it is read and no line
+//!      of it is held — unless another host wants control first: then the rest is dropped;
+//!    - it was silent for the port's idle time-out ([`SimBoard::set_idle_timeout`]; silence
+//!      counts only while the controller owes it nothing: no held line, homing cycle or heater
+//!      wait): a TCP client is closed and its session ends; a terminal cannot be closed, so it
+//!      only gives up control, and takes it back with its next byte, in the same session, if no
+//!      other host took control in between.
+//! 3. With no host in control, the first port (in the order they were added) whose host has
+//!    just arrived, or that has input, takes control. A new session starts with no byte of the
+//!    previous one: no unread input (the controller's and the link's), no held or queued line,
+//!    no unsent reply; line 1 is expected. On a port with a session the host is greeted with
+//!    frame 54 and kept alive with frame 55 every `keep_alive_ms`; the first host of a port
+//!    without one receives `start`.
+//! 4. Input that arrives on any other port is never run: it is discarded, and the host, if
+//!    one is there, is sent the busy message ([`SimBoard::set_busy_message`]) once per turn.
+//! 5. The controller reads at most [`READ_BUDGET`] bytes of the controlling port: a flood
+//!    never keeps the thread side from the kernel, and the link holds the rest back.
+//!
+//! Nothing of a turn waits for a host: writes never block (a TCP client that stops reading is
+//! dropped, a terminal's output discarded, see [`crate::link`]), so virtual time, motion and
+//! the stop flag go on whatever hosts do.
 //!
 //! # Machine files
 //!
@@ -55,17 +73,20 @@ use forja_hal_abstraction::link::LinkState;
 use forja_hal_abstraction::stepper::StepTiming;
 use forja_hal_abstraction::time::Instant;
 use forja_motion::controller::{
-    Controller, ControllerConfig, RecordProgramStore, Settings, Stats as ControllerStats,
+    Controller, ControllerConfig, Realtime, RecordProgramStore, Settings, Stats as ControllerStats,
+    realtime,
 };
 use forja_motion::job::{JobState, Progress};
 use forja_motion::{
     AxisConfig, AxisKind as KernelAxisKind, HomeDirection, HomingConfig, Kernel,
     MachineConfig as KernelConfig, MachineState, StepGenerator, StepQueue, SwitchAlert,
 };
+use forja_protocol::frame::is_frame;
+use forja_protocol::gcode::MAX_LINE_LEN;
 
 use crate::config::{AxisKind, MachineConfig, SwitchPolarity, SwitchSide};
 use crate::limit::SimSwitchPin;
-use crate::link::HostLink;
+use crate::link::{HostLink, RX_CAPACITY};
 use crate::machine::{SimAlarm, SimMachine};
 use crate::pwm::SimPwm;
 use crate::simulation::{Firmware, Flow, RunError, RunReport, Simulation};
@@ -97,13 +118,41 @@ pub const MAX_FANS: usize = 4;
 /// Travel given to an axis the machine file leaves unlimited, mm either side of 0.
 pub const UNLIMITED_TRAVEL_MM: f32 = 100_000.0;
 
+/// Most bytes the controller reads from the controlling port in one turn (a turn is a
+/// millisecond of virtual time: 4 MB/s, far above any host link).
+pub const READ_BUDGET: usize = 4096;
+
+/// Wire code of the busy refusal, `link-busy` (the boards' range; the ESP32 board sends the
+/// same).
+pub const LINK_BUSY_CODE: u16 = 300;
+
+/// The busy message sent by default to a host whose input is refused because another host is
+/// in control: frame 56 `Error:E300 link-busy` for a frame client, then the same as a G-code
+/// notice line.
+pub fn default_busy_message() -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut frame = [0u8; forja_protocol::frame::FRAME_LEN];
+    let busy = forja_protocol::frame::ControllerMessage::Error {
+        code: LINK_BUSY_CODE,
+        detail: "link-busy",
+    };
+    if busy.encode(&mut frame).is_ok() {
+        out.extend_from_slice(&frame);
+        out.push(b'\n');
+    }
+    out.extend_from_slice(b"// E300 link-busy another host is in control of this machine\n");
+    out
+}
+
 /// A NOR flash on the heap, for the board's storage (a megabyte does not belong on a stack).
 ///
 /// It keeps the rules of `forja_drivers::ram_flash::RamNorFlash`: erase sets whole pages to
 /// `0xFF`; reads, writes and erases are aligned to their sizes and within the device; a word
-/// is written at most once per erase.
+/// is written at most once per erase. With a state file (`--state`, [`crate::state`]), each
+/// completed erase and write is in the file before it returns.
 pub struct HeapFlash<const SIZE: usize> {
     mem: Vec<u8>,
+    file: Option<crate::state::FlashFile>,
 }
 
 /// Read and write unit of [`HeapFlash`], bytes.
@@ -112,12 +161,28 @@ pub const FLASH_WORD: usize = 4;
 impl<const SIZE: usize> HeapFlash<SIZE> {
     /// A fully erased flash.
     pub fn erased() -> Self {
-        Self {
-            mem: vec![0xFF; SIZE],
+        Self::with_contents(Vec::new(), None)
+    }
+
+    /// A flash holding `mem` (cut or padded with erased bytes to `SIZE`), written through to
+    /// `file` when there is one.
+    pub fn with_contents(mut mem: Vec<u8>, file: Option<crate::state::FlashFile>) -> Self {
+        mem.resize(SIZE, 0xFF);
+        Self { mem, file }
+    }
+
+    /// Write the bytes `start..start + len` of a completed operation through to the file.
+    fn write_through(&mut self, start: usize, len: usize) -> Result<(), RamFlashError> {
+        match &mut self.file {
+            Some(file) => file.write(start, &self.mem[start..start + len]),
+            None => Ok(()),
         }
     }
 
-    fn check(offset: u32, len: usize, align: usize) -> Result<usize, RamFlashError> {
+    fn check(&self, offset: u32, len: usize, align: usize) -> Result<usize, RamFlashError> {
+        if let Some(file) = &self.file {
+            file.usable()?;
+        }
         let start = offset as usize;
         if !start.is_multiple_of(align) || !len.is_multiple_of(align) {
             return Err(RamFlashError::NotAligned);
@@ -143,7 +208,7 @@ impl<const SIZE: usize> ReadNorFlash for HeapFlash<SIZE> {
     const READ_SIZE: usize = FLASH_WORD;
 
     fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
-        let start = Self::check(offset, bytes.len(), FLASH_WORD)?;
+        let start = self.check(offset, bytes.len(), FLASH_WORD)?;
         bytes.copy_from_slice(&self.mem[start..start + bytes.len()]);
         Ok(())
     }
@@ -161,19 +226,19 @@ impl<const SIZE: usize> NorFlash for HeapFlash<SIZE> {
         let len = (to as usize)
             .checked_sub(from as usize)
             .ok_or(RamFlashError::OutOfBounds)?;
-        let start = Self::check(from, len, FLASH_PAGE)?;
+        let start = self.check(from, len, FLASH_PAGE)?;
         self.mem[start..start + len].fill(0xFF);
-        Ok(())
+        self.write_through(start, len)
     }
 
     fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
-        let start = Self::check(offset, bytes.len(), FLASH_WORD)?;
+        let start = self.check(offset, bytes.len(), FLASH_WORD)?;
         let target = &mut self.mem[start..start + bytes.len()];
         if target.iter().any(|&b| b != 0xFF) {
             return Err(RamFlashError::WordWrittenTwice);
         }
         target.copy_from_slice(bytes);
-        Ok(())
+        self.write_through(start, bytes.len())
     }
 }
 
@@ -234,26 +299,148 @@ impl<T: HostLink<Error = io::Error> + Any> Port for T {}
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct PortId(usize);
 
+/// What happened to the hosts of a port, counted from its start.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct PortStats {
+    /// Sessions begun on the port.
+    pub sessions: u64,
+    /// Times its controlling host was silent for the idle time-out.
+    pub idle_timeouts: u64,
+    /// Bytes received while another port's host was in control: discarded, never run.
+    pub refused_bytes: u64,
+    /// Busy messages sent.
+    pub busy_replies: u64,
+    /// Bytes a host that left had sent and that were dropped unread, because another host
+    /// took control first (or it was silent for the time-out).
+    pub dropped_bytes: u64,
+    /// `M112` lines found in the refused bytes and carried out: an emergency stop acts from
+    /// any host.
+    pub emergency_stops: u64,
+}
+
 struct Served {
     link: Box<dyn Port>,
-    /// Who controls a connection-oriented link ([`HostLink::admit`]), and its keep-alives.
+    /// Who controls a connection-oriented link ([`HostLink::admit`]), its keep-alives and its
+    /// idle time-out (on a link without connections: the time-out alone).
     session: LinkSession,
     /// Whether the host is greeted with frame 54 and kept alive with frame 55.
     frames: bool,
-    /// The session admitted a host that was not greeted yet.
-    admitted: bool,
+    /// The link's connection count at the last look.
     seen: u64,
+    /// A host arrived (the count changed) and has not been served yet.
+    fresh: bool,
     failure: Option<String>,
+    stats: PortStats,
+    /// The line being received while another host is in control, looked at for `M112` when
+    /// its terminator comes ([`Served::refuse_input`]).
+    refused_line: Vec<u8>,
+    /// That line is over [`MAX_LINE_LEN`] bytes: not a line the controller would take.
+    refused_overlong: bool,
 }
 
 impl Served {
-    /// Whether a new host is there since the last call: on a port with frames, one the session
-    /// admitted; on another, a change of the link's connection count.
-    fn new_host(&mut self) -> bool {
-        let seen = self.link.connections();
-        let counted = core::mem::replace(&mut self.seen, seen) != seen;
-        let admitted = core::mem::take(&mut self.admitted);
-        if self.frames { admitted } else { counted }
+    fn present(&self) -> bool {
+        self.link.state() == LinkState::Connected
+    }
+
+    /// Whether this port's host wants control: one just arrived, or it has input.
+    fn wants_control(&mut self) -> bool {
+        (self.fresh && self.present()) || self.link.read_ready().unwrap_or(false)
+    }
+
+    /// Take and drop the input of a host that is not in control — except that an `M112` line
+    /// among it (found as the controller finds it, [`realtime`]: its command word after an
+    /// optional `N` number, whatever its checksum) is reported, for the board to carry out: an
+    /// emergency stop acts from any host, as realtime commands do from every connection of
+    /// FluidNC and grblHAL. Returns the bytes dropped and whether an `M112` came.
+    fn refuse_input(&mut self) -> io::Result<(usize, bool)> {
+        let mut buf = [0u8; 256];
+        let mut dropped = 0;
+        let mut stop = false;
+        while dropped < RX_CAPACITY && self.link.read_ready()? {
+            let n = self.link.read(&mut buf)?;
+            if n == 0 {
+                break;
+            }
+            dropped += n;
+            for &b in buf.get(..n).unwrap_or(&[]) {
+                if matches!(b, b'\n' | b'\r') {
+                    let line = core::mem::take(&mut self.refused_line);
+                    stop |= !core::mem::take(&mut self.refused_overlong)
+                        && !is_frame(&line)
+                        && realtime(&line) == Some(Realtime::EmergencyStop);
+                } else if self.refused_line.len() < MAX_LINE_LEN {
+                    self.refused_line.push(b);
+                } else {
+                    self.refused_overlong = true;
+                }
+            }
+        }
+        dropped += self.link.discard_input()?;
+        Ok((dropped, stop))
+    }
+
+    /// Forget the partial line of [`Served::refuse_input`]: the port's input goes to the
+    /// controller now.
+    fn forget_refused_line(&mut self) {
+        self.refused_line.clear();
+        self.refused_overlong = false;
+    }
+}
+
+/// Who has the board's controller.
+#[derive(Debug, Default)]
+struct Arbiter {
+    /// The port whose host is in control.
+    active: Option<usize>,
+    /// The port whose session the controller's link state belongs to (it stays when a
+    /// terminal's host gives up control for silence, and goes when the session ends).
+    owner: Option<usize>,
+    busy_message: Vec<u8>,
+}
+
+/// A link that lets the controller read at most a fixed number of bytes.
+struct Budgeted<'a, L: ?Sized> {
+    link: &'a mut L,
+    left: usize,
+    read: usize,
+}
+
+impl<L: embedded_io::ErrorType + ?Sized> embedded_io::ErrorType for Budgeted<'_, L> {
+    type Error = L::Error;
+}
+
+impl<L: embedded_io::ReadReady + ?Sized> embedded_io::ReadReady for Budgeted<'_, L> {
+    fn read_ready(&mut self) -> Result<bool, Self::Error> {
+        if self.left == 0 {
+            return Ok(false);
+        }
+        self.link.read_ready()
+    }
+}
+
+impl<L: embedded_io::Read + ?Sized> embedded_io::Read for Budgeted<'_, L> {
+    fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        let n = buf.len().min(self.left);
+        let Some(buf) = buf.get_mut(..n) else {
+            return Ok(0);
+        };
+        if buf.is_empty() {
+            return Ok(0);
+        }
+        let got = self.link.read(buf)?;
+        self.left = self.left.saturating_sub(got);
+        self.read += got;
+        Ok(got)
+    }
+}
+
+impl<L: embedded_io::Write + ?Sized> embedded_io::Write for Budgeted<'_, L> {
+    fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+        self.link.write(buf)
+    }
+    fn flush(&mut self) -> Result<(), Self::Error> {
+        self.link.flush()
     }
 }
 
@@ -285,7 +472,7 @@ pub struct BoardStatus {
 /// The firmware of one axis count.
 trait Wiring {
     fn on_alarm(&mut self, now: Instant) -> Option<Instant>;
-    fn poll(&mut self, now: Instant, ports: &mut [Served], active: &mut Option<usize>);
+    fn poll(&mut self, now: Instant, ports: &mut [Served], arb: &mut Arbiter);
     fn status(&self) -> BoardStatus;
     fn keep_alive_ms(&self) -> u32;
     fn program_line(&mut self, index: u16) -> Option<String>;
@@ -536,40 +723,101 @@ impl<const N: usize> Wired<N> {
         })
     }
 
-    /// Choose the port to serve, greet a new host.
-    fn serve(&mut self, ports: &mut [Served], active: &mut Option<usize>) {
-        if let Some(i) = *active
-            && let Some(p) = ports.get_mut(i)
-        {
-            let connected = p.link.state() == LinkState::Connected;
-            if p.new_host() {
-                self.greet(p, true);
-            } else if !connected && !p.link.read_ready().unwrap_or(false) {
-                *active = None;
+    /// Decide who is in control this turn (see the [module documentation](self)), greet a
+    /// new host, refuse the input of the others.
+    fn serve(&mut self, ports: &mut [Served], arb: &mut Arbiter, now_ms: u32) {
+        if let Some(i) = arb.active {
+            let others_want = ports
+                .iter_mut()
+                .enumerate()
+                .any(|(j, q)| j != i && q.wants_control());
+            if let Some(p) = ports.get_mut(i) {
+                if !p.present() {
+                    // Its host left: what it sent runs on, unless someone else wants control.
+                    let draining =
+                        p.link.read_ready().unwrap_or(false) || self.controller.is_holding();
+                    if others_want || !draining {
+                        self.end_session(p, arb);
+                    }
+                } else if p.fresh {
+                    // A new host on the same port (a client that reconnected at once).
+                    self.begin_session(p, i, arb, now_ms);
+                } else if p.session.poll_idle(now_ms) {
+                    p.stats.idle_timeouts += 1;
+                    p.link.hang_up();
+                    if p.present() {
+                        // A terminal cannot be hung up: it only gives up control.
+                        arb.active = None;
+                    } else {
+                        self.end_session(p, arb);
+                    }
+                }
             }
         }
-        if active.is_none() {
+        if arb.active.is_none() {
             for (i, p) in ports.iter_mut().enumerate() {
-                let connected = p.link.state() == LinkState::Connected;
-                if connected || p.link.read_ready().unwrap_or(false) {
-                    *active = Some(i);
-                    let new_host = p.new_host();
-                    self.greet(p, new_host);
-                    break;
+                if !p.wants_control() {
+                    continue;
                 }
+                if p.fresh || arb.owner != Some(i) {
+                    self.begin_session(p, i, arb, now_ms);
+                } else {
+                    // The same host, back after giving up control: its session goes on.
+                    arb.active = Some(i);
+                    p.session.set_locked(false);
+                    p.session.on_connect(now_ms);
+                }
+                break;
+            }
+        }
+        let mut stop = false;
+        for (i, p) in ports.iter_mut().enumerate() {
+            if arb.active == Some(i) {
+                p.forget_refused_line();
+                continue;
+            }
+            match p.refuse_input() {
+                Ok((0, _)) => {}
+                Ok((n, m112)) => {
+                    stop |= m112;
+                    p.stats.refused_bytes += n as u64;
+                    if m112 {
+                        p.stats.emergency_stops += 1;
+                    }
+                    if p.present() {
+                        p.stats.busy_replies += 1;
+                        let _ = p.link.write_all(&arb.busy_message);
+                    }
+                }
+                Err(e) => {
+                    p.failure.get_or_insert(e.to_string());
+                }
+            }
+        }
+        if stop {
+            // The fault goes to the controlling host, whose waiting lines are answered.
+            match arb.active.and_then(|i| ports.get_mut(i)) {
+                Some(p) => self.controller.emergency_stop(&mut p.link),
+                None => self.controller.emergency_stop(&mut Silent),
             }
         }
     }
 
-    /// Start afresh with the host of `p`: frame 54 to a host its session admitted, `start`
-    /// to the first host of a port without frames.
-    fn greet(&mut self, p: &mut Served, new_host: bool) {
+    /// Start a new session with the host of port `i`: nothing of the previous session is
+    /// kept; frame 54 to a host on a port with frames, `start` to the first host of a port
+    /// without.
+    fn begin_session(&mut self, p: &mut Served, i: usize, arb: &mut Arbiter, now_ms: u32) {
+        p.fresh = false;
+        p.session.set_locked(false);
+        if !p.session.is_connected() {
+            // A link without connections: the session only times the host's silence.
+            p.session.on_connect(now_ms);
+        }
+        arb.active = Some(i);
+        arb.owner = Some(i);
+        p.stats.sessions += 1;
         if p.frames {
-            if new_host {
-                self.controller.on_connect(&mut p.link);
-            } else {
-                self.controller.reset_link();
-            }
+            self.controller.on_connect(&mut p.link);
         } else {
             self.controller.reset_link();
             if !self.booted {
@@ -577,6 +825,21 @@ impl<const N: usize> Wired<N> {
                 self.controller.boot(&mut p.link);
             }
         }
+    }
+
+    /// End the session of the controlling host of `p`: what it sent and was not read is
+    /// dropped, and so are its held line and partial input.
+    fn end_session(&mut self, p: &mut Served, arb: &mut Arbiter) {
+        match p.link.discard_input() {
+            Ok(n) => p.stats.dropped_bytes += n as u64,
+            Err(e) => {
+                p.failure.get_or_insert(e.to_string());
+            }
+        }
+        p.session.on_disconnect();
+        self.controller.reset_link();
+        arb.active = None;
+        arb.owner = None;
     }
 }
 
@@ -626,31 +889,46 @@ impl<const N: usize> Wiring for Wired<N> {
         next
     }
 
-    fn poll(&mut self, now: Instant, ports: &mut [Served], active: &mut Option<usize>) {
+    fn poll(&mut self, now: Instant, ports: &mut [Served], arb: &mut Arbiter) {
         self.look_at_switches();
         let now_ms = (u128::from(self.machine.now_ticks()) * 1000
             / u128::from(self.machine.tick_hz())) as u32;
-        for p in ports.iter_mut() {
-            match p
+        // The controlling host, if it is still there: every other port refuses new clients.
+        let holder = arb
+            .active
+            .filter(|&a| ports.get(a).is_some_and(Served::present));
+        for (i, p) in ports.iter_mut().enumerate() {
+            p.session.set_locked(holder.is_some_and(|a| a != i));
+            if let Err(e) = p
                 .link
                 .poll()
                 .and_then(|()| p.link.admit(&mut p.session, now_ms))
             {
-                Ok(admitted) => p.admitted |= admitted,
-                Err(e) => {
-                    p.failure.get_or_insert(e.to_string());
-                }
+                p.failure.get_or_insert(e.to_string());
+            }
+            let seen = p.link.connections();
+            if core::mem::replace(&mut p.seen, seen) != seen {
+                p.fresh = true;
             }
         }
-        self.serve(ports, active);
-        let outcome = match active.and_then(|i| ports.get_mut(i)) {
+        self.serve(ports, arb, now_ms);
+        let outcome = match arb.active.and_then(|i| ports.get_mut(i)) {
             Some(p) => {
                 if p.frames {
                     while let Some(SessionAction::SendKeepAlive(n)) = p.session.poll(now_ms) {
                         self.controller.keep_alive(n, &mut p.link);
                     }
                 }
-                self.controller.poll(now, &mut p.link)
+                let mut link = Budgeted {
+                    link: &mut p.link,
+                    left: READ_BUDGET,
+                    read: 0,
+                };
+                let outcome = self.controller.poll(now, &mut link);
+                if link.read > 0 || self.controller.is_holding() {
+                    p.session.on_input(now_ms);
+                }
+                outcome
             }
             None => self.controller.poll(now, &mut Silent),
         };
@@ -719,7 +997,7 @@ impl Default for BoardConfig {
 pub struct SimBoard {
     wiring: Box<dyn Wiring>,
     ports: Vec<Served>,
-    active: Option<usize>,
+    arbiter: Arbiter,
     machine: SimMachine,
 }
 
@@ -755,7 +1033,10 @@ impl SimBoard {
         Ok(Self {
             wiring,
             ports: Vec::new(),
-            active: None,
+            arbiter: Arbiter {
+                busy_message: default_busy_message(),
+                ..Arbiter::default()
+            },
             machine: machine.clone(),
         })
     }
@@ -765,18 +1046,47 @@ impl SimBoard {
     ///
     /// Every port has its [`LinkSession`] (keep-alives every `keep_alive_ms` of the stored
     /// settings): a connection-oriented link ([`crate::link::TcpLink`]) admits and refuses
-    /// clients through it ([`HostLink::admit`]), with or without frames.
+    /// clients through it ([`HostLink::admit`]), with or without frames. The port has no idle
+    /// time-out until [`SimBoard::set_idle_timeout`].
     pub fn add_port(&mut self, link: impl Port, session: bool) -> PortId {
         let keep_alive = self.wiring.keep_alive_ms();
         self.ports.push(Served {
             link: Box::new(link),
             session: LinkSession::new(keep_alive),
             frames: session,
-            admitted: false,
             seen: 0,
+            fresh: false,
             failure: None,
+            stats: PortStats::default(),
+            refused_line: Vec::new(),
+            refused_overlong: false,
         });
         PortId(self.ports.len() - 1)
+    }
+
+    /// The controlling host of port `id` loses control after `timeout_ms` of virtual time
+    /// without a byte from it while the controller owes it nothing (see the
+    /// [module documentation](self)); `None`: never. Takes effect for the next host.
+    pub fn set_idle_timeout(&mut self, id: PortId, timeout_ms: Option<u32>) {
+        if let Some(p) = self.ports.get_mut(id.0) {
+            let keep_alive = self.wiring.keep_alive_ms();
+            let session = LinkSession::new(keep_alive);
+            p.session = match timeout_ms {
+                Some(ms) => session.with_idle_timeout(ms),
+                None => session,
+            };
+        }
+    }
+
+    /// What a host whose input is refused (another host is in control) is sent; by default
+    /// [`default_busy_message`].
+    pub fn set_busy_message(&mut self, message: impl Into<Vec<u8>>) {
+        self.arbiter.busy_message = message.into();
+    }
+
+    /// What happened to the hosts of port `id`.
+    pub fn port_stats(&self, id: PortId) -> Option<PortStats> {
+        Some(self.ports.get(id.0)?.stats)
     }
 
     /// The link of a port, as its own type.
@@ -804,7 +1114,7 @@ impl SimBoard {
     /// What the firmware is doing.
     pub fn status(&self) -> BoardStatus {
         let mut s = self.wiring.status();
-        s.active_port = self.active.map(PortId);
+        s.active_port = self.arbiter.active.map(PortId);
         s
     }
 
@@ -838,7 +1148,7 @@ impl Firmware for SimBoard {
     }
 
     fn poll(&mut self, now: Instant) -> Flow {
-        self.wiring.poll(now, &mut self.ports, &mut self.active);
+        self.wiring.poll(now, &mut self.ports, &mut self.arbiter);
         Flow::Continue
     }
 }

@@ -124,6 +124,7 @@ pub mod machine;
 pub mod pwm;
 pub mod run;
 pub mod simulation;
+pub mod state;
 pub mod stepper;
 pub mod thermal;
 pub mod trace;

@@ -2,9 +2,11 @@
 //!
 //! Runs a job through the firmware (the controller and the motion kernel on the simulated
 //! hardware) and prints the result; with `--listen`, serves hosts on TCP and a
-//! pseudo-terminal instead; with `--check`, only describes the machine file and the job. The
-//! work is in the library (`forja_sim::run`); the clap doc comments below are the `--help`.
+//! pseudo-terminal instead; with `--check`, only describes the machine file and the job (and,
+//! with `--state`, what the state file keeps). The work is in the library (`forja_sim::run`,
+//! `forja_sim::state`); the clap doc comments below are the `--help`.
 
+use std::io::Write as _;
 use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -97,6 +99,19 @@ struct Cli {
     /// Seed of the fault injector: the same seed gives the same faults.
     #[arg(long, value_name = "N", default_value_t = 0)]
     seed: u64,
+
+    /// With --listen: a controlling host that sends nothing for this many seconds of virtual
+    /// time, while no answer is owed to it, loses control (a TCP client is closed). Any byte
+    /// keeps it (`M105`, `?`, a frame 04); a host that waits on the machine must poll.
+    #[arg(long, value_name = "SECONDS", default_value_t = 60.0)]
+    idle_timeout: f64,
+
+    /// Keep the board's flash (the settings and the uploaded program) in FILE, made erased
+    /// when missing, so that they survive a restart as on a board. Each flash erase and write
+    /// is in the file when it completes; a simulator killed mid-write leaves the file as a
+    /// power cut leaves a flash. With --check: describe what FILE keeps.
+    #[arg(long, value_name = "FILE")]
+    state: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -146,6 +161,16 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
     if cli.check {
         print_machine(&cli.machine, &machine);
         println!("job: {}, {} lines", job.name(), job.line_count());
+        if let Some(path) = &cli.state {
+            let text = forja_sim::state::describe(&machine, path)?;
+            // A reader that stops early (`| head`) ends the listing, not an error.
+            match std::io::stdout().write_all(text.as_bytes()) {
+                Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => {
+                    return Err(format!("stdout: {e}"));
+                }
+                _ => {}
+            }
+        }
         return Ok(ExitCode::SUCCESS);
     }
     if cli.listen {
@@ -159,7 +184,9 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
             pacing,
             time_limit_ticks,
             trace: cli.trace.clone(),
+            state: cli.state.clone(),
             busy_message: BUSY_MESSAGE.to_vec(),
+            idle_timeout_ms: Some(idle_timeout_ms(cli.idle_timeout)?),
         };
         let stop = Arc::new(AtomicBool::new(false));
         for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
@@ -180,6 +207,7 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
             Pacing::AsFastAsPossible
         },
         trace: cli.trace.clone(),
+        state: cli.state.clone(),
     };
     let result = forja_sim::run::run_job(&machine, &job, &options)?;
     println!("{result}");
@@ -188,6 +216,18 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
     } else {
         ExitCode::from(EXIT_NOT_CLEAN)
     })
+}
+
+/// `--idle-timeout` in milliseconds: at least 1 ms, at most 24 days.
+fn idle_timeout_ms(seconds: f64) -> Result<u32, String> {
+    let ms = seconds * 1000.0;
+    if ms.is_finite() && (1.0..=f64::from(i32::MAX)).contains(&ms) {
+        Ok(ms as u32)
+    } else {
+        Err(format!(
+            "--idle-timeout {seconds}: must be from 0.001 to 2000000 seconds"
+        ))
+    }
 }
 
 fn load_machine(arg: &str) -> Result<MachineConfig, String> {

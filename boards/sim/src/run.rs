@@ -14,7 +14,7 @@ use forja_drivers::session::LinkSession;
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use forja_motion::controller::Stats as ControllerStats;
 
-use crate::board::{BoardConfig, PortId, SimBoard};
+use crate::board::{PortId, SimBoard};
 use crate::config::MachineConfig;
 use crate::host::{GcodeSender, SenderStats};
 use crate::job::Job;
@@ -36,6 +36,8 @@ pub struct JobOptions {
     pub pacing: Pacing,
     /// Record every step to this file.
     pub trace: Option<PathBuf>,
+    /// Keep the board's flash in this state file ([`crate::state`]).
+    pub state: Option<PathBuf>,
 }
 
 impl Default for JobOptions {
@@ -50,6 +52,7 @@ impl Default for JobOptions {
             time_limit_ticks: None,
             pacing: Pacing::AsFastAsPossible,
             trace: None,
+            state: None,
         }
     }
 }
@@ -159,7 +162,8 @@ impl fmt::Display for JobRun {
 pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Result<JobRun, String> {
     let machine = SimMachine::new(config);
     machine.set_tracing(options.trace.is_some());
-    let mut board = SimBoard::new(&machine, BoardConfig::default()).map_err(|e| e.to_string())?;
+    let board_config = crate::state::board_config(options.state.as_deref())?;
+    let mut board = SimBoard::new(&machine, board_config).map_err(|e| e.to_string())?;
     let (link, host) = MemoryLink::pair();
     let link = FaultInjector::new(link, options.faults).map_err(|e| e.to_string())?;
     board.add_port(link, false);
@@ -326,6 +330,15 @@ impl<L: HostLink> HostLink for Watched<L> {
         self.watch();
         Ok(admitted)
     }
+
+    fn discard_input(&mut self) -> Result<usize, Self::Error> {
+        self.link.discard_input()
+    }
+
+    fn hang_up(&mut self) {
+        self.link.hang_up();
+        self.watch();
+    }
 }
 
 /// How [`listen`] serves.
@@ -343,9 +356,18 @@ pub struct ListenOptions {
     pub time_limit_ticks: Option<u64>,
     /// Record every step to this file.
     pub trace: Option<PathBuf>,
-    /// The line sent to a second TCP client, which is then closed.
+    /// Keep the board's flash in this state file ([`crate::state`]).
+    pub state: Option<PathBuf>,
+    /// What a host that is not in control is sent: a TCP client that connects while another
+    /// host is in control (it is then closed), and a terminal host whose input is refused.
     pub busy_message: Vec<u8>,
+    /// Virtual time after which a silent controlling host loses control (a TCP client is
+    /// closed), ms; `None`: never. See [`SimBoard::set_idle_timeout`].
+    pub idle_timeout_ms: Option<u32>,
 }
+
+/// The idle time-out [`listen`] is given by default: a minute of silence.
+pub const DEFAULT_IDLE_TIMEOUT_MS: u32 = 60_000;
 
 type Served<L> = Watched<FaultInjector<L>>;
 
@@ -403,9 +425,14 @@ pub fn listen(
 
     let machine = SimMachine::new(config);
     machine.set_tracing(options.trace.is_some());
-    let mut board = SimBoard::new(&machine, BoardConfig::default()).map_err(|e| e.to_string())?;
+    let board_config = crate::state::board_config(options.state.as_deref())?;
+    let mut board = SimBoard::new(&machine, board_config).map_err(|e| e.to_string())?;
     let tcp_port = board.add_port(watched("tcp", tcp, &machine, options.faults)?, true);
     let pty_port = board.add_port(watched("pty", pty, &machine, options.faults)?, false);
+    for port in [tcp_port, pty_port] {
+        board.set_idle_timeout(port, options.idle_timeout_ms);
+    }
+    board.set_busy_message(options.busy_message.clone());
 
     let mut sim_config = SimulationConfig::new(config.tick_hz);
     sim_config.pacing = options.pacing;
@@ -467,6 +494,18 @@ fn summary<L: HostLink<Error = std::io::Error> + 'static>(
         port.connections(),
         port.received()
     );
+    if let Some(s) = board.port_stats(id) {
+        print!(
+            ", {} sessions, {} idle time-outs, {} bytes refused",
+            s.sessions, s.idle_timeouts, s.refused_bytes
+        );
+    }
+    let link: &dyn std::any::Any = port.inner().inner();
+    if let Some(tcp) = link.downcast_ref::<TcpLink>() {
+        print!(", {} dropped for not reading", tcp.overflows());
+    } else if let Some(pty) = link.downcast_ref::<PtyLink>() {
+        print!(", {} reply bytes discarded", pty.tx_discarded());
+    }
     if faults.is_active() {
         let s = port.inner().stats();
         print!(

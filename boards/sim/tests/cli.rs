@@ -96,7 +96,7 @@ fn running_the_sample_job_prints_the_result() {
 
     // A job with a refused line runs to its end and says so, with exit status 2.
     let path = temp_path("refused.gcode");
-    std::fs::write(&path, "G1 X5 F600\nM20\nG1 X6\n").unwrap();
+    std::fs::write(&path, "G1 X5 F600\nG1 Q5\nG1 X6\n").unwrap();
     let out = sim()
         .args(["--no-home", "--job"])
         .arg(&path)
@@ -105,7 +105,7 @@ fn running_the_sample_job_prints_the_result() {
     std::fs::remove_file(&path).unwrap();
     assert_eq!(out.status.code(), Some(2));
     let text = String::from_utf8(out.stdout).unwrap();
-    assert!(text.contains("!! E120 unsupported-command M20"), "{text}");
+    assert!(text.contains("!! E127 unknown-axis Q"), "{text}");
     assert!(text.contains("final position: X 156.000"), "{text}");
 }
 

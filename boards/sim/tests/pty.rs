@@ -138,3 +138,25 @@ fn symlink_replaces_a_symlink_but_not_a_file() {
     assert_eq!(std::fs::read_link(&path).unwrap(), link.slave_path());
     assert_eq!(link.symlink_path(), Some(path.as_path()));
 }
+
+/// Item 6: a peer that holds the terminal open and never reads made writes wait forever. Now
+/// what does not fit is discarded whole and counted, and every write returns at once.
+#[test]
+fn a_peer_that_stops_reading_never_makes_a_write_wait() {
+    let mut link = PtyLink::open(None).unwrap();
+    let _port = open_port(link.slave_path());
+    poll_until(&mut link, |l| l.state() == LinkState::Connected);
+    let (done, result) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let reply = [b'x'; 300];
+        for _ in 0..2_000 {
+            assert_eq!(link.write(&reply).unwrap(), reply.len());
+        }
+        let _ = done.send(link.tx_discarded());
+    });
+    let discarded = result
+        .recv_timeout(Duration::from_secs(30))
+        .expect("a write waited for the peer");
+    assert!(discarded > 0, "nothing discarded");
+    assert_eq!(discarded % 300, 0, "replies are discarded whole");
+}

@@ -5,7 +5,7 @@ use std::io::{Read as _, Write as _};
 use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
-use embedded_io::Write;
+use embedded_io::{ReadReady, Write};
 use forja_drivers::session::{LinkSession, SessionAction};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use forja_sim::link::{FaultConfig, FaultInjector, FaultyBytes, HostLink, TcpLink};
@@ -191,4 +191,47 @@ fn fault_injection_over_tcp_is_reproducible() {
     let stats = s.link.stats();
     assert_eq!(stats.bytes, data.len() as u64);
     assert!(stats.dropped > 100 && stats.corrupted > 200, "{stats:?}");
+}
+
+/// Item 6: a write to a client whose receive window and the link's transmit buffer are full
+/// waited for it forever. Now the client is dropped and every write returns at once.
+#[test]
+fn a_client_that_stops_reading_is_dropped_not_waited_for() {
+    let (done, result) = std::sync::mpsc::channel();
+    let mut s = served(bind());
+    let _client = client(&s.link);
+    poll_until(&mut s, |s| s.link.state() == LinkState::Connected);
+    std::thread::spawn(move || {
+        let reply = [b'x'; 300];
+        let mut writes = 0u32;
+        while s.link.state() == LinkState::Connected && writes < 1_000_000 {
+            assert_eq!(s.link.write(&reply).unwrap(), reply.len());
+            writes += 1;
+        }
+        let _ = done.send((s.link.overflows(), s.link.state(), writes));
+    });
+    let (overflows, state, writes) = result
+        .recv_timeout(Duration::from_secs(30))
+        .expect("a write waited for the client");
+    assert_eq!((overflows, state), (1, LinkState::Disconnected), "{writes}");
+}
+
+/// Item 5: the next client starts with nothing of the previous one: bytes the previous one
+/// sent and that were not read are not read after the new one takes control.
+#[test]
+fn a_new_client_reads_nothing_of_the_previous_one() {
+    let mut s = served(bind());
+    let mut first = client(&s.link);
+    poll_until(&mut s, |s| s.link.state() == LinkState::Connected);
+    first.write_all(b"G1 X50\n").unwrap();
+    poll_until(&mut s, |s| s.link.read_ready().unwrap_or(false));
+    drop(first);
+    let mut second = client(&s.link);
+    poll_until(&mut s, |s| s.link.connections() == 2);
+    assert!(
+        !s.link.read_ready().unwrap(),
+        "the first client's line is read"
+    );
+    second.write_all(b"M114\n").unwrap();
+    assert_eq!(receive(&mut s, 5), b"M114\n");
 }

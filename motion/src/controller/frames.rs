@@ -10,11 +10,15 @@ use forja_protocol::gcode::{Decimal, Line, Recovery};
 
 use super::peripherals::Peripherals;
 use super::settings::Key;
+use super::store::{RECOVERY_RECORD, RESUME_RECORD, ResumeRecord};
 use super::text::{self, Refusal, Text};
 use super::{ControllerError, Core, JobState, wire};
-use crate::error::{CommandError, JobError};
-use crate::job::ProgramStore;
+use crate::config::AxisKind;
+use crate::error::{CommandError, JobError, StoreError};
+use crate::interp::{Action as InterpAction, Interpreter};
+use crate::job::{Checkpoint, MAX_LINE_LEN, ProgramStore};
 use crate::kernel::{MachineState, Reply as KernelReply};
+use forja_protocol::reply::Reply;
 
 impl<const N: usize, const B: usize, const Q: usize, P, X, S> Core<'_, N, B, Q, P, X, S>
 where
@@ -22,14 +26,33 @@ where
     X: Peripherals<N>,
     S: RecordStorage,
 {
-    /// Garbage: one 56 per run; a host that numbers its lines is also asked to resend the
-    /// expected line, which the garbage may have held.
-    pub(super) fn on_garbage<W: Write>(&mut self, out: &mut W) {
+    /// A run of garbage, `text` when printable bytes were among it. Each side is answered in
+    /// its own protocol (both when the link has shown neither yet):
+    ///
+    /// - a frame client (frames seen, or a link with sessions) gets one 56 per run;
+    /// - a G-code host that numbers its lines is asked to resend the expected line, which the
+    ///   garbage may have held;
+    /// - a G-code host that does not number its lines gets, when text was lost (its line was
+    ///   dropped, not run), `!! E8 bad-character` then `ok`, so that it is not left waiting;
+    ///   control bytes alone between its lines cost no line and get no reply (an `ok` it did
+    ///   not ask for would be taken for the answer to its next line).
+    pub(super) fn on_garbage_run<W: Write>(&mut self, text: bool, out: &mut W) {
         self.stats.garbage_runs = self.stats.garbage_runs.wrapping_add(1);
-        self.error_frame(&Refusal::new(&FrameError::Structure), out);
-        if let Recovery::Resend(n) = self.link.numbering.recover_garbage() {
-            self.stats.resends = self.stats.resends.wrapping_add(1);
-            wire::resend(out, n);
+        let frames = self.link.frames_seen || self.link.session;
+        let unknown = !frames && !self.link.gcode_seen;
+        if frames || unknown {
+            self.error_frame(&Refusal::new(&FrameError::Structure), out);
+        }
+        match self.link.numbering.recover_garbage() {
+            Recovery::Resend(n) => {
+                self.stats.resends = self.stats.resends.wrapping_add(1);
+                wire::resend(out, n);
+            }
+            _ if text && (self.link.gcode_seen || unknown) => {
+                let lost = forja_protocol::gcode::LineError::UnexpectedCharacter { line: None };
+                self.refuse(&Refusal::new(&lost), out);
+            }
+            _ => {}
         }
     }
 
@@ -117,8 +140,11 @@ where
     fn action<W: Write>(&mut self, action: Action, out: &mut W) {
         let result: Result<(), Refusal> = match action {
             Action::HomeAll | Action::Home(_) => self.home(action),
+            // The lines received before the frame and not yet answered are answered without
+            // running: nothing sent before a stop moves the machine after it.
             Action::Reset => {
                 self.reset(out);
+                self.drop_waiting(&Refusal::new(&ControllerError::Stopped), out);
                 Ok(())
             }
             Action::Stop => {
@@ -129,6 +155,7 @@ where
                 }
                 self.job_heat = false;
                 self.end_heat_wait(out);
+                self.drop_waiting(&Refusal::new(&ControllerError::Stopped), out);
                 Ok(())
             }
             Action::Rewind => self.job.rewind().map_err(|e| Refusal::new(&e)),
@@ -208,6 +235,14 @@ where
         }
     }
 
+    /// Store one line of an upload. An upload is open from its line 1 until its last line is
+    /// stored, on the link that sent line 1 and while the controller runs: a restart or a new
+    /// host on the link (`reset_link`) closes it, and only a line 1 opens one. So a line of
+    /// another upload — another host's, or one sent before a restart — is refused
+    /// (`load-total` when its total differs, `line-order` when it is not the next line,
+    /// `no-upload` when it is), never spliced in; and a program
+    /// whose upload was interrupted stays incomplete, and never runs, until it is uploaded
+    /// again from line 1.
     fn try_load(&mut self, index: u16, line: &str, total: u16) -> Result<(), Refusal> {
         if self.job_active() {
             return Err(Refusal::new(&JobError::Busy));
@@ -215,23 +250,47 @@ where
         if !self.kernel.is_idle() {
             return Err(Refusal::new(&CommandError::NotIdle));
         }
-        if index != 1 && self.load_total != Some(total) {
-            return Err(Refusal::with(
-                &ControllerError::LoadTotal,
-                format_args!("{index:04}"),
-            ));
+        if index != 1 {
+            // Another program's total, then the order, then whether an upload is open.
+            let current = self.load_total.unwrap_or(self.program.total());
+            if current != 0 && total != current {
+                return Err(Refusal::with(
+                    &ControllerError::LoadTotal,
+                    format_args!("{index:04}"),
+                ));
+            }
+            let expected = self.program.len().saturating_add(1);
+            if index != expected {
+                return Err(text::store_refusal(&StoreError::OutOfOrder {
+                    expected,
+                    got: index,
+                }));
+            }
+            if self.load_total.is_none() {
+                return Err(Refusal::with(
+                    &StoreError::NoUpload,
+                    format_args!("{index:04}"),
+                ));
+            }
         }
         if let Err(e) = Line::parse(line.as_bytes()) {
             return Err(Refusal::with(&e, format_args!("{index:04}")));
         }
         if index == 1 {
-            self.program.clear().map_err(|e| text::store_refusal(&e))?;
+            // A refused line 1 (a total the store has no room for) keeps the old program.
+            self.program
+                .begin(total)
+                .map_err(|e| Refusal::with(&e, format_args!("{total:04}")))?;
             self.load_total = Some(total);
             let _ = self.job.rewind();
         }
         self.program
             .store(index, line.as_bytes())
-            .map_err(|e| text::store_refusal(&e))
+            .map_err(|e| text::store_refusal(&e))?;
+        if self.program.is_complete() {
+            self.load_total = None;
+        }
+        Ok(())
     }
 
     fn request<W: Write>(&mut self, message_type: u8, out: &mut W) {
@@ -255,6 +314,336 @@ where
                 &Refusal::with(&ControllerError::BadRequest, format_args!("{t:02}")),
                 out,
             ),
+        }
+    }
+}
+
+/// At most one resume record is written per this many ms while a job runs (flash wear); a
+/// pause, a stop and the end of the program are recorded at once.
+pub const CHECKPOINT_PERIOD_MS: u32 = 10_000;
+
+/// `X12.345678` for `nm` nanometres on axis `letter`, into `t`.
+fn put_mm(t: &mut Text<128>, letter: u8, nm: i64) {
+    use core::fmt::Write as _;
+    let sign = if nm < 0 { "-" } else { "" };
+    let a = nm.unsigned_abs();
+    let _ = write!(
+        t,
+        " {}{sign}{}.{:06}",
+        char::from(letter),
+        a / 1_000_000,
+        a % 1_000_000
+    );
+}
+
+// Program commands of G-code hosts (`M20`, `M413`, `M1000`) and the resume record.
+impl<const N: usize, const B: usize, const Q: usize, P, X, S> Core<'_, N, B, Q, P, X, S>
+where
+    P: ProgramStore,
+    X: Peripherals<N>,
+    S: RecordStorage,
+{
+    /// `M20` (list the stored program), `M413` (power-loss recovery), `M1000` (resume the
+    /// interrupted job, `M1000 C` forget it): answered here, `true`; any other line, `false`.
+    pub(super) fn program_command<W: Write>(&mut self, line: &Line<'_>, out: &mut W) -> bool {
+        let Some(w) = line.command() else {
+            return false;
+        };
+        if w.letter != b'M' {
+            return false;
+        }
+        let result = match w.value.as_integer() {
+            Some(20) => {
+                self.list_program(out);
+                Ok(())
+            }
+            Some(413) => self.recovery_command(line, out),
+            Some(1000) if line.has(b'C') => self.forget_resume(),
+            Some(1000) => self.resume(),
+            _ => return false,
+        };
+        match result {
+            Ok(()) => {
+                self.stats.executed = self.stats.executed.wrapping_add(1);
+                self.ok(out);
+            }
+            Err(r) => self.refuse(&r, out),
+        }
+        true
+    }
+
+    /// `Begin file list`, the program as `program <stored>/<total> complete|incomplete` (no
+    /// line with no program), `End file list`; the caller sends `ok`.
+    fn list_program<W: Write>(&mut self, out: &mut W) {
+        use core::fmt::Write as _;
+        let _ = out.write_all(b"Begin file list\n");
+        if self.program.total() > 0 {
+            let mut t = Text::<48>::new();
+            let state = if self.program.is_complete() {
+                "complete"
+            } else {
+                "incomplete"
+            };
+            let _ = write!(
+                t,
+                "program {}/{} {state}",
+                self.program.len(),
+                self.program.total()
+            );
+            let _ = out.write_all(t.as_bytes());
+            let _ = out.write_all(b"\n");
+        }
+        let _ = out.write_all(b"End file list\n");
+    }
+
+    /// Whether power-loss recovery is on (read from the storage once).
+    fn recovery_on(&mut self) -> bool {
+        if let Some(on) = self.job.recovery() {
+            return on;
+        }
+        let mut buf = [0u8; 4];
+        let on =
+            !matches!(self.storage.read(RECOVERY_RECORD, &mut buf), Ok(Some(1)) if buf[0] == 0);
+        self.job.set_recovery(on);
+        on
+    }
+
+    /// `M413`: report; `M413 S0|S1`: switch power-loss recovery off (forgetting the record)
+    /// or on, kept in the storage.
+    fn recovery_command<W: Write>(&mut self, line: &Line<'_>, out: &mut W) -> Result<(), Refusal> {
+        let bad = || Refusal::with(&CommandError::BadValue { letter: b'S' }, format_args!("S"));
+        let Some(s) = line.get(b'S') else {
+            let on = self.recovery_on();
+            let _ = wire::reply(
+                out,
+                &Reply::Debug(if on {
+                    "power-loss recovery on"
+                } else {
+                    "power-loss recovery off"
+                }),
+            );
+            return Ok(());
+        };
+        let on = match s.as_integer() {
+            Some(0) => false,
+            Some(1) => true,
+            _ => return Err(bad()),
+        };
+        let device = |_| Refusal::new(&StoreError::Device);
+        self.storage
+            .write(RECOVERY_RECORD, &[u8::from(on)])
+            .map_err(device)?;
+        if !on {
+            self.storage.remove(RESUME_RECORD).map_err(device)?;
+        }
+        self.job.set_recovery(on);
+        Ok(())
+    }
+
+    /// `M1000 C`: forget the interrupted job.
+    fn forget_resume(&mut self) -> Result<(), Refusal> {
+        if self.job_active() {
+            return Err(Refusal::new(&JobError::Busy));
+        }
+        self.storage
+            .remove(RESUME_RECORD)
+            .map_err(|_| Refusal::new(&StoreError::Device))
+    }
+
+    /// The resume record, if one is kept.
+    fn resume_record(&mut self) -> Result<Option<ResumeRecord>, Refusal> {
+        let mut buf = [0u8; 16];
+        match self.storage.read(RESUME_RECORD, &mut buf) {
+            Ok(Some(n)) => Ok(buf.get(..n).and_then(ResumeRecord::decode)),
+            Ok(None) => Ok(None),
+            Err(_) => Err(Refusal::new(&StoreError::Device)),
+        }
+    }
+
+    /// `M1000`: resume the recorded job after its last finished line. The machine must be at
+    /// rest and homed, and the stored program the one that ran. The program's modal state
+    /// (units, distance modes, feed, offsets, plane, motion mode) and the position where the
+    /// next line starts are replayed from line 1 through the last finished line without
+    /// moving; the machine then goes there at rapid — Z first up to the higher of where it is
+    /// and where it goes, then the other axes, then Z down — extruder axes not moved but
+    /// taken as being where the program left them (as `G92` would); and the job runs from the
+    /// next line.
+    fn resume(&mut self) -> Result<(), Refusal> {
+        if self.job_active() {
+            return Err(Refusal::new(&JobError::Busy));
+        }
+        match self.kernel.state() {
+            MachineState::Alarm(_) => return Err(Refusal::new(&CommandError::Locked)),
+            MachineState::Halted => return Err(Refusal::new(&CommandError::Halted)),
+            _ if !self.kernel.is_idle() => return Err(Refusal::new(&CommandError::NotIdle)),
+            _ => {}
+        }
+        let record = self
+            .resume_record()?
+            .ok_or_else(|| Refusal::new(&JobError::NothingToResume))?;
+        if !self.program.is_complete()
+            || self.program.digest() != record.digest
+            || self.program.total() != record.total
+        {
+            return Err(Refusal::new(&JobError::ProgramChanged));
+        }
+        if record.done >= record.total {
+            return Err(Refusal::new(&JobError::NothingToResume));
+        }
+        let config = self.kernel.config();
+        let homing = config
+            .axes
+            .iter()
+            .enumerate()
+            .filter(|(_, a)| a.homing.is_some())
+            .fold(0u8, |m, (i, _)| m | (1 << i));
+        if self.kernel.homed_axes() & homing != homing {
+            return Err(Refusal::new(&JobError::NotHomed));
+        }
+        let here = self.kernel.interpreter().pos;
+        let replayed = self.replay(record.done, here)?;
+
+        // Go to the resumed line's start in machine coordinates (a fresh modal state: mm,
+        // absolute, no offsets), then take the program's modal state.
+        let config = self.kernel.config().clone();
+        let mut fresh = Interpreter::new(&config);
+        fresh.pos = here;
+        self.kernel.set_interpreter(fresh);
+        self.kernel.set_line_tag(u32::from(record.done + 1));
+        let z = config.axis_index(b'Z');
+        let moves = |i: usize| {
+            config
+                .axes
+                .get(i)
+                .is_some_and(|a| a.kind != AxisKind::Extruder)
+                && replayed.pos[i] != here[i]
+        };
+        let mut target = here;
+        if let Some(z) = z.filter(|&z| moves(z)) {
+            target[z] = here[z].max(replayed.pos[z]);
+            self.rapid_to(&target, &here)?;
+        }
+        let before = target;
+        for (i, t) in target.iter_mut().enumerate() {
+            if Some(i) != z && moves(i) {
+                *t = replayed.pos[i];
+            }
+        }
+        self.rapid_to(&target, &before)?;
+        let before = target;
+        if let Some(z) = z.filter(|&z| moves(z)) {
+            target[z] = replayed.pos[z];
+        }
+        self.rapid_to(&target, &before)?;
+        let mut state = replayed;
+        for (i, a) in config.axes.iter().enumerate() {
+            if a.kind == AxisKind::Extruder {
+                state.rebase_axis(i, target[i]);
+            }
+        }
+        state.pos = target;
+        self.kernel.set_interpreter(state);
+        self.job
+            .start_resumed(
+                &mut self.kernel,
+                &mut self.program,
+                record.done + 1,
+                self.now,
+            )
+            .map_err(|e| text::job_refusal(&e))?;
+        self.taken = true;
+        Ok(())
+    }
+
+    /// The interpreter's state after lines `1..=done` of the program, from the power-on
+    /// modal state at machine position `here`, without moving: a homing line leaves the homed
+    /// axes where they are now (the machine has just been homed); lines the kernel would
+    /// refuse change nothing, as when they ran.
+    fn replay(&mut self, done: u16, here: [i64; N]) -> Result<Interpreter<N>, Refusal> {
+        let config = self.kernel.config().clone();
+        let mut interp = Interpreter::new(&config);
+        interp.pos = here;
+        let mut buf = [0u8; MAX_LINE_LEN];
+        for index in 1..=done {
+            let len = self
+                .program
+                .read(index, &mut buf)
+                .map_err(|e| text::store_refusal(&e))?;
+            let Ok(line) = Line::parse(buf.get(..len).unwrap_or(&[])) else {
+                continue;
+            };
+            let mut next = interp;
+            match next.interpret(&line, &config) {
+                Ok(InterpAction::Home { mask }) => {
+                    for (i, h) in here.iter().enumerate() {
+                        if mask & (1 << i) != 0 {
+                            next.pos[i] = *h;
+                        }
+                    }
+                    interp = next;
+                }
+                Ok(_) => interp = next,
+                Err(_) => {}
+            }
+        }
+        Ok(interp)
+    }
+
+    /// Queue a rapid move from `from` to `target` (machine nm, the kernel's modal state
+    /// fresh), when they differ.
+    fn rapid_to(&mut self, target: &[i64; N], from: &[i64; N]) -> Result<(), Refusal> {
+        if target == from {
+            return Ok(());
+        }
+        let mut t = Text::<128>::new();
+        let _ = core::fmt::Write::write_str(&mut t, "G0");
+        for (i, a) in self.kernel.config().axes.iter().enumerate() {
+            if target[i] != from[i] {
+                put_mm(&mut t, a.letter, target[i]);
+            }
+        }
+        let line = Line::parse(t.as_bytes()).map_err(|e| Refusal::new(&e))?;
+        match self.kernel.execute(&line) {
+            Ok(KernelReply::Ok) => Ok(()),
+            Ok(_) => Err(Refusal::new(&CommandError::NotIdle)),
+            Err(e) => Err(text::command_refusal(&e, &self.letters())),
+        }
+    }
+
+    /// Write the job's progress to the resume record as [`crate::job::Job::checkpoint`]
+    /// decides (while power-loss recovery is on); remove the record when the program has
+    /// finished. A write that fails is reported (`// E174 store-device resume`), the job goes
+    /// on.
+    pub(super) fn record_checkpoint<W: Write>(&mut self, out: &mut W) {
+        if !self.recovery_on() {
+            return;
+        }
+        let settle_ms = 2 * u32::from(self.kernel.config().queue_lead_ms) + 50;
+        let Some(c) =
+            self.job
+                .checkpoint(&self.kernel, self.clock.ms, settle_ms, CHECKPOINT_PERIOD_MS)
+        else {
+            return;
+        };
+        let result = match c {
+            Checkpoint::Done(done) => {
+                let record = ResumeRecord {
+                    digest: self.program.digest(),
+                    total: self.program.total(),
+                    done,
+                };
+                self.storage.write(RESUME_RECORD, &record.encode())
+            }
+            Checkpoint::Finished => self.storage.remove(RESUME_RECORD),
+        };
+        if result.is_err() {
+            let _ = wire::reply(
+                out,
+                &Reply::Notice {
+                    code: StoreError::Device.code(),
+                    text: "store-device resume",
+                },
+            );
         }
     }
 }

@@ -5,11 +5,11 @@ use core::fmt::Write as _;
 use embedded_io::Write;
 use forja_hal_abstraction::storage::RecordStorage;
 use forja_protocol::gcode::{Decimal, Line, LineError, Recovery};
-use forja_protocol::reply::{Axes, FORJA_CAPABILITIES, KeyValues, Reply, Word};
+use forja_protocol::reply::{Axes, FORJA_CAPABILITIES, KeyValues, LINE_CHECK, Reply, Word};
 
 use super::peripherals::{Peripherals, Reading};
 use super::text::{self, Refusal, Text};
-use super::{Core, Held, JobState, LineBuf, wire};
+use super::{ControllerError, Core, Held, JobState, LineBuf, Queued, wire};
 use crate::config::HomeDirection;
 use crate::effect::{Effect, Heater, Spindle, StopKind, Storage};
 use crate::error::{Alarm, CommandError, JobError};
@@ -105,6 +105,57 @@ fn allowed_during_job(line: &Line<'_>) -> bool {
     }
 }
 
+/// A command that acts as soon as its line is read, even behind waiting lines.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Realtime {
+    /// `M112`.
+    EmergencyStop,
+    /// `M108`: end a heater wait.
+    CancelWait,
+}
+
+/// The realtime command of a line (its bytes without the terminator), as Marlin's emergency
+/// parser finds it: the first word after an optional `N` number, whatever follows it (a
+/// damaged checksum included: a stop must not wait for a resend behind the queue), or the
+/// command of a line that parses. The controller looks at every line of its link with it; a
+/// board looks with it at the input it refuses from a host that is not in control (see
+/// [`super::Controller::emergency_stop`]).
+pub fn realtime(bytes: &[u8]) -> Option<Realtime> {
+    let of = |n: i64| match n {
+        112 => Some(Realtime::EmergencyStop),
+        108 => Some(Realtime::CancelWait),
+        _ => None,
+    };
+    if let Ok(line) = Line::parse(bytes)
+        && let Some(w) = line.command()
+        && w.letter == b'M'
+    {
+        return w.value.as_integer().and_then(of);
+    }
+    let blank = |b: &u8| matches!(b, b' ' | b'\t');
+    let digit = |b: &u8| b.is_ascii_digit();
+    let skip =
+        |s: &[u8], f: &dyn Fn(&u8) -> bool| -> usize { s.iter().take_while(|b| f(b)).count() };
+    let mut rest = bytes.get(skip(bytes, &blank)..)?;
+    if let Some((b'N' | b'n', tail)) = rest.split_first() {
+        let tail = tail.strip_prefix(b"-").unwrap_or(tail);
+        let tail = tail.get(skip(tail, &digit)..)?;
+        rest = tail.get(skip(tail, &blank)..)?;
+    }
+    let (b'M' | b'm', tail) = rest.split_first()? else {
+        return None;
+    };
+    let len = skip(tail, &digit);
+    if len == 0 || len > 6 || matches!(tail.get(len), Some(b) if *b == b'.' || digit(b)) {
+        return None;
+    }
+    let n = tail
+        .get(..len)?
+        .iter()
+        .fold(0i64, |n, d| n * 10 + i64::from(d - b'0'));
+    of(n)
+}
+
 /// A temperature in tenths of a degree, for replies.
 fn celsius(mc: i32) -> Decimal {
     let mc = i64::from(mc);
@@ -137,27 +188,113 @@ where
         self.ok(out);
     }
 
+    /// A G-code line from the link: handled now, or, behind waiting lines, queued for its turn
+    /// (`M112` and `M108` act first; see "Flow control" in the module documentation).
     pub(super) fn on_line<W: Write>(&mut self, bytes: &[u8], out: &mut W) {
         self.link.gcode_seen = true;
         if self.link.lines_held() {
-            if !self.emergency(bytes, out) {
-                self.link.queued = Some(LineBuf::new(bytes));
+            match realtime(bytes) {
+                Some(Realtime::EmergencyStop) => return self.emergency(bytes, out),
+                Some(Realtime::CancelWait) => self.cancel_waits(out),
+                None => {}
             }
-            return;
         }
-        self.process_line(bytes, out);
+        if !self.link.lines_held() {
+            return self.process_line(bytes, out);
+        }
+        if !self.link.queue.push_line(bytes) {
+            self.refuse(&Refusal::new(&ControllerError::QueueFull), out);
+        }
     }
 
-    /// `M112` is carried out as soon as it is read, even while lines are held.
-    fn emergency<W: Write>(&mut self, bytes: &[u8], out: &mut W) -> bool {
-        let Ok(line) = Line::parse(bytes) else {
-            return false;
-        };
-        if !line.is_command(b'M', 112) || self.link.numbering.accept(&line).is_err() {
-            return false;
+    /// Queue an over-long line or a garbage run behind waiting lines.
+    pub(super) fn enqueue_marker<W: Write>(&mut self, marker: u8, out: &mut W) {
+        if !self.link.queue.push_marker(marker) {
+            self.refuse(&Refusal::new(&ControllerError::QueueFull), out);
         }
-        self.execute_line(&line, bytes, out);
-        true
+    }
+
+    /// `M112` behind waiting lines: the machine stops now and the fault goes out; the lines
+    /// received before it are answered in order without running; then the `M112` line's own
+    /// answer, its number checked like any line's.
+    fn emergency<W: Write>(&mut self, bytes: &[u8], out: &mut W) {
+        self.emergency_stop(out);
+        let line = match Line::parse(bytes) {
+            Ok(line) => line,
+            Err(e) => return self.on_line_error(&e, out),
+        };
+        if let Err(e) = self.accept_number(&line) {
+            return self.on_line_error(&e, out);
+        }
+        self.executed();
+        self.ok(out);
+    }
+
+    /// The emergency stop itself: the machine stops now and the fault goes out; the lines
+    /// waiting are answered in order without running.
+    pub(super) fn emergency_stop<W: Write>(&mut self, out: &mut W) {
+        self.kernel.emergency_stop();
+        if let Done::Fault(r) = self.apply(Cmd::Stop(StopKind::Emergency)) {
+            self.report_fault(&r, out);
+        }
+        let locked = text::command_refusal(&CommandError::Locked, &self.letters());
+        self.drop_waiting(&locked, out);
+    }
+
+    /// After an emergency stop (`M112`) or a stop or reset frame, answer every waiting line in
+    /// order without running it: the held line is refused with `why` (the machine is locked,
+    /// or stopped); a `G28`, `M109` or `M116` that was waiting ran, and gets its `ok`; queued
+    /// lines are checked as when taken, then refused with `why`.
+    pub(super) fn drop_waiting<W: Write>(&mut self, why: &Refusal, out: &mut W) {
+        match self.link.held.take() {
+            Some(Held::Line) => self.refuse(why, out),
+            Some(Held::Homing | Held::Heat { .. }) => self.ok(out),
+            None => {}
+        }
+        let mut lb = LineBuf::EMPTY;
+        while let Some(entry) = self.link.queue.pop(&mut lb) {
+            match entry {
+                Queued::Line => self.drop_line(lb.bytes(), why, out),
+                Queued::TooLong => self.on_line_error(&LineError::TooLong, out),
+                Queued::Garbage { text } => self.on_garbage_run(text, out),
+            }
+        }
+    }
+
+    /// A queued line received before a stop: its transport checks as always, then `ok` if it
+    /// does nothing to the machine (a comment, `M110`, an `M108` that acted when it arrived),
+    /// else refused with `why`.
+    fn drop_line<W: Write>(&mut self, bytes: &[u8], why: &Refusal, out: &mut W) {
+        let line = match Line::parse(bytes) {
+            Ok(line) => line,
+            Err(e) => return self.on_line_error(&e, out),
+        };
+        if let Err(e) = self.accept_number(&line) {
+            return self.on_line_error(&e, out);
+        }
+        if line.is_empty() || line.is_command(b'M', 110) || line.is_command(b'M', 108) {
+            self.executed();
+            return self.ok(out);
+        }
+        self.refuse(why, out);
+    }
+
+    /// Check a line's number and checksum against the link's numbering. An `M110` restarts the
+    /// numbering, and with it the one resend each number is owed: a number asked again in the
+    /// numbering before is owed it anew.
+    fn accept_number(&mut self, line: &Line<'_>) -> Result<(), LineError> {
+        self.link.numbering.accept(line)?;
+        if line.is_command(b'M', 110) {
+            self.link.asked_again = None;
+        }
+        Ok(())
+    }
+
+    /// `M108`: end the heater waits, of the link's `M109`/`M116` (its `ok` goes out) and of the
+    /// stored program. The targets stay.
+    fn cancel_waits<W: Write>(&mut self, out: &mut W) {
+        self.job_heat = false;
+        self.end_heat_wait(out);
     }
 
     fn process_line<W: Write>(&mut self, bytes: &[u8], out: &mut W) {
@@ -165,7 +302,7 @@ where
             Ok(line) => line,
             Err(e) => return self.on_line_error(&e, out),
         };
-        if let Err(e) = self.link.numbering.accept(&line) {
+        if let Err(e) = self.accept_number(&line) {
             return self.on_line_error(&e, out);
         }
         self.execute_line(&line, bytes, out);
@@ -175,7 +312,9 @@ where
     /// (`!!` then `ok`), as [`forja_protocol::gcode::LineNumbering::recover`] decides — except
     /// that a numbered line that passed its checksum but is not G-code is asked for once more
     /// first: the XOR checksum misses some double faults (two equal bytes dropped), which a
-    /// resend repairs; a line that comes back the same is refused and its number used up.
+    /// resend repairs; a line that comes back the same is refused and its number used up. The
+    /// rest of a line cut in two by a damaged `*` (a checksum alone) gets no reply: the first
+    /// part was asked again already.
     pub(super) fn on_line_error<W: Write>(&mut self, e: &LineError, out: &mut W) {
         let expected = self.link.numbering.expected();
         if e.line() == Some(expected) && self.link.asked_again != Some(expected) {
@@ -188,6 +327,7 @@ where
                 self.stats.resends = self.stats.resends.wrapping_add(1);
                 wire::resend(out, n);
             }
+            Recovery::Drop => {}
             _ => self.refuse(&Refusal::new(e), out),
         }
     }
@@ -208,6 +348,15 @@ where
             // The numbering took it already (`N-1 M110 N-1` included).
             self.executed();
             return self.ok(out);
+        }
+        if line.is_command(b'M', 108) {
+            self.cancel_waits(out);
+            self.executed();
+            return self.ok(out);
+        }
+        // `M20`, `M413`, `M1000`: the stored program and power-loss recovery (frames.rs).
+        if self.program_command(line, out) {
+            return;
         }
         if self.job_active() && !allowed_during_job(line) {
             return self.refuse(&Refusal::new(&JobError::Busy), out);
@@ -235,13 +384,31 @@ where
                 self.answer(done, out);
             }
             Err(e) => {
+                // A refusal that damage on the link can cause (an unknown letter or command, a
+                // malformed, repeated or out-of-range value), of the numbered line just
+                // accepted: refusing changed nothing, so it is asked for once more before it
+                // is refused; a line that comes back the same is refused and its number used
+                // up. Refusals for the machine's state are not damage.
+                let damage = !matches!(
+                    e,
+                    CommandError::Locked | CommandError::Halted | CommandError::NotIdle
+                );
+                if let Some(n) = line.number()
+                    && damage
+                    && self.link.asked_again != Some(n)
+                    && self.link.numbering.give_back(n)
+                {
+                    self.link.asked_again = Some(n);
+                    self.stats.resends = self.stats.resends.wrapping_add(1);
+                    return wire::resend(out, n);
+                }
                 let r = text::command_refusal(&e, &self.letters());
                 self.refuse(&r, out);
             }
         }
     }
 
-    /// Offer the held line again, then the line kept behind it, as long as they are taken.
+    /// Offer the held line again, then the queued lines in order, as long as they are taken.
     pub(super) fn release_held<W: Write>(&mut self, out: &mut W) {
         loop {
             match self.link.held {
@@ -259,10 +426,15 @@ where
                 Some(Held::Heat { .. } | Held::Homing) => return,
                 None => {}
             }
-            let Some(queued) = self.link.queued.take() else {
+            let mut lb = LineBuf::EMPTY;
+            let Some(entry) = self.link.queue.pop(&mut lb) else {
                 return;
             };
-            self.process_line(queued.bytes(), out);
+            match entry {
+                Queued::Line => self.process_line(lb.bytes(), out),
+                Queued::TooLong => self.on_line_error(&LineError::TooLong, out),
+                Queued::Garbage { text } => self.on_garbage_run(text, out),
+            }
         }
     }
 
@@ -398,8 +570,9 @@ where
             d,
             ("MACHINE_TYPE", self.config.machine_type),
             ("EXTRUDER_COUNT", count.as_str()),
+            LINE_CHECK,
         ];
-        let base = [a, b, c, d, ("EXTRUDER_COUNT", count.as_str())];
+        let base = [a, b, c, d, ("EXTRUDER_COUNT", count.as_str()), LINE_CHECK];
         self.stats.oks = self.stats.oks.wrapping_add(1);
         if !wire::reply(out, &Reply::Capabilities(KeyValues::Pairs(&full))) {
             let _ = wire::reply(out, &Reply::Capabilities(KeyValues::Pairs(&base)));

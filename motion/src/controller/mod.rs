@@ -29,15 +29,39 @@
 //!
 //! # Flow control
 //!
-//! Input is read only while it can be handled: when the kernel answers
-//! [`Reply::Busy`](crate::Reply::Busy) (the planner is full, or an effect waits for the motion
-//! before it), the line is copied aside and offered again at each poll, and its `ok` is delayed
-//! until it is taken. Frames that arrive meanwhile are still handled (they are the realtime
-//! channel: pause, stop, positions); the next G-code line is kept aside too, and then nothing
-//! more is read until both are taken. `M112` is the exception: it is carried out as soon as it
-//! is read. `G28` holds further lines the same way until the homing cycle ends, `M109` and
-//! `M116` until the heaters are at target, with a `// T:… B:…` line every
-//! [`ControllerConfig::report_period_ms`].
+//! The link is read all the time, so that its realtime records act at once whatever the
+//! G-code lines do: each record is looked at as it arrives.
+//!
+//! - **Frames** (pause, stop, start, positions and progress on request, …) are carried out at
+//!   once, and so is **`M112`**, recognised by its command word alone (after an optional `N`
+//!   number, whatever its checksum), as Marlin's emergency parser does: the machine stops and
+//!   `!! E153 emergency-stop` goes out; every line received before it and not yet taken is then
+//!   answered in order without being run (`!! E125 alarm-locked` then `ok`; a `G28`, `M109` or
+//!   `M116` that was waiting gets its `ok`, since it ran), and the `M112` line gets its `ok` last,
+//!   after its number was checked like any line's.
+//! - **Frame `Stop` and frame `Reset`** likewise answer every line received before them and
+//!   not yet taken in order without running it (`!! E198 stopped` then `ok`, with the same
+//!   exceptions as after `M112`), so that nothing sent before the stop moves the machine after
+//!   it; lines received after the frame run as usual.
+//! - **`M108`** ends an `M109`/`M116` wait (of the link or of the stored program) at once; the
+//!   line itself then waits its turn and gets its `ok` in order.
+//! - **Other G-code lines** run at once when nothing is waiting. When the kernel answers
+//!   [`Reply::Busy`](crate::Reply::Busy) (the planner is full, an effect waits for the motion
+//!   before it, `M226` paused the machine), the line is copied aside and offered again at each
+//!   poll; `G28` waits for the end of its homing cycle, `M109` and `M116` for the heaters (with a
+//!   `// T:… B:…` line every [`ControllerConfig::report_period_ms`]). Meanwhile the lines that
+//!   follow go to a receive queue, in order, with over-long lines and runs of garbage: each is
+//!   checked (syntax, line number, checksum) and answered only when its turn comes, exactly as
+//!   if it arrived then, so each gets exactly one `ok` (or `rs`), in the order received, and
+//!   runs once.
+//!
+//! The queue holds [`READ_AHEAD_BYTES`] bytes of lines (each counted with one terminator) and
+//! room for one line more; the link is read only while a whole line still fits, after which the
+//! link's own flow control (the UART queue, TCP) holds the host back. So the guarantee that a
+//! realtime record acts at once holds for a host that keeps at most [`READ_AHEAD_BYTES`] bytes
+//! of lines sent and not answered: one line in flight (Printrun, OctoPrint) or character
+//! counting, as for grbl's receive buffer. A host that sends further ahead loses nothing, but
+//! its realtime records wait behind its lines.
 //!
 //! # Wire codes
 //!
@@ -52,6 +76,8 @@
 //! | 194 | `no-device` | [`PeripheralError::NoDevice`] |
 //! | 195 | `device-range` | [`PeripheralError::OutOfRange`] |
 //! | 196 | `device-fault` | [`PeripheralError::Hardware`] |
+//! | 197 | `queue-full` | [`ControllerError::QueueFull`]: a line found the receive queue full |
+//! | 198 | `stopped` | [`ControllerError::Stopped`]: a line waiting when frame `Stop` or `Reset` came |
 //!
 //! Everything else carries the code of the layer that refused it: the protocol (1–99), the
 //! kernel and jobs (100–189), the drivers (200–299).
@@ -79,6 +105,7 @@ use forja_protocol::gcode::{LineNumbering, MAX_LINE_LEN};
 use forja_protocol::reply::Reply;
 use forja_protocol::stream::{Decoder, Event, FeedResult};
 
+pub use gcode::{Realtime, realtime};
 pub use peripherals::{NoPeripherals, PeripheralError, Peripherals, Reading, Temperatures};
 pub use settings::{
     AXIS_RECORDS, AxisField, DEFAULT_KEEP_ALIVE_MS, GLOBAL_RECORDS, Key, LoadReport,
@@ -100,6 +127,13 @@ pub enum ControllerError {
     /// A frame 03 line whose total is not the total of line 1 of the program being loaded.
     /// Code 193.
     LoadTotal,
+    /// A G-code line arrived behind waiting lines and the receive queue had no room for it.
+    /// [`Controller::poll`] reads the link only while a longest line fits, so only a decoder
+    /// event outside that flow control could meet it. Code 197.
+    QueueFull,
+    /// A G-code line received before a frame `Stop` or `Reset` and not yet answered: it is
+    /// answered without running. Code 198.
+    Stopped,
 }
 
 impl WireError for ControllerError {
@@ -107,6 +141,8 @@ impl WireError for ControllerError {
         match self {
             Self::BadRequest => 192,
             Self::LoadTotal => 193,
+            Self::QueueFull => 197,
+            Self::Stopped => 198,
         }
     }
 
@@ -114,6 +150,8 @@ impl WireError for ControllerError {
         match self {
             Self::BadRequest => "bad-request",
             Self::LoadTotal => "load-total",
+            Self::QueueFull => "queue-full",
+            Self::Stopped => "stopped",
         }
     }
 }
@@ -370,6 +408,142 @@ impl LineBuf {
     }
 }
 
+/// Bytes of G-code lines (each counted with one terminator) that a host may keep sent and not
+/// answered while the controller still reads every byte it sends at once: the limit of the
+/// realtime guarantee (see the module documentation, "Flow control").
+pub const READ_AHEAD_BYTES: usize = 768;
+
+/// The longest entry of the receive queue: a line of [`MAX_LINE_LEN`] bytes and its terminator.
+const MAX_ENTRY: usize = MAX_LINE_LEN + 1;
+
+/// The receive queue: the read-ahead window and room for one longest line, so that reading
+/// goes on as long as the host keeps within the window.
+const LINE_QUEUE_LEN: usize = READ_AHEAD_BYTES + MAX_ENTRY;
+
+/// The queue entry of a line over [`MAX_LINE_LEN`] bytes (a control byte never starts a line).
+const TOO_LONG: u8 = 0x01;
+
+/// The queue entry of a run of garbage of control bytes alone.
+const GARBAGE: u8 = 0x02;
+
+/// The queue entry of a run of garbage that held printable bytes too.
+const GARBAGE_TEXT: u8 = 0x03;
+
+/// One entry of the receive queue, taken out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Queued {
+    /// A G-code line, as received, not yet checked (its bytes in the buffer given to
+    /// [`LineQueue::pop`]).
+    Line,
+    /// A line over [`MAX_LINE_LEN`] bytes was dropped here.
+    TooLong,
+    /// A run of garbage was dropped here; `text` when it held printable bytes.
+    Garbage {
+        /// Printable bytes were among it.
+        text: bool,
+    },
+}
+
+/// The receive queue: what arrived behind a waiting G-code line, in order, for its turn. A
+/// ring of bytes: a line is stored with a `\n` after it (lines never hold one); over-long lines
+/// and garbage runs as one control byte each.
+struct LineQueue {
+    buf: [u8; LINE_QUEUE_LEN],
+    head: usize,
+    len: usize,
+}
+
+impl LineQueue {
+    const fn new() -> Self {
+        Self {
+            buf: [0; LINE_QUEUE_LEN],
+            head: 0,
+            len: 0,
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Whether a longest line still fits.
+    fn has_room(&self) -> bool {
+        LINE_QUEUE_LEN.saturating_sub(self.len) >= MAX_ENTRY
+    }
+
+    fn push_byte(&mut self, b: u8) {
+        if let Some(slot) = self.buf.get_mut((self.head + self.len) % LINE_QUEUE_LEN) {
+            *slot = b;
+            self.len += 1;
+        }
+    }
+
+    fn pop_byte(&mut self) -> Option<u8> {
+        if self.len == 0 {
+            return None;
+        }
+        let b = self.buf.get(self.head).copied();
+        self.head = (self.head + 1) % LINE_QUEUE_LEN;
+        self.len -= 1;
+        b
+    }
+
+    /// Queue a line; `false` (and nothing queued) when it does not fit or is not a line the
+    /// decoder gives (empty, over [`MAX_LINE_LEN`], holding a terminator or a control byte first).
+    fn push_line(&mut self, bytes: &[u8]) -> bool {
+        let fits = LINE_QUEUE_LEN.saturating_sub(self.len) > bytes.len();
+        let line = match bytes.first() {
+            Some(&first) => {
+                first >= b' '
+                    && bytes.len() <= MAX_LINE_LEN
+                    && !bytes.iter().any(|b| matches!(b, b'\n' | b'\r'))
+            }
+            None => false,
+        };
+        if !(fits && line) {
+            return false;
+        }
+        for &b in bytes {
+            self.push_byte(b);
+        }
+        self.push_byte(b'\n');
+        true
+    }
+
+    /// Queue a [`TOO_LONG`], [`GARBAGE`] or [`GARBAGE_TEXT`] entry; `false` when full.
+    fn push_marker(&mut self, marker: u8) -> bool {
+        if self.len >= LINE_QUEUE_LEN {
+            return false;
+        }
+        self.push_byte(marker);
+        true
+    }
+
+    /// Take the oldest entry; a line's bytes go to `line`.
+    fn pop(&mut self, line: &mut LineBuf) -> Option<Queued> {
+        match self.pop_byte()? {
+            TOO_LONG => Some(Queued::TooLong),
+            GARBAGE => Some(Queued::Garbage { text: false }),
+            GARBAGE_TEXT => Some(Queued::Garbage { text: true }),
+            first => {
+                line.len = 0;
+                let mut b = first;
+                while b != b'\n' {
+                    if let Some(slot) = line.buf.get_mut(line.len) {
+                        *slot = b;
+                        line.len += 1;
+                    }
+                    match self.pop_byte() {
+                        Some(next) => b = next,
+                        None => break,
+                    }
+                }
+                Some(Queued::Line)
+            }
+        }
+    }
+}
+
 /// Why the link's G-code lines are held.
 #[derive(Clone, Copy)]
 enum Held {
@@ -391,8 +565,10 @@ struct Link {
     numbering: LineNumbering,
     held: Option<Held>,
     held_line: LineBuf,
-    queued: Option<LineBuf>,
-    /// The numbered line already asked for again after it arrived intact but not G-code.
+    /// What arrived behind the held line, for its turn.
+    queue: LineQueue,
+    /// The numbered line already asked for again after it arrived intact but not G-code, in
+    /// the current numbering (an `M110` clears it).
     asked_again: Option<u32>,
     gcode_seen: bool,
     frames_seen: bool,
@@ -406,7 +582,7 @@ impl Link {
             numbering: LineNumbering::new(),
             held: None,
             held_line: LineBuf::EMPTY,
-            queued: None,
+            queue: LineQueue::new(),
             asked_again: None,
             gcode_seen: false,
             frames_seen: false,
@@ -415,14 +591,15 @@ impl Link {
         }
     }
 
-    /// Whether the next G-code line must be kept aside rather than handled.
+    /// Whether the next G-code line must wait its turn in the queue rather than be handled.
     fn lines_held(&self) -> bool {
-        self.held.is_some()
+        self.held.is_some() || !self.queue.is_empty()
     }
 
-    /// Whether nothing more can be read until a held line is taken.
+    /// Whether nothing more can be read until queued lines are taken: a longest line would
+    /// not fit the queue.
     fn input_blocked(&self) -> bool {
-        self.held.is_some() && self.queued.is_some()
+        !self.queue.has_room()
     }
 }
 
@@ -566,6 +743,15 @@ where
         wire::frame(out, &ControllerMessage::Connected);
     }
 
+    /// `M112` from outside the link: a host of the board that is not in control (see
+    /// [`realtime`]), a stop input. The machine stops as for an `M112` line — motion is cut,
+    /// the stored program stops, heaters, fans, spindle and motors are shut down — the link's
+    /// host is told of the fault on `out`, and the lines it had waiting are answered in order
+    /// without running. It stays in alarm until a reset (`M999`, frame `Reset`).
+    pub fn emergency_stop<W: Write>(&mut self, out: &mut W) {
+        self.core.emergency_stop(out);
+    }
+
     /// Write frame 55 with `counter` (from the board's `LinkSession`).
     pub fn keep_alive<W: Write>(&mut self, counter: u32, out: &mut W) {
         wire::frame(out, &ControllerMessage::KeepAlive { counter });
@@ -579,6 +765,8 @@ where
         self.input.clear();
         let started = self.core.link.started;
         self.core.link = Link::new();
+        // An upload belongs to the host that sent its line 1.
+        self.core.load_total = None;
         self.core.link.started = started;
     }
 
@@ -597,6 +785,7 @@ where
         let mut arm = core.kernel.poll(now);
         core.supervise(link);
         core.feed_job(link);
+        core.record_checkpoint(link);
         core.release_held(link);
 
         if self.input.deaf {
@@ -643,14 +832,26 @@ where
         }
     }
 
-    /// Whether the decoder holds a record to take as complete once the link is quiet: a whole
-    /// frame waiting for the byte after it, or, from a host that numbers its lines, a line
-    /// whose terminator may have been lost. A console (unnumbered lines: a person typing) is
-    /// never cut short.
+    /// Whether the decoder holds a record to take without its terminator once the link is
+    /// quiet: a frame waiting for the byte after it, a numbered line whose check verifies (its
+    /// terminator was lost), or, from a host that numbers its lines, the start of a numbered
+    /// line, which fails its check and is asked again (never run), so that a stop-and-wait host
+    /// is not left waiting. An unnumbered part of a line is never taken: a line cut by a pause
+    /// (`G1 X1` … `00`, `M114` typed byte by byte) waits for its terminator.
     fn flush_due(&self) -> bool {
-        !self.core.link.input_blocked()
-            && (self.input.frame_waiting()
-                || (self.core.link.numbering.is_numbered() && self.input.unterminated()))
+        if self.core.link.input_blocked() {
+            return false;
+        }
+        if self.input.frame_waiting() {
+            return true;
+        }
+        if !self.input.unterminated() {
+            return false;
+        }
+        let partial = self.decoder.partial();
+        let numbered_start = matches!(partial, [b'N' | b'n', d, ..] if d.is_ascii_digit());
+        (numbered_start && self.core.link.numbering.is_numbered())
+            || forja_protocol::gcode::Line::parse(partial).is_ok_and(|line| line.check().is_some())
     }
 
     /// Take the controller apart: the kernel, the program store, the peripherals and the
@@ -727,10 +928,11 @@ where
         self.core.thermal
     }
 
-    /// Whether the link's G-code input waits (a line for room in the planner, or `M109`/`M116`
-    /// for the heaters).
+    /// Whether the link's G-code input waits (a line for room in the planner, `G28` for its
+    /// homing cycle, `M109`/`M116` for the heaters, or lines in the receive queue for their
+    /// turn).
     pub fn is_holding(&self) -> bool {
-        self.core.link.held.is_some()
+        self.core.link.lines_held()
     }
 }
 
@@ -744,7 +946,16 @@ where
         match event {
             Event::Line(bytes) => self.on_line(bytes, out),
             Event::Frame(frame) => self.on_frame(&frame, out),
-            Event::Garbage { .. } => self.on_garbage(out),
+            // Behind waiting lines, garbage and over-long lines wait their turn: the resend
+            // they may ask for must name the line expected then.
+            Event::Garbage { text, .. } if self.link.lines_held() => {
+                self.enqueue_marker(if text { GARBAGE_TEXT } else { GARBAGE }, out)
+            }
+            Event::Garbage { text, .. } => self.on_garbage_run(text, out),
+            Event::TooLong { .. } if self.link.lines_held() => {
+                self.link.gcode_seen = true;
+                self.enqueue_marker(TOO_LONG, out);
+            }
             Event::TooLong { .. } => {
                 self.link.gcode_seen = true;
                 self.on_line_error(&forja_protocol::gcode::LineError::TooLong, out);
@@ -869,7 +1080,7 @@ where
         }
         if !self.kernel.is_idle()
             || matches!(self.kernel.state(), MachineState::Homing)
-            || self.link.held.is_some()
+            || self.link.lines_held()
         {
             ms = ms.min(u32::from(self.kernel.config().queue_lead_ms / 2).max(1));
         }

@@ -1,19 +1,32 @@
 //! A [`ProgramStore`] over any [`RecordStorage`]: the uploaded program survives a restart.
 //!
 //! One record per line, the line's text as it is (at most 39 bytes), under record key
-//! [`LINE_RECORDS`]` + index`; one header record under [`HEADER_RECORD`] with the number of
-//! lines, a `postcard` `u16`. Storing line `k` writes the line, then the header: a power cut
-//! between the two leaves the program as it was before line `k`. [`ProgramStore::clear`]
-//! only writes a header of 0; the old line records are overwritten by the next program.
+//! [`LINE_RECORDS`]` + index`; one header record under [`HEADER_RECORD`], 8 bytes
+//! little-endian: the number of lines stored (`u16`), the program's total (`u16`) and the
+//! digest of the lines stored ([`crate::job::digest_line`], `u32`). The program is complete
+//! when the two counts are equal.
+//!
+//! Storing line `k` writes the line, then the header: a power cut between the two leaves the
+//! program as it was before line `k`. So the header says "complete" only once the last line is
+//! in storage, and a cut in the middle of an upload leaves an incomplete program, which never
+//! runs. [`ProgramStore::begin`] writes a header of 0 lines of the new total,
+//! [`ProgramStore::clear`] one of 0 of 0; the old line records are overwritten by the next
+//! program. A header of another length (the one-count header of earlier versions) opens as no
+//! program: whether that program was complete cannot be known.
 
 use forja_hal_abstraction::storage::RecordStorage;
 use forja_hal_abstraction::{Error as _, ErrorKind};
 
 use crate::error::StoreError;
-use crate::job::{MAX_LINE_LEN, MAX_LINES, ProgramStore, check_next_line};
+use crate::job::{
+    MAX_LINE_LEN, MAX_LINES, ProgramStore, check_next_line, check_total, digest_line, digest_start,
+};
 
-/// The record key of the header (the number of lines).
+/// The record key of the header (lines stored, total, digest).
 pub const HEADER_RECORD: u16 = 0x1000;
+
+/// Bytes of the header record.
+const HEADER_LEN: usize = 8;
 
 /// Line `k` (1-based) is stored under `LINE_RECORDS + k`, up to `0x1000 + 9999`.
 pub const LINE_RECORDS: u16 = 0x1000;
@@ -33,28 +46,38 @@ fn store_error(kind: ErrorKind) -> StoreError {
 pub struct RecordProgramStore<S> {
     storage: S,
     count: u16,
+    total: u16,
+    digest: u32,
     capacity: u16,
 }
 
 impl<S: RecordStorage> RecordProgramStore<S> {
-    /// Open the program kept in `storage` (none when it has no header), with room for
-    /// `capacity` lines (at most 9999).
+    /// Open the program kept in `storage` (none when it has no header, or a header of
+    /// another format), with room for `capacity` lines (at most 9999). A program whose header
+    /// does not fit `capacity` opens as none.
     ///
-    /// Errors: [`StoreError::Device`] when the header cannot be read or decoded.
+    /// Errors: [`StoreError::Device`] when the header cannot be read.
     pub fn open(mut storage: S, capacity: u16) -> Result<Self, StoreError> {
-        let mut buf = [0u8; 4];
-        let count = match storage
+        let mut buf = [0u8; 16];
+        let header = match storage
             .read(HEADER_RECORD, &mut buf)
             .map_err(|e| store_error(e.kind()))?
         {
-            Some(len) => postcard::from_bytes::<u16>(buf.get(..len).unwrap_or(&[]))
-                .map_err(|_| StoreError::Device)?,
-            None => 0,
+            Some(HEADER_LEN) => decode_header(&buf),
+            _ => None,
         };
         let capacity = capacity.min(MAX_LINES);
+        let (count, total, digest) = match header {
+            Some((count, total, digest)) if count <= total && total <= capacity => {
+                (count, total, digest)
+            }
+            _ => (0, 0, 0),
+        };
         Ok(Self {
             storage,
-            count: count.min(capacity),
+            count,
+            total,
+            digest,
             capacity,
         })
     }
@@ -69,18 +92,46 @@ impl<S: RecordStorage> RecordProgramStore<S> {
         self.storage
     }
 
-    fn write_header(&mut self, count: u16) -> Result<(), StoreError> {
-        let mut buf = [0u8; 4];
-        let bytes = postcard::to_slice(&count, &mut buf).map_err(|_| StoreError::Device)?;
+    fn write_header(&mut self, count: u16, total: u16, digest: u32) -> Result<(), StoreError> {
+        let mut buf = [0u8; HEADER_LEN];
+        buf[..2].copy_from_slice(&count.to_le_bytes());
+        buf[2..4].copy_from_slice(&total.to_le_bytes());
+        buf[4..].copy_from_slice(&digest.to_le_bytes());
         self.storage
-            .write(HEADER_RECORD, bytes)
+            .write(HEADER_RECORD, &buf)
             .map_err(|e| store_error(e.kind()))
     }
+}
+
+/// Lines stored, total and digest of an 8-byte header.
+fn decode_header(buf: &[u8]) -> Option<(u16, u16, u32)> {
+    let count = u16::from_le_bytes(buf.get(..2)?.try_into().ok()?);
+    let total = u16::from_le_bytes(buf.get(2..4)?.try_into().ok()?);
+    let digest = u32::from_le_bytes(buf.get(4..HEADER_LEN)?.try_into().ok()?);
+    Some((count, total, digest))
 }
 
 impl<S: RecordStorage> ProgramStore for RecordProgramStore<S> {
     fn len(&self) -> u16 {
         self.count
+    }
+
+    fn total(&self) -> u16 {
+        self.total
+    }
+
+    fn digest(&self) -> u32 {
+        self.digest
+    }
+
+    fn begin(&mut self, total: u16) -> Result<(), StoreError> {
+        check_total(total, self.capacity)?;
+        let digest = digest_start(total);
+        self.write_header(0, total, digest)?;
+        self.count = 0;
+        self.total = total;
+        self.digest = digest;
+        Ok(())
     }
 
     fn read(&mut self, index: u16, buf: &mut [u8; MAX_LINE_LEN]) -> Result<usize, StoreError> {
@@ -95,22 +146,75 @@ impl<S: RecordStorage> ProgramStore for RecordProgramStore<S> {
     }
 
     fn store(&mut self, index: u16, text: &[u8]) -> Result<(), StoreError> {
-        check_next_line(self.count, self.capacity, index, text.len())?;
+        check_next_line(self.count, self.total, self.capacity, index, text.len())?;
         self.storage
             .write(LINE_RECORDS + index, text)
             .map_err(|e| store_error(e.kind()))?;
-        self.write_header(index)?;
+        let digest = digest_line(self.digest, index, text);
+        self.write_header(index, self.total, digest)?;
         self.count = index;
+        self.digest = digest;
         Ok(())
     }
 
     fn clear(&mut self) -> Result<(), StoreError> {
-        if self.count == 0 {
+        if self.count == 0 && self.total == 0 {
             return Ok(());
         }
-        self.write_header(0)?;
+        self.write_header(0, 0, 0)?;
         self.count = 0;
+        self.total = 0;
+        self.digest = 0;
         Ok(())
+    }
+}
+
+/// The record key, in the controller's settings storage, of the resume record: the progress
+/// of the last job, for power-loss recovery (`M1000`). See [`ResumeRecord`].
+pub const RESUME_RECORD: u16 = 0x0300;
+
+/// The record key, in the controller's settings storage, of the power-loss recovery switch
+/// (`M413 S0|S1`): one byte, 0 off, 1 on; on when absent.
+pub const RECOVERY_RECORD: u16 = 0x0301;
+
+/// The progress of a job, kept for power-loss recovery: which program ran (its digest and
+/// total) and how many of its lines had certainly finished. 8 bytes little-endian: digest
+/// (`u32`), total (`u16`), lines done (`u16`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ResumeRecord {
+    /// The program's digest ([`ProgramStore::digest`]).
+    pub digest: u32,
+    /// The program's total number of lines.
+    pub total: u16,
+    /// Lines `1..=done` had run, their motion finished; 0 when none had.
+    pub done: u16,
+}
+
+impl ResumeRecord {
+    /// Bytes of the record.
+    pub const LEN: usize = 8;
+
+    /// The record's bytes.
+    pub fn encode(&self) -> [u8; Self::LEN] {
+        let mut buf = [0u8; Self::LEN];
+        buf[..4].copy_from_slice(&self.digest.to_le_bytes());
+        buf[4..6].copy_from_slice(&self.total.to_le_bytes());
+        buf[6..].copy_from_slice(&self.done.to_le_bytes());
+        buf
+    }
+
+    /// A record from its bytes; `None` for bytes of another length or a record that cannot
+    /// be one (more lines done than the program has).
+    pub fn decode(bytes: &[u8]) -> Option<Self> {
+        if bytes.len() != Self::LEN {
+            return None;
+        }
+        let r = Self {
+            digest: u32::from_le_bytes(bytes.get(..4)?.try_into().ok()?),
+            total: u16::from_le_bytes(bytes.get(4..6)?.try_into().ok()?),
+            done: u16::from_le_bytes(bytes.get(6..8)?.try_into().ok()?),
+        };
+        (r.done <= r.total).then_some(r)
     }
 }
 
@@ -122,6 +226,9 @@ mod tests {
     #[test]
     fn lines_survive_a_reopen_and_errors_change_nothing() {
         let mut s = RecordProgramStore::open(VecStorage::default(), 3).unwrap();
+        assert_eq!(s.store(1, b"G1 X1"), Err(StoreError::NoUpload));
+        assert_eq!(s.begin(4), Err(StoreError::Full));
+        s.begin(3).unwrap();
         assert_eq!(
             s.store(2, b"G1 X1"),
             Err(StoreError::OutOfOrder {
@@ -133,9 +240,12 @@ mod tests {
         s.store(2, b"G1 X2").unwrap();
         assert_eq!(s.store(3, &[b'X'; 40]), Err(StoreError::TooLong));
         s.store(3, b"G1 X3").unwrap();
-        assert_eq!(s.store(4, b"G1 X4"), Err(StoreError::Full));
+        assert_eq!(s.store(4, b"G1 X4"), Err(StoreError::NoUpload));
+        let digest = s.digest();
         let mut s = RecordProgramStore::open(s.into_inner(), 3).unwrap();
         assert_eq!(s.len(), 3);
+        assert!(s.is_complete());
+        assert_eq!(s.digest(), digest);
         let mut buf = [0; MAX_LINE_LEN];
         assert_eq!(s.read(2, &mut buf), Ok(5));
         assert_eq!(&buf[..5], b"G1 X2");
@@ -147,5 +257,49 @@ mod tests {
         s.clear().unwrap();
         let s = RecordProgramStore::open(s.into_inner(), 3).unwrap();
         assert!(s.is_empty());
+    }
+}
+
+#[cfg(test)]
+mod completeness {
+    use super::super::settings::tests::VecStorage;
+    use super::*;
+
+    /// A power cut in the middle of an upload (the storage refuses every write from then on,
+    /// and the store is reopened) leaves an incomplete program, never a complete one; a header
+    /// of the earlier format opens as no program.
+    #[test]
+    fn an_interrupted_upload_reopens_incomplete() {
+        let mut s = RecordProgramStore::open(VecStorage::default(), 10).unwrap();
+        s.begin(10).unwrap();
+        for k in 1..=4u16 {
+            s.store(k, b"G1 X1").unwrap();
+        }
+        s.storage_mut().fail = true;
+        assert_eq!(s.store(5, b"G1 X5"), Err(StoreError::Device));
+        let mut storage = s.into_inner();
+        storage.fail = false;
+        let mut s = RecordProgramStore::open(storage, 10).unwrap();
+        assert_eq!((s.len(), s.total(), s.is_complete()), (4, 10, false));
+        // Only line 5 continues it; nothing completes it but its last line.
+        assert_eq!(
+            s.store(6, b"G1 X6"),
+            Err(StoreError::OutOfOrder {
+                expected: 5,
+                got: 6
+            })
+        );
+        for k in 5..=9u16 {
+            s.store(k, b"G1 X1").unwrap();
+            assert!(!s.is_complete());
+        }
+        s.store(10, b"G1 X1").unwrap();
+        assert!(s.is_complete());
+
+        let mut legacy = VecStorage::default();
+        legacy.records.push((HEADER_RECORD, [3u8].to_vec()));
+        legacy.records.push((LINE_RECORDS + 1, b"G1 X1".to_vec()));
+        let s = RecordProgramStore::open(legacy, 10).unwrap();
+        assert!(s.is_empty() && !s.is_complete());
     }
 }

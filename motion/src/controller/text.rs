@@ -119,10 +119,13 @@ pub(crate) fn command_refusal(e: &CommandError, letters: &[u8]) -> Refusal {
         CommandError::Unsupported { letter: l, .. }
         | CommandError::BadValue { letter: l }
         | CommandError::MissingValue { letter: l }
-        | CommandError::UnknownAxis { letter: l } => {
+        | CommandError::UnknownAxis { letter: l }
+        | CommandError::RepeatedWord { letter: l } => {
             Refusal::with(e, format_args!("{}", letter(l)))
         }
-        CommandError::SoftLimit { axis: a } => Refusal::with(e, format_args!("{}", axis(a))),
+        CommandError::SoftLimit { axis: a } | CommandError::OutOfReach { axis: a } => {
+            Refusal::with(e, format_args!("{}", axis(a)))
+        }
         _ => Refusal::new(e),
     }
 }

@@ -288,6 +288,16 @@ impl<L: HostLink> HostLink for FaultInjector<L> {
     fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
         self.inner.admit(session, now_ms)
     }
+
+    fn discard_input(&mut self) -> Result<usize, Self::Error> {
+        let mine = self.rx.len();
+        self.rx.clear();
+        Ok(mine + self.inner.discard_input()?)
+    }
+
+    fn hang_up(&mut self) {
+        self.inner.hang_up();
+    }
 }
 
 #[cfg(test)]

@@ -26,13 +26,29 @@
 //!
 //! The plain blocking methods keep their `embedded-io` meaning, for code that does not poll:
 //! [`Read::read`] with an empty buffer polls and waits (in steps of a millisecond) until a byte
-//! arrives; [`Write::write`] with a full transmit buffer waits for room; [`Write::flush`]
-//! waits until everything is sent. With no peer connected, writes are discarded at once (like
-//! a UART with nothing attached), so the firmware never stalls on an absent host.
+//! arrives. The simulation never calls it without [`ReadReady::read_ready`] first.
+//!
+//! # Writing never blocks
+//!
+//! [`Write::write`] queues the whole of `buf` in the transmit buffer, sends what the peer takes
+//! now, and returns `buf.len()` at once: the firmware never waits for a host. With no peer
+//! connected the bytes are discarded (like a UART with nothing attached). When the transmit
+//! buffer cannot take the whole of `buf` (the peer has stopped reading: [`TX_CAPACITY`] bytes
+//! of replies wait, besides what the operating system holds), the link's overflow rule applies,
+//! and a reply is never cut in two:
+//!
+//! | link | a peer that stops reading |
+//! |---|---|
+//! | [`TcpLink`] | is dropped: its connection is closed ([`TcpLink::overflows`] counts them), and the next client may connect |
+//! | [`PtyLink`] | the writes that do not fit are discarded whole and counted ([`PtyLink::tx_discarded`]): a terminal cannot be closed from this side |
+//!
+//! [`Write::flush`] sends what it can and waits for the rest at most [`FLUSH_LIMIT`]; it fails
+//! with `TimedOut` if the peer has not taken it by then.
 //!
 //! Receive buffers hold at most [`RX_CAPACITY`] bytes: past that, OS links stop reading and
 //! the host is held back by TCP flow control or the terminal's buffer, as flow control would
-//! on a UART. Transmit buffers hold [`TX_CAPACITY`] bytes.
+//! on a UART. Transmit buffers hold [`TX_CAPACITY`] bytes. [`HostLink::discard_input`] drops
+//! what was received and not yet read, when the session of the host that sent it has ended.
 
 mod fault;
 mod memory;
@@ -60,6 +76,9 @@ pub const TX_CAPACITY: usize = 64 * 1024;
 /// How long blocking link calls sleep between two polls.
 const BLOCKING_POLL: std::time::Duration = std::time::Duration::from_millis(1);
 
+/// Longest [`Write::flush`] waits for a peer to take what is queued.
+pub const FLUSH_LIMIT: std::time::Duration = std::time::Duration::from_millis(500);
+
 /// A byte link to a host.
 pub trait HostLink: Read + ReadReady + Write + WriteReady + LinkStatus {
     /// Service the link: accept or drop peers, fill the receive buffer, drain the transmit
@@ -85,8 +104,8 @@ pub trait HostLink: Read + ReadReady + Write + WriteReady + LinkStatus {
     /// an in-process pair) ignores it, which is the provided implementation. Give a link the
     /// same session at every call, and no other link that session.
     ///
-    /// Context: thread. Never blocks, but for the short write of a refusal. Errors: as
-    /// [`HostLink::poll`].
+    /// Context: thread. Never blocks (a refusal is written only if the socket takes it at
+    /// once). Errors: as [`HostLink::poll`].
     ///
     /// [`SessionAction::SendConnected`]: forja_drivers::session::SessionAction::SendConnected
     /// [`SessionAction::RefuseSecondClient`]: forja_drivers::session::SessionAction::RefuseSecondClient
@@ -94,6 +113,35 @@ pub trait HostLink: Read + ReadReady + Write + WriteReady + LinkStatus {
         let _ = (session, now_ms);
         Ok(false)
     }
+
+    /// Drop every byte received and not yet read (the session of the host that sent it has
+    /// ended, or that host is not the controlling one). Returns how many were dropped.
+    ///
+    /// The provided implementation reads while [`ReadReady::read_ready`] says so, at most
+    /// [`RX_CAPACITY`] bytes; buffered links clear their buffers instead. Bytes that arrive
+    /// later are received as usual.
+    ///
+    /// Context: thread. Never blocks. Errors: as [`HostLink::poll`].
+    fn discard_input(&mut self) -> Result<usize, Self::Error> {
+        let mut sink = [0u8; 256];
+        let mut dropped = 0;
+        while dropped < RX_CAPACITY && self.read_ready()? {
+            let n = self.read(&mut sink)?;
+            if n == 0 {
+                break;
+            }
+            dropped += n;
+        }
+        Ok(dropped)
+    }
+
+    /// End the controlling peer's connection (its session has timed out). A
+    /// connection-oriented link closes it, and its session hears of it at the next
+    /// [`HostLink::admit`]; a link without connections (a terminal, an in-process pair)
+    /// cannot, and does nothing, which is the provided implementation.
+    ///
+    /// Context: thread. Never blocks.
+    fn hang_up(&mut self) {}
 }
 
 impl<T: HostLink + ?Sized> HostLink for &mut T {
@@ -105,6 +153,12 @@ impl<T: HostLink + ?Sized> HostLink for &mut T {
     }
     fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
         T::admit(self, session, now_ms)
+    }
+    fn discard_input(&mut self) -> Result<usize, Self::Error> {
+        T::discard_input(self)
+    }
+    fn hang_up(&mut self) {
+        T::hang_up(self)
     }
 }
 
@@ -129,10 +183,19 @@ impl Buffers {
         n
     }
 
-    /// Queue as much of `buf` as fits for transmission.
-    pub(crate) fn put_tx(&mut self, buf: &[u8]) -> usize {
-        let n = buf.len().min(TX_CAPACITY.saturating_sub(self.tx.len()));
-        self.tx.extend(&buf[..n]);
+    /// Queue the whole of `buf` for transmission, if it fits; `false` (nothing queued) if not.
+    pub(crate) fn put_tx(&mut self, buf: &[u8]) -> bool {
+        if buf.len() > TX_CAPACITY.saturating_sub(self.tx.len()) {
+            return false;
+        }
+        self.tx.extend(buf);
+        true
+    }
+
+    /// Drop the received bytes not yet read; returns how many.
+    pub(crate) fn clear_rx(&mut self) -> usize {
+        let n = self.rx.len();
+        self.rx.clear();
         n
     }
 }
@@ -145,6 +208,10 @@ pub(crate) trait BufferedPort {
     fn admit(&mut self, _session: &mut LinkSession, _now_ms: u32) -> io::Result<bool> {
         Ok(false)
     }
+    /// `lost` bytes of one write did not fit in the transmit buffer (the peer stopped reading):
+    /// drop the peer, or count them as discarded.
+    fn overflow(&mut self, lost: usize);
+    fn hang_up(&mut self) {}
 }
 
 pub(crate) fn port_read<P: BufferedPort>(port: &mut P, buf: &mut [u8]) -> io::Result<usize> {
@@ -164,31 +231,34 @@ pub(crate) fn port_read<P: BufferedPort>(port: &mut P, buf: &mut [u8]) -> io::Re
 }
 
 pub(crate) fn port_write<P: BufferedPort>(port: &mut P, buf: &[u8]) -> io::Result<usize> {
-    if buf.is_empty() {
-        return Ok(0);
+    if buf.is_empty() || !port.is_connected() {
+        return Ok(buf.len());
     }
-    loop {
-        if !port.is_connected() {
+    if !port.buffers().put_tx(buf) {
+        // Make what room the peer allows now, then try once more.
+        port.service()?;
+        if port.is_connected() && !port.buffers().put_tx(buf) {
+            port.overflow(buf.len());
             return Ok(buf.len());
         }
-        let n = port.buffers().put_tx(buf);
-        if n > 0 {
-            // Send at once rather than at the next poll: replies go out with no added latency.
-            port.service()?;
-            return Ok(n);
-        }
-        port.service()?;
-        if port.buffers().tx.len() >= TX_CAPACITY {
-            std::thread::sleep(BLOCKING_POLL);
-        }
     }
+    // Send at once rather than at the next poll: replies go out with no added latency.
+    port.service()?;
+    Ok(buf.len())
 }
 
 pub(crate) fn port_flush<P: BufferedPort>(port: &mut P) -> io::Result<()> {
+    let start = std::time::Instant::now();
     loop {
         port.service()?;
         if !port.is_connected() || port.buffers().tx.is_empty() {
             return Ok(());
+        }
+        if start.elapsed() >= FLUSH_LIMIT {
+            return Err(io::Error::new(
+                io::ErrorKind::TimedOut,
+                "the peer does not take what is sent",
+            ));
         }
         std::thread::sleep(BLOCKING_POLL);
     }
@@ -265,6 +335,14 @@ macro_rules! buffered_link {
                 now_ms: u32,
             ) -> Result<bool, std::io::Error> {
                 $crate::link::BufferedPort::admit(self, session, now_ms)
+            }
+
+            fn discard_input(&mut self) -> Result<usize, std::io::Error> {
+                Ok($crate::link::BufferedPort::buffers(self).clear_rx())
+            }
+
+            fn hang_up(&mut self) {
+                $crate::link::BufferedPort::hang_up(self)
             }
         }
     };

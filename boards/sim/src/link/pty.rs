@@ -24,6 +24,10 @@
 //! each new connection the master's output queue is flushed (`tcflush(TCOFLUSH)`), so a new
 //! peer never reads replies meant for the previous one. A peer that opens and closes the slave
 //! between two polls is never seen as connected, but its bytes are received.
+//!
+//! A peer that holds the slave open and stops reading fills the terminal's buffer, then the
+//! link's transmit buffer; past that, writes are discarded whole and counted
+//! ([`PtyLink::tx_discarded`]): the firmware never waits for it.
 
 use std::fs::File;
 use std::io::{self, Read as _, Write as _};
@@ -50,6 +54,7 @@ pub struct PtyLink {
     connected: bool,
     bufs: Buffers,
     connections: u64,
+    tx_discarded: u64,
 }
 
 fn errno(e: Errno) -> io::Error {
@@ -101,12 +106,19 @@ impl PtyLink {
             connected: false,
             bufs: Buffers::default(),
             connections: 0,
+            tx_discarded: 0,
         })
     }
 
     /// The slave device host software opens, e.g. `/dev/pts/7`.
     pub fn slave_path(&self) -> &Path {
         &self.slave_path
+    }
+
+    /// Bytes written while a peer was connected and discarded because it had stopped reading
+    /// (the transmit buffer was full).
+    pub fn tx_discarded(&self) -> u64 {
+        self.tx_discarded
     }
 
     /// The symbolic link to the slave, when one was asked for.
@@ -183,6 +195,10 @@ impl BufferedPort for PtyLink {
         }
         self.connected = present;
         self.send()
+    }
+
+    fn overflow(&mut self, lost: usize) {
+        self.tx_discarded += lost as u64;
     }
 }
 

@@ -7,6 +7,13 @@ use forja_drivers::session::{LinkSession, SessionAction};
 
 use super::{BufferedPort, Buffers, buffered_link};
 
+/// Most clients [`HostLink::admit`](super::HostLink::admit) accepts in one call.
+pub const ACCEPTS_PER_ADMIT: usize = 16;
+
+/// Most bytes read (and dropped) from a refused client before it is closed, so that it gets
+/// an orderly close rather than a reset.
+pub const REFUSE_DRAIN: usize = 16 * 1024;
+
 /// A TCP listener with one controlling client at a time.
 ///
 /// Who controls is decided by a [`LinkSession`], the ESP32 board's WiFi link's rules:
@@ -22,8 +29,18 @@ use super::{BufferedPort, Buffers, buffered_link};
 /// message can be lost; a host that waits for the controller to speak first always receives
 /// it.
 ///
-/// Bytes received from a client stay in the receive buffer after it disconnects (they were
-/// sent); unsent replies are discarded. Implements [`super::HostLink`].
+/// A new controlling client starts with empty buffers: it never reads a reply meant for the
+/// previous one, and nothing the previous one sent is read after it takes control. Bytes
+/// received from a client stay in the receive buffer after it disconnects, until
+/// [`HostLink::discard_input`](super::HostLink::discard_input) or the next client takes
+/// control; unsent replies are discarded at once.
+///
+/// Nothing here waits for a client: a controlling client that lets [`super::TX_CAPACITY`]
+/// bytes of replies back up (it stopped reading) is dropped ([`TcpLink::overflows`]); a
+/// refused client gets its busy message only if its socket takes it at once; each
+/// [`HostLink::admit`](super::HostLink::admit) accepts at most [`ACCEPTS_PER_ADMIT`] clients
+/// (the others wait in the backlog for the next call) and reads at most [`REFUSE_DRAIN`]
+/// bytes from each refused one. Implements [`super::HostLink`].
 #[derive(Debug)]
 pub struct TcpLink {
     listener: TcpListener,
@@ -33,6 +50,7 @@ pub struct TcpLink {
     busy_message: Vec<u8>,
     connections: u64,
     refused: u64,
+    overflows: u64,
     /// The controlling client went away and the session was not told yet.
     closed: bool,
 }
@@ -53,6 +71,7 @@ impl TcpLink {
             busy_message: busy_message.into(),
             connections: 0,
             refused: 0,
+            overflows: 0,
             closed: false,
         })
     }
@@ -74,6 +93,12 @@ impl TcpLink {
         self.refused
     }
 
+    /// Controlling clients dropped because their replies backed up past
+    /// [`super::TX_CAPACITY`] bytes (they stopped reading).
+    pub fn overflows(&self) -> u64 {
+        self.overflows
+    }
+
     /// Close the controlling client's connection, if any; the session hears of it at the next
     /// [`HostLink::admit`](super::HostLink::admit).
     pub fn disconnect(&mut self) {
@@ -87,14 +112,21 @@ impl TcpLink {
 
     fn refuse(&mut self, mut stream: TcpStream) {
         self.refused += 1;
-        // Drain what the client already sent, so that closing sends FIN rather than RST.
-        let mut sink = [0u8; 512];
-        if stream.set_nonblocking(true).is_ok() {
-            while matches!(stream.read(&mut sink), Ok(n) if n > 0) {}
+        if stream.set_nonblocking(true).is_err() {
+            return;
         }
-        let _ = stream.set_nonblocking(false);
-        let _ = stream.set_write_timeout(Some(std::time::Duration::from_millis(100)));
-        let _ = stream.write_all(&self.busy_message);
+        // Drain what the client already sent (within a bound: a flooding client is not
+        // waited for), so that closing sends FIN rather than RST.
+        let mut sink = [0u8; 4096];
+        let mut drained = 0;
+        while drained < REFUSE_DRAIN {
+            match stream.read(&mut sink) {
+                Ok(n) if n > 0 => drained += n,
+                _ => break,
+            }
+        }
+        // A fresh socket takes a short message at once; one that does not is not waited for.
+        let _ = stream.write(&self.busy_message);
         let _ = stream.shutdown(Shutdown::Write);
     }
 
@@ -165,6 +197,9 @@ impl TcpLink {
     fn take_control(&mut self, stream: TcpStream, addr: SocketAddr) -> io::Result<()> {
         stream.set_nonblocking(true)?;
         let _ = stream.set_nodelay(true);
+        // Nothing of the previous client reaches this one, nor runs in its session.
+        self.bufs.rx.clear();
+        self.bufs.tx.clear();
         self.client = Some(stream);
         self.peer = Some(addr);
         self.connections += 1;
@@ -187,10 +222,22 @@ impl BufferedPort for TcpLink {
         Ok(())
     }
 
+    fn overflow(&mut self, _lost: usize) {
+        self.overflows += 1;
+        self.disconnect();
+    }
+
+    fn hang_up(&mut self) {
+        self.disconnect();
+    }
+
     fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> io::Result<bool> {
         self.report_close(session);
         let mut admitted = false;
-        while let Some((stream, addr)) = self.accept()? {
+        for _ in 0..ACCEPTS_PER_ADMIT {
+            let Some((stream, addr)) = self.accept()? else {
+                break;
+            };
             // The controlling client may have closed after the last read, just before this one
             // connected (a host that reconnects at once): look again, so that the session
             // hears of the close first. A host closes before it reconnects, so its close is

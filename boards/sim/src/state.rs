@@ -1,0 +1,519 @@
+//! The board's flash in a file (`forja-sim --state FILE`): settings and the uploaded program
+//! survive a restart of the simulator, as they survive a power cycle of a board.
+//!
+//! # The file
+//!
+//! | offset | bytes | what |
+//! |---|---|---|
+//! | 0 | [`HEADER_LEN`] | [`MAGIC`] and the layout in text, then zeros |
+//! | [`HEADER_LEN`] | [`SETTINGS_FLASH_LEN`] | the settings' flash ([`crate::board::SettingsFlash`]) |
+//! | [`HEADER_LEN`] + [`SETTINGS_FLASH_LEN`] | [`PROGRAM_FLASH_LEN`] | the program's flash ([`crate::board::ProgramFlash`]) |
+//!
+//! A missing file is made erased (every flash byte `0xFF`): written whole under a temporary
+//! name, then renamed, so that a file of the name is always complete. A file of another
+//! layout (another header or length) is refused, never reformatted. One simulator at a time
+//! uses a file (an exclusive `flock`); a second is refused.
+//!
+//! # The flash model
+//!
+//! Each flash keeps the rules of a NOR flash (see [`crate::board::HeapFlash`] and
+//! `forja_drivers::ram_flash`): an erase sets whole 4 KiB pages to `0xFF`, a write of 4-byte
+//! words may only clear bits of erased words. Every completed erase or write is written to
+//! the file (one positioned write of exactly the bytes it changed, no buffer in between)
+//! before it returns: the file is the flash after the last completed operation.
+//!
+//! A simulator killed in the middle of an operation (SIGKILL, a crash) leaves the file as a
+//! flash is left by a power cut in the middle of one. The operation is one `pwrite` of its
+//! bytes in ascending order, which Linux stops, if at all, only between the 4 KiB pages of the
+//! file cache it copies; the flashes start at page boundaries of the file, so a word never
+//! straddles two of them. The file then holds a prefix of the operation, in whole words, and
+//! the old contents after it: some words written and the rest still erased, or some pages of
+//! an erase done and the rest as before. Bits are only ever cleared by a write and set by an
+//! erase, so nothing a real part could not hold is ever there. (A real part may also leave a
+//! word half-programmed, some of its bits cleared; `forja_drivers::ram_flash::RamNorFlash`
+//! models that finer case for the storage layer's own tests.) A kill between operations
+//! leaves the file at that boundary exactly.
+//!
+//! The limit: the file is written, not synced (`fsync`). A kill of the simulator leaves the
+//! written data in the operating system's cache, which the next simulator reads; a power cut
+//! of the computer itself may lose operations the file system had not yet stored.
+//!
+//! A write to the file that fails (a full disk) makes that flash fail every later operation
+//! with `RamFlashError::MediumFailed`, as a flash that lost its power does: the storage layer
+//! reports a flash error instead of carrying on with a file that no longer follows the flash.
+
+use core::fmt;
+use std::fs::{File, OpenOptions};
+use std::io::{self, Write as _};
+use std::os::unix::fs::FileExt as _;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use forja_drivers::ram_flash::RamFlashError;
+use forja_drivers::storage::FlashRecordStorage;
+use forja_motion::controller::settings::Key;
+use forja_motion::controller::{RecordProgramStore, Settings};
+use forja_motion::error::StoreError;
+use forja_motion::job::{MAX_LINE_LEN, MAX_LINES, ProgramStore as _};
+use nix::fcntl::{Flock, FlockArg};
+
+use crate::board::{
+    BoardConfig, BoardError, FLASH_PAGE, Flash, PROGRAM_FLASH_LEN, ProgramFlash,
+    SETTINGS_FLASH_LEN, SettingsFlash, SimBoard, kernel_config,
+};
+use crate::config::MachineConfig;
+use crate::machine::SimMachine;
+
+/// The first bytes of a state file.
+pub const MAGIC: &[u8] = b"forja-sim flash state\n";
+
+/// Bytes before the first flash: the header, one flash page.
+pub const HEADER_LEN: usize = FLASH_PAGE;
+
+/// Length of a state file, bytes.
+pub const STATE_FILE_LEN: usize = HEADER_LEN + SETTINGS_FLASH_LEN + PROGRAM_FLASH_LEN;
+
+/// Offset of the settings' flash in the file.
+const SETTINGS_AT: usize = HEADER_LEN;
+
+/// Offset of the program's flash in the file.
+const PROGRAM_AT: usize = HEADER_LEN + SETTINGS_FLASH_LEN;
+
+/// The header of a state file of this layout: [`MAGIC`], the layout in text, zeros.
+fn header() -> Vec<u8> {
+    let mut h = MAGIC.to_vec();
+    h.extend_from_slice(
+        format!(
+            "layout 1: header {HEADER_LEN}, settings {SETTINGS_FLASH_LEN}, program \
+             {PROGRAM_FLASH_LEN}, page {FLASH_PAGE}, word 4\n"
+        )
+        .as_bytes(),
+    );
+    h.resize(HEADER_LEN, 0);
+    h
+}
+
+/// Why a state file cannot be used.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum StateError {
+    /// The file could not be made, opened or read.
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// What failed.
+        error: io::Error,
+    },
+    /// The file is not a state file of this layout (another header or length).
+    NotAState {
+        /// The file.
+        path: PathBuf,
+        /// Its length, bytes.
+        len: u64,
+    },
+    /// Another simulator uses the file.
+    InUse {
+        /// The file.
+        path: PathBuf,
+    },
+}
+
+impl fmt::Display for StateError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Io { path, error } => write!(f, "state file {}: {error}", path.display()),
+            Self::NotAState { path, len } => write!(
+                f,
+                "state file {}: not a forja-sim state file of this layout ({len} bytes; one \
+                 is {STATE_FILE_LEN} bytes starting with \"forja-sim flash state\")",
+                path.display()
+            ),
+            Self::InUse { path } => write!(
+                f,
+                "state file {}: in use by another forja-sim",
+                path.display()
+            ),
+        }
+    }
+}
+
+impl std::error::Error for StateError {}
+
+/// One flash's window of a state file: where its completed operations are written.
+#[derive(Debug)]
+pub struct FlashFile {
+    file: Arc<Flock<File>>,
+    /// Offset of the flash's byte 0 in the file.
+    base: u64,
+    /// A write to the file failed: the file no longer follows the flash.
+    failed: bool,
+}
+
+impl FlashFile {
+    /// Whether the flash may be used: `MediumFailed` once a write to the file failed.
+    pub fn usable(&self) -> Result<(), RamFlashError> {
+        if self.failed {
+            Err(RamFlashError::MediumFailed)
+        } else {
+            Ok(())
+        }
+    }
+
+    /// Write `bytes`, the flash's contents from byte `offset` after an operation, to the file
+    /// (one positioned write, retried only for what a short write left).
+    pub fn write(&mut self, offset: usize, bytes: &[u8]) -> Result<(), RamFlashError> {
+        self.usable()?;
+        let at = self.base + offset as u64;
+        if self.file.write_all_at(bytes, at).is_err() {
+            self.failed = true;
+            return Err(RamFlashError::MediumFailed);
+        }
+        Ok(())
+    }
+}
+
+fn io_error(path: &Path) -> impl Fn(io::Error) -> StateError + '_ {
+    move |error| StateError::Io {
+        path: path.to_path_buf(),
+        error,
+    }
+}
+
+/// Make an erased state file at `path`: written whole under a temporary name in the same
+/// directory, then renamed to `path`.
+fn create(path: &Path) -> Result<(), StateError> {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(format!(".new-{}", std::process::id()));
+    let temp = path.with_file_name(name);
+    let result = (|| {
+        let mut f = File::create(&temp)?;
+        f.write_all(&header())?;
+        f.write_all(&vec![0xFF; SETTINGS_FLASH_LEN + PROGRAM_FLASH_LEN])?;
+        f.sync_all()?;
+        std::fs::rename(&temp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&temp);
+    }
+    result.map_err(io_error(path))
+}
+
+/// The whole contents of the state file `file`, checked against this layout.
+fn read_checked(file: &File, path: &Path) -> Result<Vec<u8>, StateError> {
+    let len = file.metadata().map_err(io_error(path))?.len();
+    let not_a_state = || StateError::NotAState {
+        path: path.to_path_buf(),
+        len,
+    };
+    if len != STATE_FILE_LEN as u64 {
+        return Err(not_a_state());
+    }
+    let mut bytes = vec![0; STATE_FILE_LEN];
+    file.read_exact_at(&mut bytes, 0).map_err(io_error(path))?;
+    if bytes.get(..HEADER_LEN) != Some(&header()[..]) {
+        return Err(not_a_state());
+    }
+    Ok(bytes)
+}
+
+/// The two flashes of `bytes` (a whole state file), with their write-through windows.
+fn flashes(bytes: &[u8], file: Option<Arc<Flock<File>>>) -> Flash {
+    let window = |base: usize| {
+        file.as_ref().map(|f| FlashFile {
+            file: Arc::clone(f),
+            base: base as u64,
+            failed: false,
+        })
+    };
+    let part = |at: usize, len: usize| bytes.get(at..at + len).unwrap_or(&[]).to_vec();
+    Flash {
+        settings: SettingsFlash::with_contents(
+            part(SETTINGS_AT, SETTINGS_FLASH_LEN),
+            window(SETTINGS_AT),
+        ),
+        program: ProgramFlash::with_contents(
+            part(PROGRAM_AT, PROGRAM_FLASH_LEN),
+            window(PROGRAM_AT),
+        ),
+    }
+}
+
+/// The board's flash kept in the state file at `path`, made erased when there is none: each
+/// completed erase and write is in the file before it returns. The file stays locked for this
+/// simulator until the flash is dropped.
+///
+/// Errors: [`StateError`].
+pub fn open(path: &Path) -> Result<Flash, StateError> {
+    if !path.exists() {
+        create(path)?;
+    }
+    let file = OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(path)
+        .map_err(io_error(path))?;
+    let file =
+        Flock::lock(file, FlockArg::LockExclusiveNonblock).map_err(|_| StateError::InUse {
+            path: path.to_path_buf(),
+        })?;
+    let bytes = read_checked(&file, path)?;
+    Ok(flashes(&bytes, Some(Arc::new(file))))
+}
+
+/// A copy in memory of the flash in the state file at `path`, as it is now: what the board
+/// changes in it (a repair at start-up) stays out of the file.
+///
+/// Errors: [`StateError`] (a missing file is one).
+pub fn snapshot(path: &Path) -> Result<Flash, StateError> {
+    let file = File::open(path).map_err(io_error(path))?;
+    let bytes = read_checked(&file, path)?;
+    Ok(flashes(&bytes, None))
+}
+
+/// A board's settings with the flash of the state file at `state`, or erased without one.
+///
+/// Errors: the [`StateError`] of [`open`], as text.
+pub fn board_config(state: Option<&Path>) -> Result<BoardConfig, String> {
+    Ok(BoardConfig {
+        flash: match state {
+            Some(path) => open(path).map_err(|e| e.to_string())?,
+            None => Flash::erased(),
+        },
+        ..BoardConfig::default()
+    })
+}
+
+/// Every setting as frame 50 shows it (`key=value`), loaded from `flash` over the machine
+/// file's values as the board loads them at start-up, and the number of stored values it
+/// ignored.
+fn settings_of<const N: usize>(
+    machine: &MachineConfig,
+    flash: SettingsFlash,
+) -> Result<(Vec<String>, u16), BoardError> {
+    let base = kernel_config::<N>(machine)?;
+    let mut store: FlashRecordStorage<SettingsFlash> =
+        FlashRecordStorage::new(flash, 0..SETTINGS_FLASH_LEN as u32)
+            .map_err(|e| BoardError::Storage(e.to_string()))?;
+    let (settings, report) = Settings::load(base, &mut store);
+    let lines = Key::all::<N>()
+        .map(|key| {
+            let mut line = String::new();
+            let _ = key.write_name(settings.machine(), &mut line);
+            line.push('=');
+            let _ = settings.write_value(key, &mut line);
+            line
+        })
+        .collect();
+    Ok((lines, report.ignored))
+}
+
+/// The stored program as the firmware opens it: its lines (each `None` when unreadable), and
+/// its total when it is incomplete (an upload cut short: it does not run).
+fn program_of(flash: ProgramFlash) -> Result<(Vec<Option<String>>, Option<u16>), StoreError> {
+    let storage: FlashRecordStorage<ProgramFlash> =
+        FlashRecordStorage::new(flash, 0..PROGRAM_FLASH_LEN as u32)
+            .map_err(|_| StoreError::Device)?;
+    let mut store = RecordProgramStore::open(storage, MAX_LINES)?;
+    let mut buf = [0u8; MAX_LINE_LEN];
+    let lines = (1..=store.len())
+        .map(|index| {
+            let len = store.read(index, &mut buf).ok()?;
+            Some(String::from_utf8_lossy(buf.get(..len)?).into_owned())
+        })
+        .collect();
+    let incomplete = (!store.is_empty() && !store.is_complete()).then(|| store.total());
+    Ok((lines, incomplete))
+}
+
+/// What the state file at `path` keeps, as the firmware finds it when it starts on it: every
+/// setting (`key=value`, as frame 50 shows it), then the stored program, line by line, and
+/// whether it is complete. The firmware is started on a copy of the file, which stays as it
+/// is.
+///
+/// Errors: a [`StateError`], or a firmware that does not start on the file, as text.
+pub fn describe(machine: &MachineConfig, path: &Path) -> Result<String, String> {
+    let config = BoardConfig {
+        flash: snapshot(path).map_err(|e| e.to_string())?,
+        ..BoardConfig::default()
+    };
+    SimBoard::new(&SimMachine::new(machine), config).map_err(|e| {
+        format!(
+            "state file {}: the firmware does not start: {e}",
+            path.display()
+        )
+    })?;
+    let Flash { program, settings } = snapshot(path).map_err(|e| e.to_string())?;
+    let (lines, ignored) = match machine.axes.len() {
+        1 => settings_of::<1>(machine, settings),
+        2 => settings_of::<2>(machine, settings),
+        3 => settings_of::<3>(machine, settings),
+        4 => settings_of::<4>(machine, settings),
+        5 => settings_of::<5>(machine, settings),
+        6 => settings_of::<6>(machine, settings),
+        7 => settings_of::<7>(machine, settings),
+        8 => settings_of::<8>(machine, settings),
+        n => Err(BoardError::AxisCount(n)),
+    }
+    .map_err(|e| e.to_string())?;
+    let (program, incomplete) =
+        program_of(program).map_err(|e| format!("state file {}: program: {e}", path.display()))?;
+    let mut out = format!("state: {}\n  settings:\n", path.display());
+    for line in &lines {
+        out.push_str(&format!("    {line}\n"));
+    }
+    if ignored > 0 {
+        out.push_str(&format!("    ({ignored} stored values ignored)\n"));
+    }
+    out.push_str(&match (program.len(), incomplete) {
+        (0, _) => "  program: none\n".to_string(),
+        (n, None) => format!("  program: {n} lines, complete\n"),
+        (n, Some(total)) => {
+            format!("  program: {n} of {total} lines, incomplete (an upload cut short: it does not run)\n")
+        }
+    });
+    for (index, line) in program.iter().enumerate() {
+        match line {
+            Some(text) => out.push_str(&format!("    {:04} {text}\n", index + 1)),
+            None => out.push_str(&format!("    {:04} (unreadable)\n", index + 1)),
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use embedded_storage::nor_flash::{NorFlash as _, ReadNorFlash as _};
+
+    use super::*;
+
+    fn temp_path(name: &str) -> PathBuf {
+        std::env::temp_dir().join(format!("forja-sim-state-{}-{name}", std::process::id()))
+    }
+
+    #[test]
+    fn every_completed_operation_is_in_the_file_and_survives_a_reopen() {
+        let path = temp_path("ops");
+        let _ = std::fs::remove_file(&path);
+        let mut flash = open(&path).unwrap();
+        assert_eq!(
+            std::fs::metadata(&path).unwrap().len(),
+            STATE_FILE_LEN as u64
+        );
+        assert!(matches!(open(&path), Err(StateError::InUse { .. })));
+        flash.settings.write(8, &[1, 2, 3, 4]).unwrap();
+        flash.program.write(4096, &[0x0F; 8]).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(&bytes[SETTINGS_AT + 8..SETTINGS_AT + 12], &[1, 2, 3, 4]);
+        assert_eq!(&bytes[PROGRAM_AT + 4096..PROGRAM_AT + 4104], &[0x0F; 8]);
+        assert_eq!(bytes[PROGRAM_AT + 4104], 0xFF);
+        // A refused operation writes nothing.
+        assert_eq!(
+            flash.settings.write(8, &[0; 4]),
+            Err(RamFlashError::WordWrittenTwice)
+        );
+        assert_eq!(std::fs::read(&path).unwrap(), bytes);
+        flash.program.erase(4096, 8192).unwrap();
+        assert_eq!(
+            &std::fs::read(&path).unwrap()[PROGRAM_AT + 4096..PROGRAM_AT + 4104],
+            &[0xFF; 8]
+        );
+        drop(flash);
+
+        let mut again = open(&path).unwrap();
+        let mut b = [0; 4];
+        again.settings.read(8, &mut b).unwrap();
+        assert_eq!(b, [1, 2, 3, 4]);
+        let copy = snapshot(&path).unwrap();
+        drop(again);
+        // A snapshot's changes stay out of the file.
+        let mut copy = copy;
+        copy.settings.erase(0, FLASH_PAGE as u32).unwrap();
+        assert_eq!(
+            &std::fs::read(&path).unwrap()[SETTINGS_AT + 8..SETTINGS_AT + 12],
+            &[1, 2, 3, 4]
+        );
+        std::fs::remove_file(&path).unwrap();
+    }
+
+    #[test]
+    fn a_file_that_cannot_be_written_fails_the_flash_as_a_power_cut_does() {
+        let path = temp_path("readonly");
+        let _ = std::fs::remove_file(&path);
+        drop(open(&path).unwrap());
+        // A descriptor that cannot write: every write to the file fails, as on a full disk.
+        let file = Flock::lock(File::open(&path).unwrap(), FlockArg::LockExclusiveNonblock)
+            .map_err(|(_, e)| e)
+            .unwrap();
+        let window = FlashFile {
+            file: Arc::new(file),
+            base: SETTINGS_AT as u64,
+            failed: false,
+        };
+        let mut flash = SettingsFlash::with_contents(Vec::new(), Some(window));
+        assert_eq!(flash.write(0, &[0; 4]), Err(RamFlashError::MediumFailed));
+        assert_eq!(flash.read(0, &mut [0; 4]), Err(RamFlashError::MediumFailed));
+        assert_eq!(flash.erase(0, 4096), Err(RamFlashError::MediumFailed));
+        assert_eq!(
+            std::fs::read(&path).unwrap()[SETTINGS_AT..SETTINGS_AT + 4],
+            [0xFF; 4]
+        );
+        std::fs::remove_file(&path).unwrap();
+    }
+
+    #[test]
+    fn a_file_of_another_layout_is_refused_and_left_alone() {
+        let path = temp_path("other");
+        std::fs::write(&path, b"not a flash").unwrap();
+        let e = open(&path).unwrap_err();
+        assert!(matches!(e, StateError::NotAState { len: 11, .. }), "{e}");
+        assert!(e.to_string().contains("not a forja-sim state file"), "{e}");
+        let mut wrong = header();
+        wrong[0] = b'F';
+        wrong.resize(STATE_FILE_LEN, 0xFF);
+        std::fs::write(&path, &wrong).unwrap();
+        assert!(matches!(open(&path), Err(StateError::NotAState { .. })));
+        assert_eq!(std::fs::read(&path).unwrap(), wrong);
+        std::fs::remove_file(&path).unwrap();
+    }
+
+    #[test]
+    fn the_firmware_starts_on_any_flash_contents() {
+        // Power cuts leave torn records; a damaged file may hold anything. The firmware starts
+        // (the storage layer ignores or repairs what does not check), and never panics.
+        let path = temp_path("noise");
+        let machine = MachineConfig::default_router();
+        let mut seed = 0x9E37_79B9_7F4A_7C15_u64;
+        for fill in 0..4u8 {
+            let mut bytes = header();
+            for _ in 0..SETTINGS_FLASH_LEN + PROGRAM_FLASH_LEN {
+                seed ^= seed << 13;
+                seed ^= seed >> 7;
+                seed ^= seed << 17;
+                bytes.push(match fill {
+                    0 => 0x00,
+                    1 => seed as u8,
+                    2 => (seed as u8) | 0xF0,
+                    _ => 0xFF,
+                });
+            }
+            std::fs::write(&path, &bytes).unwrap();
+            match describe(&machine, &path) {
+                Ok(text) => {
+                    assert!(text.contains("x.steps_per_mm=80\n"), "{text}");
+                    assert!(text.contains("program: none\n"), "{text}");
+                }
+                // Noise that is not records: refused by name, not a panic.
+                Err(e) => {
+                    assert_ne!(fill, 3, "an erased flash starts: {e}");
+                    assert!(e.contains("the firmware does not start: flash:"), "{e}");
+                }
+            }
+            assert_eq!(
+                std::fs::read(&path).unwrap(),
+                bytes,
+                "--check changes nothing"
+            );
+        }
+        std::fs::remove_file(&path).unwrap();
+    }
+}

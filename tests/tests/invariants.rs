@@ -1,0 +1,119 @@
+//! The controller's safety invariants ([`forja_tests::invariants`]) under arbitrary scripts of
+//! host input: moves, refused and damaged lines, realtime frames, `M112`, jogs and homing.
+//! The same scripts run for much longer under `cargo xtask fuzz` (target `controller`).
+
+use forja_tests::invariants::{BadLine, Op, run};
+use proptest::prelude::*;
+
+proptest! {
+    #![proptest_config(ProptestConfig {
+        cases: 48,
+        max_shrink_iters: 200,
+        failure_persistence: None,
+        // The same scripts on every run: CI is reproducible, and `cargo xtask fuzz` explores.
+        rng_seed: proptest::test_runner::RngSeed::Fixed(0x0046_4f52_4a41),
+        ..ProptestConfig::default()
+    })]
+
+    #[test]
+    fn invariants_hold_for_any_script(bytes in prop::collection::vec(any::<u8>(), 0..80)) {
+        run(&Op::decode(&bytes));
+    }
+}
+
+/// The reported sequence: a move, a pause in the middle of it, a stop, then more moves.
+#[test]
+fn stop_during_pause_keeps_the_position_true() {
+    run(&[
+        Op::Move {
+            axis: 0,
+            units: 100,
+        },
+        Op::Wait { ms: 40 },
+        Op::Pause,
+        Op::Wait { ms: 300 },
+        Op::Stop,
+        Op::Move { axis: 0, units: 50 },
+        Op::Move {
+            axis: 1,
+            units: -40,
+        },
+    ]);
+}
+
+/// A refused line changes no modal state: the moves after it stay relative.
+#[test]
+fn refused_lines_change_nothing() {
+    run(&[
+        Op::Move { axis: 0, units: 10 },
+        Op::Bad(BadLine::ModalThenBad),
+        Op::Move { axis: 0, units: 10 },
+        Op::Bad(BadLine::UnknownAxis),
+        Op::Bad(BadLine::UnknownCommand),
+        Op::Move {
+            axis: 1,
+            units: -10,
+        },
+    ]);
+}
+
+/// Moves acknowledged during a pause run once after it.
+#[test]
+fn moves_acknowledged_during_a_pause_run_after_it() {
+    let mut script = vec![
+        Op::Move {
+            axis: 0,
+            units: 100,
+        },
+        Op::Wait { ms: 20 },
+        Op::Pause,
+    ];
+    for _ in 0..6 {
+        script.push(Op::Move { axis: 0, units: 1 });
+    }
+    script.push(Op::Status);
+    script.push(Op::Wait { ms: 40 });
+    script.push(Op::Start);
+    run(&script);
+}
+
+/// Short moves queued before a pause all run after it (found by the script test).
+#[test]
+fn queued_moves_survive_a_pause() {
+    let mut script = vec![Op::Move { axis: 0, units: 1 }; 7];
+    script.extend([Op::Pause, Op::Status, Op::Wait { ms: 40 }, Op::Start]);
+    run(&script);
+}
+
+/// Damaged lines are asked for again and run once.
+#[test]
+fn damaged_lines_run_once() {
+    let mut script = Vec::new();
+    for i in 0..20u8 {
+        script.push(Op::Corrupt { at: i * 3 });
+        script.push(Op::Move {
+            axis: usize::from(i % 3),
+            units: 3,
+        });
+    }
+    run(&script);
+}
+
+/// `M112` acts at once behind a long dwell and a held line, and frame 04 is answered.
+#[test]
+fn realtime_path_behind_held_lines() {
+    let mut script = vec![
+        Op::Move {
+            axis: 0,
+            units: 100,
+        },
+        Op::Pause,
+    ];
+    for _ in 0..5 {
+        script.push(Op::Move { axis: 1, units: 10 });
+    }
+    script.push(Op::Status);
+    script.push(Op::Emergency);
+    script.push(Op::Move { axis: 2, units: 10 });
+    run(&script);
+}
