@@ -596,16 +596,6 @@ impl Job {
         self.state = JobState::Idle;
     }
 
-    /// Make `line` (1-based) the next line to run, for a resumed job. Only while not running.
-    pub fn seek(&mut self, line: u16) -> Result<(), JobError> {
-        if matches!(self.state, JobState::Running | JobState::Paused) {
-            return Err(JobError::Busy);
-        }
-        self.next_line = line.max(1);
-        self.state = JobState::Idle;
-        Ok(())
-    }
-
     /// The last line whose motion is finished, as far as the job can tell now: the lines
     /// before the one whose motion is being prepared while the job runs or is paused (the
     /// step queue may still hold the end of that line's motion: see the controller's

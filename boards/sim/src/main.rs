@@ -103,7 +103,11 @@ struct Cli {
     /// With --listen: a controlling host that sends nothing for this many seconds of virtual
     /// time, while no answer is owed to it, loses control (a TCP client is closed). Any byte
     /// keeps it (`M105`, `?`, a frame 04); a host that waits on the machine must poll.
-    #[arg(long, value_name = "SECONDS", default_value_t = 60.0)]
+    #[arg(
+        long,
+        value_name = "SECONDS",
+        default_value_t = f64::from(forja_sim::run::DEFAULT_IDLE_TIMEOUT_MS) / 1000.0
+    )]
     idle_timeout: f64,
 
     /// Keep the board's flash (the settings and the uploaded program) in FILE, made erased
