@@ -374,8 +374,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 feed_mm_min,
                 ramp,
             } => {
-                self.check_soft_limits(&target, &target)?;
-                self.check_reach(&target, &target)?;
+                self.check_move(&target, &target)?;
                 if self.planner.is_full() {
                     return Ok(Reply::Busy);
                 }
@@ -388,8 +387,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 ramp,
             } => {
                 let (lo, hi) = cutter.bounds();
-                self.check_soft_limits(&lo, &hi)?;
-                self.check_reach(&lo, &hi)?;
+                self.check_move(&lo, &hi)?;
                 self.arc = Some(PendingArc {
                     cutter,
                     feed_mm_min,
@@ -478,8 +476,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         let nm = i64::try_from(nm).map_err(|_| CommandError::BadValue { letter: b'S' })?;
         let mut target = self.interp.pos;
         target[axis] = target[axis].saturating_add(nm);
-        self.check_soft_limits(&target, &target)?;
-        self.check_reach(&target, &target)?;
+        self.check_move(&target, &target)?;
         if self.planner.is_full() {
             return Ok(Reply::Busy);
         }
@@ -621,6 +618,14 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             libm::round(f64::from(a.min_mm) * NM_PER_MM) as Nm,
             libm::round(f64::from(a.max_mm) * NM_PER_MM) as Nm,
         )
+    }
+
+    /// Refuse a move from the commanded position over `lo..=hi` (machine nm) that leaves the
+    /// travel of a homed axis ([`CommandError::SoftLimit`]) or that no machine can make
+    /// ([`CommandError::OutOfReach`], see [`Kernel::check_reach`]), in that order.
+    fn check_move(&self, lo: &[Nm; N], hi: &[Nm; N]) -> Result<(), CommandError> {
+        self.check_soft_limits(lo, hi)?;
+        self.check_reach(lo, hi)
     }
 
     fn check_soft_limits(&self, lo: &[Nm; N], hi: &[Nm; N]) -> Result<(), CommandError> {
