@@ -360,6 +360,13 @@ fn put_check(cursor: &mut Cursor<'_>, check: Check) -> Result<(), EncodeError> {
     }
 }
 
+/// Whether `bytes` is a numbered line whose check (the XOR or the CRC-16) verifies: a record
+/// that is whole even without its terminator, and that no frame can be (a frame's `*` padding
+/// is no check).
+pub fn is_checked_line(bytes: &[u8]) -> bool {
+    Line::parse(bytes).is_ok_and(|line| line.check().is_some())
+}
+
 /// Write `body` (one line of a program, without terminator) as numbered line `number`:
 /// `N<number> <body>*<checksum>`, with the body's comments and surrounding spaces removed.
 /// What a host sends when it streams a file with line numbers. Returns the length written.

@@ -43,12 +43,12 @@
 use heapless::Vec;
 
 use crate::frame::{FRAME_LEN, Frame, START};
-use crate::gcode::{Line, MAX_LINE_LEN};
+use crate::gcode::{MAX_LINE_LEN, is_checked_line};
 
 /// Whether `bytes` is a frame record: it [is a frame](crate::frame::is_frame) and does not
 /// parse as a numbered, checksummed G-code line (see the module's rules).
 pub fn is_frame_record(bytes: &[u8]) -> bool {
-    crate::frame::is_frame(bytes) && !Line::parse(bytes).is_ok_and(|l| l.check().is_some())
+    crate::frame::is_frame(bytes) && !is_checked_line(bytes)
 }
 
 /// One record, or one report, out of the stream.

@@ -851,7 +851,7 @@ where
         let partial = self.decoder.partial();
         let numbered_start = matches!(partial, [b'N' | b'n', d, ..] if d.is_ascii_digit());
         (numbered_start && self.core.link.numbering.is_numbered())
-            || forja_protocol::gcode::Line::parse(partial).is_ok_and(|line| line.check().is_some())
+            || forja_protocol::gcode::is_checked_line(partial)
     }
 
     /// Take the controller apart: the kernel, the program store, the peripherals and the
