@@ -9,7 +9,7 @@ use forja_protocol::reply::{Axes, FORJA_CAPABILITIES, KeyValues, LINE_CHECK, Rep
 
 use super::peripherals::{Peripherals, Reading};
 use super::text::{self, Refusal, Text};
-use super::{ControllerError, Core, Held, JobState, LineBuf, Queued, wire};
+use super::{ControllerError, Core, Dropped, Held, JobState, LineBuf, Queued, wire};
 use crate::config::HomeDirection;
 use crate::effect::{Effect, Heater, Spindle, StopKind, Storage};
 use crate::error::{Alarm, CommandError, JobError};
@@ -207,10 +207,23 @@ where
         }
     }
 
-    /// Queue an over-long line or a garbage run behind waiting lines.
-    pub(super) fn enqueue_marker<W: Write>(&mut self, marker: u8, out: &mut W) {
-        if !self.link.queue.push_marker(marker) {
+    /// A record the decoder dropped (an over-long line, a garbage run): answered now, or,
+    /// behind waiting lines, queued for its turn, so that the resend it may ask for names the
+    /// line expected then.
+    pub(super) fn on_dropped<W: Write>(&mut self, dropped: Dropped, out: &mut W) {
+        if !self.link.lines_held() {
+            return self.answer_dropped(dropped, out);
+        }
+        if !self.link.queue.push_dropped(dropped) {
             self.refuse(&Refusal::new(&ControllerError::QueueFull), out);
+        }
+    }
+
+    /// The answer to a dropped record, in its turn.
+    fn answer_dropped<W: Write>(&mut self, dropped: Dropped, out: &mut W) {
+        match dropped {
+            Dropped::TooLong => self.on_line_error(&LineError::TooLong, out),
+            Dropped::Garbage { text } => self.on_garbage_run(text, out),
         }
     }
 
@@ -255,8 +268,7 @@ where
         while let Some(entry) = self.link.queue.pop(&mut lb) {
             match entry {
                 Queued::Line => self.drop_line(lb.bytes(), why, out),
-                Queued::TooLong => self.on_line_error(&LineError::TooLong, out),
-                Queued::Garbage { text } => self.on_garbage_run(text, out),
+                Queued::Dropped(dropped) => self.answer_dropped(dropped, out),
             }
         }
     }
@@ -432,8 +444,7 @@ where
             };
             match entry {
                 Queued::Line => self.process_line(lb.bytes(), out),
-                Queued::TooLong => self.on_line_error(&LineError::TooLong, out),
-                Queued::Garbage { text } => self.on_garbage_run(text, out),
+                Queued::Dropped(dropped) => self.answer_dropped(dropped, out),
             }
         }
     }

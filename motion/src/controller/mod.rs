@@ -429,19 +429,27 @@ const GARBAGE: u8 = 0x02;
 /// The queue entry of a run of garbage that held printable bytes too.
 const GARBAGE_TEXT: u8 = 0x03;
 
+/// A record the decoder dropped: answered as it arrives, or in its turn behind waiting lines
+/// (the resend it may ask for must name the line expected then).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Dropped {
+    /// A line over [`MAX_LINE_LEN`] bytes.
+    TooLong,
+    /// A run of garbage; `text` when it held printable bytes.
+    Garbage {
+        /// Printable bytes were among it.
+        text: bool,
+    },
+}
+
 /// One entry of the receive queue, taken out.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Queued {
     /// A G-code line, as received, not yet checked (its bytes in the buffer given to
     /// [`LineQueue::pop`]).
     Line,
-    /// A line over [`MAX_LINE_LEN`] bytes was dropped here.
-    TooLong,
-    /// A run of garbage was dropped here; `text` when it held printable bytes.
-    Garbage {
-        /// Printable bytes were among it.
-        text: bool,
-    },
+    /// A record dropped here.
+    Dropped(Dropped),
 }
 
 /// The receive queue: what arrived behind a waiting G-code line, in order, for its turn. A
@@ -510,21 +518,26 @@ impl LineQueue {
         true
     }
 
-    /// Queue a [`TOO_LONG`], [`GARBAGE`] or [`GARBAGE_TEXT`] entry; `false` when full.
-    fn push_marker(&mut self, marker: u8) -> bool {
+    /// Queue a dropped record, as its [`TOO_LONG`], [`GARBAGE`] or [`GARBAGE_TEXT`] byte;
+    /// `false` when full.
+    fn push_dropped(&mut self, dropped: Dropped) -> bool {
         if self.len >= LINE_QUEUE_LEN {
             return false;
         }
-        self.push_byte(marker);
+        self.push_byte(match dropped {
+            Dropped::TooLong => TOO_LONG,
+            Dropped::Garbage { text: false } => GARBAGE,
+            Dropped::Garbage { text: true } => GARBAGE_TEXT,
+        });
         true
     }
 
     /// Take the oldest entry; a line's bytes go to `line`.
     fn pop(&mut self, line: &mut LineBuf) -> Option<Queued> {
         match self.pop_byte()? {
-            TOO_LONG => Some(Queued::TooLong),
-            GARBAGE => Some(Queued::Garbage { text: false }),
-            GARBAGE_TEXT => Some(Queued::Garbage { text: true }),
+            TOO_LONG => Some(Queued::Dropped(Dropped::TooLong)),
+            GARBAGE => Some(Queued::Dropped(Dropped::Garbage { text: false })),
+            GARBAGE_TEXT => Some(Queued::Dropped(Dropped::Garbage { text: true })),
             first => {
                 line.len = 0;
                 let mut b = first;
@@ -946,19 +959,10 @@ where
         match event {
             Event::Line(bytes) => self.on_line(bytes, out),
             Event::Frame(frame) => self.on_frame(&frame, out),
-            // Behind waiting lines, garbage and over-long lines wait their turn: the resend
-            // they may ask for must name the line expected then.
-            Event::Garbage { text, .. } if self.link.lines_held() => {
-                self.enqueue_marker(if text { GARBAGE_TEXT } else { GARBAGE }, out)
-            }
-            Event::Garbage { text, .. } => self.on_garbage_run(text, out),
-            Event::TooLong { .. } if self.link.lines_held() => {
-                self.link.gcode_seen = true;
-                self.enqueue_marker(TOO_LONG, out);
-            }
+            Event::Garbage { text, .. } => self.on_dropped(Dropped::Garbage { text }, out),
             Event::TooLong { .. } => {
                 self.link.gcode_seen = true;
-                self.on_line_error(&forja_protocol::gcode::LineError::TooLong, out);
+                self.on_dropped(Dropped::TooLong, out);
             }
             _ => {}
         }

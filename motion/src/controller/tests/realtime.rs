@@ -395,18 +395,24 @@ fn the_receive_queue_keeps_entries_in_order_across_its_end() {
     // Fill and drain repeatedly so that entries wrap around the end of the ring.
     for round in 0..20u8 {
         assert!(q.push_line(&line[..usize::from(round) + 1]));
-        assert!(q.push_marker(TOO_LONG));
+        assert!(q.push_dropped(Dropped::TooLong));
         assert!(q.push_line(b"M105"));
-        assert!(q.push_marker(GARBAGE));
-        assert!(q.push_marker(GARBAGE_TEXT));
+        assert!(q.push_dropped(Dropped::Garbage { text: false }));
+        assert!(q.push_dropped(Dropped::Garbage { text: true }));
         let mut l = LineBuf::EMPTY;
         assert_eq!(q.pop(&mut l), Some(Queued::Line));
         assert_eq!(l.bytes(), &line[..usize::from(round) + 1]);
-        assert_eq!(q.pop(&mut l), Some(Queued::TooLong));
+        assert_eq!(q.pop(&mut l), Some(Queued::Dropped(Dropped::TooLong)));
         assert_eq!(q.pop(&mut l), Some(Queued::Line));
         assert_eq!(l.bytes(), b"M105");
-        assert_eq!(q.pop(&mut l), Some(Queued::Garbage { text: false }));
-        assert_eq!(q.pop(&mut l), Some(Queued::Garbage { text: true }));
+        assert_eq!(
+            q.pop(&mut l),
+            Some(Queued::Dropped(Dropped::Garbage { text: false }))
+        );
+        assert_eq!(
+            q.pop(&mut l),
+            Some(Queued::Dropped(Dropped::Garbage { text: true }))
+        );
         assert!(q.is_empty());
         // Leave some bytes behind to move the head along.
         assert!(q.push_line(&line[..37]));
