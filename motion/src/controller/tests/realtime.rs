@@ -62,6 +62,14 @@ fn m112_acts_at_once(b: &mut Bench, sent: u32) {
     assert!(b.take().is_empty());
 }
 
+/// What the controller sent since the last look, without the temperature reports.
+fn replies(b: &mut Bench) -> Vec<String> {
+    b.take()
+        .into_iter()
+        .filter(|l| !l.starts_with("//"))
+        .collect()
+}
+
 /// Send `lines` at once, as a host that sends ahead does.
 fn send_ahead(b: &mut Bench, lines: &[&str]) -> u32 {
     for l in lines {
@@ -223,11 +231,7 @@ fn queued_lines_get_one_ok_each_in_order_and_run_once() {
     assert!(b.take().is_empty(), "nothing answered before M109 is done");
     b.run_until(10_000, |b| !b.ctl.is_holding());
     b.run_ms(5);
-    let out: Vec<String> = b
-        .take()
-        .into_iter()
-        .filter(|l| !l.starts_with("//"))
-        .collect();
+    let out = replies(&mut b);
     assert_eq!(out.len(), bodies.len(), "{out:?}");
     assert_eq!(out[0], "ok");
     assert_eq!(out[2], "ok C: X:1.000 Y:0.000 Z:0.000");
@@ -254,11 +258,7 @@ fn a_checksum_error_behind_queued_lines_asks_for_the_right_line() {
     assert!(b.link.rx.is_empty());
     b.run_until(10_000, |b| !b.ctl.is_holding());
     b.run_ms(5);
-    let out: Vec<String> = b
-        .take()
-        .into_iter()
-        .filter(|l| !l.starts_with("//"))
-        .collect();
+    let out = replies(&mut b);
     assert_eq!(&out[..2], ["ok", "ok"], "{out:?}");
     // Line 3 and each line after it is answered `rs 3`, none runs.
     assert_eq!(out[2..], ["rs 3", "rs 3", "rs 3"], "{out:?}");
@@ -286,11 +286,7 @@ fn garbage_behind_queued_lines_asks_for_the_line_expected_then() {
     assert!(b.take().is_empty());
     b.run_until(10_000, |b| !b.ctl.is_holding());
     b.run_ms(5);
-    let out: Vec<String> = b
-        .take()
-        .into_iter()
-        .filter(|l| !l.starts_with("//"))
-        .collect();
+    let out = replies(&mut b);
     let replies: Vec<&String> = out.iter().filter(|l| !l.starts_with('N')).collect();
     assert_eq!(replies, ["ok", "ok", "rs 3", "rs 3"], "{out:?}");
 }
@@ -463,14 +459,6 @@ fn realtime_commands_are_found_as_marlin_finds_them() {
     ] {
         assert_eq!(realtime(text.as_bytes()), found, "{text}");
     }
-}
-
-/// The replies after a `Stop` or `Reset` frame, without the temperature reports.
-fn replies(b: &mut Bench) -> Vec<String> {
-    b.take()
-        .into_iter()
-        .filter(|l| !l.starts_with("//"))
-        .collect()
 }
 
 #[test]
