@@ -81,8 +81,7 @@ use forja_motion::{
     AxisConfig, AxisKind as KernelAxisKind, HomeDirection, HomingConfig, Kernel,
     MachineConfig as KernelConfig, MachineState, StepGenerator, StepQueue, SwitchAlert,
 };
-use forja_protocol::frame::is_frame;
-use forja_protocol::gcode::MAX_LINE_LEN;
+use forja_protocol::stream::{Decoder, Event};
 
 use crate::config::{AxisKind, MachineConfig, SwitchPolarity, SwitchSide};
 use crate::limit::SimSwitchPin;
@@ -331,11 +330,10 @@ struct Served {
     fresh: bool,
     failure: Option<String>,
     stats: PortStats,
-    /// The line being received while another host is in control, looked at for `M112` when
-    /// its terminator comes ([`Served::refuse_input`]).
-    refused_line: Vec<u8>,
-    /// That line is over [`MAX_LINE_LEN`] bytes: not a line the controller would take.
-    refused_overlong: bool,
+    /// The input received while another host is in control, cut into records as the
+    /// controller cuts its own link's, each line looked at for `M112`
+    /// ([`Served::refuse_input`]).
+    refused: Decoder,
 }
 
 impl Served {
@@ -349,10 +347,11 @@ impl Served {
     }
 
     /// Take and drop the input of a host that is not in control — except that an `M112` line
-    /// among it (found as the controller finds it, [`realtime`]: its command word after an
-    /// optional `N` number, whatever its checksum) is reported, for the board to carry out: an
-    /// emergency stop acts from any host, as realtime commands do from every connection of
-    /// FluidNC and grblHAL. Returns the bytes dropped and whether an `M112` came.
+    /// among it (found as the controller finds it: the records of the stream decoder, and
+    /// among its lines [`realtime`], the command word after an optional `N` number, whatever
+    /// the checksum) is reported, for the board to carry out: an emergency stop acts from any
+    /// host, as realtime commands do from every connection of FluidNC and grblHAL. Returns the
+    /// bytes dropped and whether an `M112` came.
     fn refuse_input(&mut self) -> io::Result<(usize, bool)> {
         let mut buf = [0u8; 256];
         let mut dropped = 0;
@@ -363,28 +362,14 @@ impl Served {
                 break;
             }
             dropped += n;
-            for &b in buf.get(..n).unwrap_or(&[]) {
-                if matches!(b, b'\n' | b'\r') {
-                    let line = core::mem::take(&mut self.refused_line);
-                    stop |= !core::mem::take(&mut self.refused_overlong)
-                        && !is_frame(&line)
-                        && realtime(&line) == Some(Realtime::EmergencyStop);
-                } else if self.refused_line.len() < MAX_LINE_LEN {
-                    self.refused_line.push(b);
-                } else {
-                    self.refused_overlong = true;
+            self.refused.feed_all(buf.get(..n).unwrap_or(&[]), |event| {
+                if let Event::Line(line) = event {
+                    stop |= realtime(line) == Some(Realtime::EmergencyStop);
                 }
-            }
+            });
         }
         dropped += self.link.discard_input()?;
         Ok((dropped, stop))
-    }
-
-    /// Forget the partial line of [`Served::refuse_input`]: the port's input goes to the
-    /// controller now.
-    fn forget_refused_line(&mut self) {
-        self.refused_line.clear();
-        self.refused_overlong = false;
     }
 }
 
@@ -773,7 +758,8 @@ impl<const N: usize> Wired<N> {
         let mut stop = false;
         for (i, p) in ports.iter_mut().enumerate() {
             if arb.active == Some(i) {
-                p.forget_refused_line();
+                // The port's input goes to the controller now.
+                p.refused.reset();
                 continue;
             }
             match p.refuse_input() {
@@ -1058,8 +1044,7 @@ impl SimBoard {
             fresh: false,
             failure: None,
             stats: PortStats::default(),
-            refused_line: Vec::new(),
-            refused_overlong: false,
+            refused: Decoder::new(),
         });
         PortId(self.ports.len() - 1)
     }
