@@ -73,8 +73,8 @@ use forja_hal_abstraction::link::LinkState;
 use forja_hal_abstraction::stepper::StepTiming;
 use forja_hal_abstraction::time::Instant;
 use forja_motion::controller::{
-    Controller, ControllerConfig, Realtime, RecordProgramStore, Settings, Stats as ControllerStats,
-    realtime,
+    Controller, ControllerConfig, Key, Realtime, RecordProgramStore, Settings,
+    Stats as ControllerStats, realtime,
 };
 use forja_motion::job::{JobState, Progress};
 use forja_motion::{
@@ -461,7 +461,24 @@ trait Wiring {
     fn status(&self) -> BoardStatus;
     fn keep_alive_ms(&self) -> u32;
     fn program_line(&mut self, index: u16) -> Option<String>;
+    fn stored(&mut self) -> Stored;
     fn into_flash(self: Box<Self>) -> Flash;
+}
+
+/// What a board keeps in its flash, as its firmware read it when it started: the settings and
+/// the uploaded program ([`SimBoard::stored`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Stored {
+    /// Every setting as frame 50 shows it: `key=value`.
+    pub settings: Vec<String>,
+    /// Stored setting values the firmware ignored when it started (unreadable, not decodable,
+    /// or making the configuration invalid).
+    pub ignored_settings: u16,
+    /// The program's lines in order, each `None` when it cannot be read.
+    pub program: Vec<Option<String>>,
+    /// The program's total number of lines, 0 with no program; more than `program.len()` for
+    /// an upload cut short, which does not run.
+    pub program_total: u16,
 }
 
 /// The kernel's configuration for a machine file. See the [module documentation](self) for
@@ -600,6 +617,8 @@ struct Wired<const N: usize> {
     alarm: SimAlarm,
     machine: SimMachine,
     booted: bool,
+    /// Stored setting values ignored at start-up.
+    ignored_settings: u16,
 }
 
 fn storage_error(e: impl fmt::Debug) -> BoardError {
@@ -625,7 +644,7 @@ impl<const N: usize> Wired<N> {
         let mut settings_store =
             FlashRecordStorage::new(flash.settings, 0..SETTINGS_FLASH_LEN as u32)
                 .map_err(storage_error)?;
-        let (settings, _) = Settings::load(base, &mut settings_store);
+        let (settings, loaded) = Settings::load(base, &mut settings_store);
         let queue: &'static mut StepQueue<N, QUEUE_EVENTS> = Box::leak(Box::new(StepQueue::new()));
         let (kernel, isr): (Kernel<'static, N, PLANNER_BLOCKS, QUEUE_EVENTS>, _) =
             forja_motion::split(queue, settings.machine().clone(), machine.tick_hz(), timing)
@@ -705,6 +724,7 @@ impl<const N: usize> Wired<N> {
             alarm: machine.alarm(),
             machine: machine.clone(),
             booted: false,
+            ignored_settings: loaded.ignored,
         })
     }
 
@@ -950,6 +970,28 @@ impl<const N: usize> Wiring for Wired<N> {
         Some(String::from_utf8_lossy(buf.get(..len)?).into_owned())
     }
 
+    fn stored(&mut self) -> Stored {
+        let settings = self.controller.settings();
+        let settings = Key::all::<N>()
+            .map(|key| {
+                let mut line = String::new();
+                let _ = key.write_name(settings.machine(), &mut line);
+                line.push('=');
+                let _ = settings.write_value(key, &mut line);
+                line
+            })
+            .collect();
+        let store = self.controller.program();
+        let len = forja_motion::job::ProgramStore::len(store);
+        let program_total = forja_motion::job::ProgramStore::total(store);
+        Stored {
+            settings,
+            ignored_settings: self.ignored_settings,
+            program: (1..=len).map(|i| self.program_line(i)).collect(),
+            program_total,
+        }
+    }
+
     fn into_flash(self: Box<Self>) -> Flash {
         let (_, program, _, settings) = self.controller.release();
         Flash {
@@ -1106,6 +1148,11 @@ impl SimBoard {
     /// Line `index` (1-based) of the stored program.
     pub fn program_line(&mut self, index: u16) -> Option<String> {
         self.wiring.program_line(index)
+    }
+
+    /// The settings and the program the firmware keeps, as it read them when it started.
+    pub fn stored(&mut self) -> Stored {
+        self.wiring.stored()
     }
 
     /// Stop the board and take its flash, to start another on it (a restart).

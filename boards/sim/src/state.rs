@@ -50,16 +50,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use forja_drivers::ram_flash::RamFlashError;
-use forja_drivers::storage::FlashRecordStorage;
-use forja_motion::controller::settings::Key;
-use forja_motion::controller::{RecordProgramStore, Settings};
-use forja_motion::error::StoreError;
-use forja_motion::job::{MAX_LINE_LEN, MAX_LINES, ProgramStore as _};
 use nix::fcntl::{Flock, FlockArg};
 
 use crate::board::{
-    BoardConfig, BoardError, FLASH_PAGE, Flash, PROGRAM_FLASH_LEN, ProgramFlash,
-    SETTINGS_FLASH_LEN, SettingsFlash, SimBoard, kernel_config,
+    BoardConfig, FLASH_PAGE, Flash, PROGRAM_FLASH_LEN, ProgramFlash, SETTINGS_FLASH_LEN,
+    SettingsFlash, SimBoard, Stored,
 };
 use crate::config::MachineConfig;
 use crate::machine::SimMachine;
@@ -283,48 +278,6 @@ pub fn board_config(state: Option<&Path>) -> Result<BoardConfig, String> {
     })
 }
 
-/// Every setting as frame 50 shows it (`key=value`), loaded from `flash` over the machine
-/// file's values as the board loads them at start-up, and the number of stored values it
-/// ignored.
-fn settings_of<const N: usize>(
-    machine: &MachineConfig,
-    flash: SettingsFlash,
-) -> Result<(Vec<String>, u16), BoardError> {
-    let base = kernel_config::<N>(machine)?;
-    let mut store: FlashRecordStorage<SettingsFlash> =
-        FlashRecordStorage::new(flash, 0..SETTINGS_FLASH_LEN as u32)
-            .map_err(|e| BoardError::Storage(e.to_string()))?;
-    let (settings, report) = Settings::load(base, &mut store);
-    let lines = Key::all::<N>()
-        .map(|key| {
-            let mut line = String::new();
-            let _ = key.write_name(settings.machine(), &mut line);
-            line.push('=');
-            let _ = settings.write_value(key, &mut line);
-            line
-        })
-        .collect();
-    Ok((lines, report.ignored))
-}
-
-/// The stored program as the firmware opens it: its lines (each `None` when unreadable), and
-/// its total when it is incomplete (an upload cut short: it does not run).
-fn program_of(flash: ProgramFlash) -> Result<(Vec<Option<String>>, Option<u16>), StoreError> {
-    let storage: FlashRecordStorage<ProgramFlash> =
-        FlashRecordStorage::new(flash, 0..PROGRAM_FLASH_LEN as u32)
-            .map_err(|_| StoreError::Device)?;
-    let mut store = RecordProgramStore::open(storage, MAX_LINES)?;
-    let mut buf = [0u8; MAX_LINE_LEN];
-    let lines = (1..=store.len())
-        .map(|index| {
-            let len = store.read(index, &mut buf).ok()?;
-            Some(String::from_utf8_lossy(buf.get(..len)?).into_owned())
-        })
-        .collect();
-    let incomplete = (!store.is_empty() && !store.is_complete()).then(|| store.total());
-    Ok((lines, incomplete))
-}
-
 /// What the state file at `path` keeps, as the firmware finds it when it starts on it: every
 /// setting (`key=value`, as frame 50 shows it), then the stored program, line by line, and
 /// whether it is complete. The firmware is started on a copy of the file, which stays as it
@@ -336,29 +289,22 @@ pub fn describe(machine: &MachineConfig, path: &Path) -> Result<String, String> 
         flash: snapshot(path).map_err(|e| e.to_string())?,
         ..BoardConfig::default()
     };
-    SimBoard::new(&SimMachine::new(machine), config).map_err(|e| {
-        format!(
-            "state file {}: the firmware does not start: {e}",
-            path.display()
-        )
-    })?;
-    let Flash { program, settings } = snapshot(path).map_err(|e| e.to_string())?;
-    let (lines, ignored) = match machine.axes.len() {
-        1 => settings_of::<1>(machine, settings),
-        2 => settings_of::<2>(machine, settings),
-        3 => settings_of::<3>(machine, settings),
-        4 => settings_of::<4>(machine, settings),
-        5 => settings_of::<5>(machine, settings),
-        6 => settings_of::<6>(machine, settings),
-        7 => settings_of::<7>(machine, settings),
-        8 => settings_of::<8>(machine, settings),
-        n => Err(BoardError::AxisCount(n)),
-    }
-    .map_err(|e| e.to_string())?;
-    let (program, incomplete) =
-        program_of(program).map_err(|e| format!("state file {}: program: {e}", path.display()))?;
+    let Stored {
+        settings,
+        ignored_settings: ignored,
+        program,
+        program_total,
+    } = SimBoard::new(&SimMachine::new(machine), config)
+        .map_err(|e| {
+            format!(
+                "state file {}: the firmware does not start: {e}",
+                path.display()
+            )
+        })?
+        .stored();
+    let incomplete = (usize::from(program_total) > program.len()).then_some(program_total);
     let mut out = format!("state: {}\n  settings:\n", path.display());
-    for line in &lines {
+    for line in &settings {
         out.push_str(&format!("    {line}\n"));
     }
     if ignored > 0 {
