@@ -19,13 +19,14 @@ use super::settings::tests::VecStorage;
 use super::*;
 use crate::config::{AxisConfig, HomeDirection, HomingConfig, MachineConfig};
 use crate::effect::{Heater, Spindle};
-use crate::job::{JobState, RamStore};
+use crate::job::{JobState, ProgramStore, RamStore};
 use crate::kernel::{MachineState, split};
 use crate::queue::StepQueue;
 use crate::sim::{EdgeWatch, Recorder, SimStepper, SimSwitch, Simulation};
 use crate::stepgen::StepGenerator;
 
 mod numbering;
+mod programs;
 mod realtime;
 
 const TICK_HZ: u32 = 1_000_000;
@@ -183,11 +184,12 @@ impl Peripherals<3> for Fake {
     }
 }
 
-type Ctl = Controller<'static, 3, 32, 256, RamStore<8>, Fake, VecStorage>;
+type Ctl<P> = Controller<'static, 3, 32, 256, P, Fake, VecStorage>;
 
-/// The controller on a simulated machine, polled every millisecond of virtual time.
-struct Bench {
-    ctl: Ctl,
+/// The controller on a simulated machine, polled every millisecond of virtual time, keeping
+/// its program in `P`.
+struct Bench<P: ProgramStore = RamStore<8>> {
+    ctl: Ctl<P>,
     isr: StepGenerator<'static, 3, 256>,
     steppers: [SimStepper<3>; 3],
     switches: Vec<SimSwitch<3>>,
@@ -222,32 +224,34 @@ impl Bench {
     }
 
     fn with_machine(config: MachineConfig<3>) -> Self {
+        Self::boot(config, RamStore::<8>::new(), VecStorage::default(), [0; 3])
+    }
+}
+
+impl<P: ProgramStore> Bench<P> {
+    /// Switch on: a new kernel of `config` over `program` and the settings `storage`, the
+    /// motors at `physical` (steps from where the machine was first switched on), the homing
+    /// switches of X and Y 10 mm below that first place.
+    fn boot(config: MachineConfig<3>, program: P, storage: VecStorage, physical: [i32; 3]) -> Self {
         let queue: &'static mut StepQueue<3, 256> = Box::leak(Box::new(StepQueue::new()));
         let timing = StepTiming::CONSERVATIVE;
         let (kernel, isr) = split::<3, 32, 256>(queue, config.clone(), TICK_HZ, timing).unwrap();
         let mut sim = Simulation::new(kernel, isr, timing);
-        // Switches 10 mm below the start, at the low end of X and Y.
         sim.add_switch(0, -800, true);
         sim.add_switch(1, -800, true);
-        let kernel = sim.kernel;
-        let isr = sim.isr;
-        let steppers = sim.steppers;
-        let switches = sim.switches;
-        let edges = sim.edges;
-        let rec = sim.rec;
-        let fake = Fake::new(switches.clone());
+        sim.rec.borrow_mut().position = physical;
+        let fake = Fake::new(sim.switches.clone());
         let mut cfg = ControllerConfig::new("test-bench", timing);
         cfg.extruders = 1;
-        let settings = Settings::new(config);
-        let ctl = Controller::new(kernel, RamStore::<8>::new(), fake, cfg)
-            .with_settings(settings, VecStorage::default());
+        let ctl = Controller::new(sim.kernel, program, fake, cfg)
+            .with_settings(Settings::new(config), storage);
         let mut b = Self {
             ctl,
-            isr,
-            steppers,
-            switches,
-            edges,
-            rec,
+            isr: sim.isr,
+            steppers: sim.steppers,
+            switches: sim.switches,
+            edges: sim.edges,
+            rec: sim.rec,
             alarm: None,
             next_poll: 0,
             link: MemLink::default(),
@@ -255,6 +259,13 @@ impl Bench {
         };
         b.ctl.boot(&mut b.link);
         b
+    }
+
+    /// Power off: the program store, the settings storage, and where the motors are.
+    fn power_off(self) -> (P, VecStorage, [i32; 3]) {
+        let physical = self.rec.borrow().position;
+        let (_, program, _, storage) = self.ctl.release();
+        (program, storage, physical)
     }
 
     fn now(&self) -> u64 {
@@ -348,7 +359,7 @@ impl Bench {
         self.take()
     }
 
-    fn run_until(&mut self, max_ms: u64, mut done: impl FnMut(&mut Bench) -> bool) {
+    fn run_until(&mut self, max_ms: u64, mut done: impl FnMut(&mut Self) -> bool) {
         for _ in 0..max_ms {
             if done(self) {
                 return;
