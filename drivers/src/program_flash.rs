@@ -15,7 +15,7 @@
 //! | 2 | the text's length, 0..=[`MAX_LINE_LEN`] |
 //! | 3..3+len | the text; the rest up to byte 42 is 0 |
 //! | 42..44 | the program's total number of lines, `u16` little-endian |
-//! | 44..48 | the program's digest through this line ([`digest_line`]), `u32` little-endian |
+//! | 44..48 | the program's digest through this line ([`digest_line`](forja_motion::job::digest_line)), `u32` little-endian |
 //! | 48..60 | 0 |
 //! | 60..64 | CRC-32 (IEEE) of bytes 0..60, little-endian |
 //!
@@ -81,10 +81,7 @@ use core::ops::Range;
 
 use embedded_storage::nor_flash::{NorFlash, NorFlashError};
 use forja_motion::error::StoreError;
-use forja_motion::job::{
-    MAX_LINE_LEN, MAX_LINES, ProgramStore, check_next_line, check_total, crc32_update, digest_line,
-    digest_start,
-};
+use forja_motion::job::{MAX_LINE_LEN, MAX_LINES, ProgramState, ProgramStore, crc32_update};
 
 use crate::storage::StorageError;
 
@@ -180,15 +177,12 @@ pub struct SlotProgramStore<F> {
     /// Bytes of the region (a whole number of sectors).
     region_len: u32,
     capacity: u16,
-    count: u16,
-    /// The program's total (0 with none).
-    total: u16,
-    /// The digest of the lines stored (0 with no program).
-    digest: u32,
+    /// Lines stored, the program's total and digest.
+    state: ProgramState,
     /// Bytes from the start of the region erased for the current program: every slot from
-    /// slot `count` up to here is erased (except slot `count` when `tail_dirty`).
+    /// slot `state.count` up to here is erased (except that one when `tail_dirty`).
     erased_end: u32,
-    /// Slot `count` holds a torn or failed write and cannot be written before an erase.
+    /// Slot `state.count` holds a torn or failed write and cannot be written before an erase.
     tail_dirty: bool,
 }
 
@@ -226,47 +220,43 @@ impl<F: NorFlash> SlotProgramStore<F> {
             base: region.start,
             region_len,
             capacity,
-            count: 0,
-            total: 0,
-            digest: 0,
+            state: ProgramState::NONE,
             erased_end: 0,
             tail_dirty: false,
         };
         let mut slot = [0u8; SLOT_LEN];
-        while store.count < capacity && (store.count == 0 || store.count < store.total) {
-            let index = store.count + 1;
-            store.read_slot(store.count, &mut slot)?;
-            let next = decode(index, &slot).filter(|s| {
-                let total = if index == 1 { s.total } else { store.total };
-                let prev = if index == 1 {
-                    digest_start(total)
-                } else {
-                    store.digest
+        while store.state.count < capacity
+            && (store.state.count == 0 || store.state.count < store.state.total)
+        {
+            let index = store.state.count + 1;
+            store.read_slot(store.state.count, &mut slot)?;
+            // Slot 1 begins the program of its total; each slot after it carries that total
+            // and the digest chained over its own line.
+            let next = decode(index, &slot).and_then(|s| {
+                let before = match index {
+                    1 => ProgramState::begin(s.total, capacity).ok()?,
+                    _ => store.state,
                 };
-                s.total == total
-                    && (1..=capacity).contains(&total)
-                    && s.digest == digest_line(prev, index, s.text)
+                let next = before.next(capacity, index, s.text).ok()?;
+                (s.total == before.total && s.digest == next.digest).then_some(next)
             });
             let Some(next) = next else {
                 store.tail_dirty = !is_erased(&slot);
                 break;
             };
-            store.total = next.total;
-            store.digest = next.digest;
-            store.count = index;
+            store.state = next;
         }
-        if store.count > 0 {
+        if store.state.count > 0 {
             // The sector of slot `count` was erased before line `count` was written.
             let sector = sector as u32;
-            let next = store.slot_offset(store.count);
+            let next = store.slot_offset(store.state.count);
             store.erased_end = (next / sector)
                 .saturating_add(1)
                 .saturating_mul(sector)
                 .min(region_len);
         } else {
             store.tail_dirty = false;
-            store.total = 0;
-            store.digest = 0;
+            store.state = ProgramState::NONE;
         }
         Ok(store)
     }
@@ -312,9 +302,10 @@ impl<F: NorFlash> SlotProgramStore<F> {
     }
 
     /// Erase sector 0 (unless the store is empty with sector 0 erased already): the old
-    /// program goes. Nothing changes when the erase fails.
+    /// program goes, and no program is left. Nothing changes when the erase fails.
     fn erase_first(&mut self) -> Result<(), StoreError> {
-        if self.count == 0 && !self.tail_dirty && self.erased_end > 0 {
+        if self.state.count == 0 && !self.tail_dirty && self.erased_end > 0 {
+            self.state = ProgramState::NONE;
             return Ok(());
         }
         let erased_end = self.erased_end;
@@ -326,36 +317,27 @@ impl<F: NorFlash> SlotProgramStore<F> {
             return Err(e);
         }
         self.tail_dirty = false;
-        self.count = 0;
+        self.state = ProgramState::NONE;
         Ok(())
     }
 }
 
 impl<F: NorFlash> ProgramStore for SlotProgramStore<F> {
-    fn len(&self) -> u16 {
-        self.count
-    }
-
-    fn total(&self) -> u16 {
-        self.total
-    }
-
-    fn digest(&self) -> u32 {
-        self.digest
+    fn state(&self) -> ProgramState {
+        self.state
     }
 
     /// Erases sector 0, as [`clear`](ProgramStore::clear); the total is written with each line.
     fn begin(&mut self, total: u16) -> Result<(), StoreError> {
-        check_total(total, self.capacity)?;
+        let begun = ProgramState::begin(total, self.capacity)?;
         self.erase_first()?;
-        self.total = total;
-        self.digest = digest_start(total);
+        self.state = begun;
         Ok(())
     }
 
     /// One flash read of [`SLOT_LEN`] bytes.
     fn read(&mut self, index: u16, buf: &mut [u8; MAX_LINE_LEN]) -> Result<usize, StoreError> {
-        if index == 0 || index > self.count {
+        if index == 0 || index > self.state.count {
             return Err(StoreError::NoSuchLine);
         }
         let mut slot = [0u8; SLOT_LEN];
@@ -370,7 +352,7 @@ impl<F: NorFlash> ProgramStore for SlotProgramStore<F> {
     /// Line 1 erases sector 0 unless [`begin`](ProgramStore::begin) just did; the last line
     /// of each sector erases the next one first.
     fn store(&mut self, index: u16, text: &[u8]) -> Result<(), StoreError> {
-        check_next_line(self.count, self.total, self.capacity, index, text.len())?;
+        let next = self.state.next(self.capacity, index, text)?;
         let slot = index - 1;
         if self.tail_dirty {
             if slot != 0 {
@@ -385,23 +367,18 @@ impl<F: NorFlash> ProgramStore for SlotProgramStore<F> {
         let end = (start + ahead * SLOT_LEN as u32).min(self.region_len);
         self.erase_to(end)?;
         self.tail_dirty = false;
-        let digest = digest_line(self.digest, index, text);
-        let bytes = encode(index, self.total, digest, text);
+        let bytes = encode(index, next.total, next.digest, text);
         if self.flash.write(self.base + start, &bytes).is_err() {
             self.tail_dirty = true;
             return Err(StoreError::Device);
         }
-        self.count = index;
-        self.digest = digest;
+        self.state = next;
         Ok(())
     }
 
     /// Erases sector 0: the old program's first line goes, and with it the whole program.
     fn clear(&mut self) -> Result<(), StoreError> {
-        self.erase_first()?;
-        self.total = 0;
-        self.digest = 0;
-        Ok(())
+        self.erase_first()
     }
 }
 
@@ -409,7 +386,7 @@ impl<F: NorFlash> ProgramStore for SlotProgramStore<F> {
 mod tests {
     use super::*;
     use crate::ram_flash::RamNorFlash;
-    use forja_motion::job::RamStore;
+    use forja_motion::job::{RamStore, digest_line, digest_start};
 
     /// Four slots per 256-byte sector, so that short programs cross sectors.
     type Flash = RamNorFlash<2048, 4, 256>;

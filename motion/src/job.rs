@@ -24,6 +24,52 @@ pub const MAX_LINE_LEN: usize = 39;
 /// The most lines of a program (four digits in frame message 03).
 pub const MAX_LINES: u16 = 9999;
 
+/// What a [`ProgramStore`] knows of its program besides the lines: how many are stored, the
+/// program's total, and the digest of the lines stored. Every store changes it by the same
+/// rules: [`ProgramState::begin`], then [`ProgramState::next`] for each line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct ProgramState {
+    /// Lines stored.
+    pub count: u16,
+    /// The program's number of lines; 0 with no program.
+    pub total: u16,
+    /// The digest of the lines stored ([`digest_line`]): [`digest_start`] of the total before
+    /// the first line, 0 with no program.
+    pub digest: u32,
+}
+
+impl ProgramState {
+    /// No program.
+    pub const NONE: Self = Self {
+        count: 0,
+        total: 0,
+        digest: 0,
+    };
+
+    /// A program of `total` lines begun, no line stored yet, in a store with room for
+    /// `capacity` lines. Error: [`StoreError::Full`] ([`check_total`]).
+    pub fn begin(total: u16, capacity: u16) -> Result<Self, StoreError> {
+        check_total(total, capacity)?;
+        Ok(Self {
+            count: 0,
+            total,
+            digest: digest_start(total),
+        })
+    }
+
+    /// The state once line `index` with `text` is stored, if a store with room for `capacity`
+    /// lines may store it ([`check_next_line`]). A store takes it once the line is written, so
+    /// that a line refused or not written leaves it as it was.
+    pub fn next(&self, capacity: u16, index: u16, text: &[u8]) -> Result<Self, StoreError> {
+        check_next_line(self.count, self.total, capacity, index, text.len())?;
+        Ok(Self {
+            count: index,
+            total: self.total,
+            digest: digest_line(self.digest, index, text),
+        })
+    }
+}
+
 /// Where programs are kept.
 ///
 /// A program is uploaded as a whole: [`begin`] starts a program of `total` lines (removing the
@@ -44,16 +90,25 @@ pub const MAX_LINES: u16 = 9999;
 /// [`is_complete`]: ProgramStore::is_complete
 /// [`digest`]: ProgramStore::digest
 pub trait ProgramStore {
+    /// The lines stored, the program's total and its digest.
+    fn state(&self) -> ProgramState;
+
     /// The number of lines stored.
-    fn len(&self) -> u16;
+    fn len(&self) -> u16 {
+        self.state().count
+    }
 
     /// The number of lines of the program being stored or stored (as [`ProgramStore::begin`]
     /// gave it); 0 with no program.
-    fn total(&self) -> u16;
+    fn total(&self) -> u16 {
+        self.state().total
+    }
 
     /// The digest of the lines stored so far (see [`digest_line`]); [`digest_start`] of the
     /// total before the first line, 0 with no program.
-    fn digest(&self) -> u32;
+    fn digest(&self) -> u32 {
+        self.state().digest
+    }
 
     /// Whether no line is stored.
     fn is_empty(&self) -> bool {
@@ -85,14 +140,8 @@ pub trait ProgramStore {
 }
 
 impl<T: ProgramStore + ?Sized> ProgramStore for &mut T {
-    fn len(&self) -> u16 {
-        T::len(self)
-    }
-    fn total(&self) -> u16 {
-        T::total(self)
-    }
-    fn digest(&self) -> u32 {
-        T::digest(self)
+    fn state(&self) -> ProgramState {
+        T::state(self)
     }
     fn begin(&mut self, total: u16) -> Result<(), StoreError> {
         T::begin(self, total)
@@ -181,9 +230,7 @@ pub fn digest_line(prev: u32, index: u16, text: &[u8]) -> u32 {
 pub struct RamStore<const L: usize> {
     lines: [[u8; MAX_LINE_LEN]; L],
     lens: [u8; L],
-    count: u16,
-    total: u16,
-    digest: u32,
+    state: ProgramState,
 }
 
 impl<const L: usize> Default for RamStore<L> {
@@ -198,36 +245,23 @@ impl<const L: usize> RamStore<L> {
         Self {
             lines: [[0; MAX_LINE_LEN]; L],
             lens: [0; L],
-            count: 0,
-            total: 0,
-            digest: 0,
+            state: ProgramState::NONE,
         }
     }
 }
 
 impl<const L: usize> ProgramStore for RamStore<L> {
-    fn len(&self) -> u16 {
-        self.count
-    }
-
-    fn total(&self) -> u16 {
-        self.total
-    }
-
-    fn digest(&self) -> u32 {
-        self.digest
+    fn state(&self) -> ProgramState {
+        self.state
     }
 
     fn begin(&mut self, total: u16) -> Result<(), StoreError> {
-        check_total(total, Self::capacity())?;
-        self.count = 0;
-        self.total = total;
-        self.digest = digest_start(total);
+        self.state = ProgramState::begin(total, Self::capacity())?;
         Ok(())
     }
 
     fn read(&mut self, index: u16, buf: &mut [u8; MAX_LINE_LEN]) -> Result<usize, StoreError> {
-        if index == 0 || index > self.count {
+        if index == 0 || index > self.state.count {
             return Err(StoreError::NoSuchLine);
         }
         let k = usize::from(index - 1);
@@ -239,8 +273,8 @@ impl<const L: usize> ProgramStore for RamStore<L> {
     }
 
     fn store(&mut self, index: u16, text: &[u8]) -> Result<(), StoreError> {
-        check_next_line(self.count, self.total, Self::capacity(), index, text.len())?;
-        let k = usize::from(self.count);
+        let next = self.state.next(Self::capacity(), index, text)?;
+        let k = usize::from(self.state.count);
         let (Some(line), Some(len)) = (self.lines.get_mut(k), self.lens.get_mut(k)) else {
             return Err(StoreError::Full);
         };
@@ -249,15 +283,12 @@ impl<const L: usize> ProgramStore for RamStore<L> {
             dst.copy_from_slice(text);
         }
         *len = text.len() as u8;
-        self.count = index;
-        self.digest = digest_line(self.digest, index, text);
+        self.state = next;
         Ok(())
     }
 
     fn clear(&mut self) -> Result<(), StoreError> {
-        self.count = 0;
-        self.total = 0;
-        self.digest = 0;
+        self.state = ProgramState::NONE;
         Ok(())
     }
 }

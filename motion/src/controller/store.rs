@@ -18,9 +18,7 @@ use forja_hal_abstraction::storage::RecordStorage;
 use forja_hal_abstraction::{Error as _, ErrorKind};
 
 use crate::error::StoreError;
-use crate::job::{
-    MAX_LINE_LEN, MAX_LINES, ProgramStore, check_next_line, check_total, digest_line, digest_start,
-};
+use crate::job::{MAX_LINE_LEN, MAX_LINES, ProgramState, ProgramStore};
 
 /// The record key of the header (lines stored, total, digest).
 pub const HEADER_RECORD: u16 = 0x1000;
@@ -45,9 +43,7 @@ fn store_error(kind: ErrorKind) -> StoreError {
 #[derive(Debug)]
 pub struct RecordProgramStore<S> {
     storage: S,
-    count: u16,
-    total: u16,
-    digest: u32,
+    state: ProgramState,
     capacity: u16,
 }
 
@@ -67,17 +63,12 @@ impl<S: RecordStorage> RecordProgramStore<S> {
             _ => None,
         };
         let capacity = capacity.min(MAX_LINES);
-        let (count, total, digest) = match header {
-            Some((count, total, digest)) if count <= total && total <= capacity => {
-                (count, total, digest)
-            }
-            _ => (0, 0, 0),
-        };
+        let state = header
+            .filter(|h| h.count <= h.total && h.total <= capacity)
+            .unwrap_or(ProgramState::NONE);
         Ok(Self {
             storage,
-            count,
-            total,
-            digest,
+            state,
             capacity,
         })
     }
@@ -92,50 +83,40 @@ impl<S: RecordStorage> RecordProgramStore<S> {
         self.storage
     }
 
-    fn write_header(&mut self, count: u16, total: u16, digest: u32) -> Result<(), StoreError> {
+    /// Write `state` as the header, then take it.
+    fn write_header(&mut self, state: ProgramState) -> Result<(), StoreError> {
         let mut buf = [0u8; HEADER_LEN];
-        buf[..2].copy_from_slice(&count.to_le_bytes());
-        buf[2..4].copy_from_slice(&total.to_le_bytes());
-        buf[4..].copy_from_slice(&digest.to_le_bytes());
+        buf[..2].copy_from_slice(&state.count.to_le_bytes());
+        buf[2..4].copy_from_slice(&state.total.to_le_bytes());
+        buf[4..].copy_from_slice(&state.digest.to_le_bytes());
         self.storage
             .write(HEADER_RECORD, &buf)
-            .map_err(|e| store_error(e.kind()))
+            .map_err(|e| store_error(e.kind()))?;
+        self.state = state;
+        Ok(())
     }
 }
 
-/// Lines stored, total and digest of an 8-byte header.
-fn decode_header(buf: &[u8]) -> Option<(u16, u16, u32)> {
-    let count = u16::from_le_bytes(buf.get(..2)?.try_into().ok()?);
-    let total = u16::from_le_bytes(buf.get(2..4)?.try_into().ok()?);
-    let digest = u32::from_le_bytes(buf.get(4..HEADER_LEN)?.try_into().ok()?);
-    Some((count, total, digest))
+/// The state an 8-byte header holds: lines stored, total and digest.
+fn decode_header(buf: &[u8]) -> Option<ProgramState> {
+    Some(ProgramState {
+        count: u16::from_le_bytes(buf.get(..2)?.try_into().ok()?),
+        total: u16::from_le_bytes(buf.get(2..4)?.try_into().ok()?),
+        digest: u32::from_le_bytes(buf.get(4..HEADER_LEN)?.try_into().ok()?),
+    })
 }
 
 impl<S: RecordStorage> ProgramStore for RecordProgramStore<S> {
-    fn len(&self) -> u16 {
-        self.count
-    }
-
-    fn total(&self) -> u16 {
-        self.total
-    }
-
-    fn digest(&self) -> u32 {
-        self.digest
+    fn state(&self) -> ProgramState {
+        self.state
     }
 
     fn begin(&mut self, total: u16) -> Result<(), StoreError> {
-        check_total(total, self.capacity)?;
-        let digest = digest_start(total);
-        self.write_header(0, total, digest)?;
-        self.count = 0;
-        self.total = total;
-        self.digest = digest;
-        Ok(())
+        self.write_header(ProgramState::begin(total, self.capacity)?)
     }
 
     fn read(&mut self, index: u16, buf: &mut [u8; MAX_LINE_LEN]) -> Result<usize, StoreError> {
-        if index == 0 || index > self.count {
+        if index == 0 || index > self.state.count {
             return Err(StoreError::NoSuchLine);
         }
         match self.storage.read(LINE_RECORDS + index, buf) {
@@ -146,26 +127,18 @@ impl<S: RecordStorage> ProgramStore for RecordProgramStore<S> {
     }
 
     fn store(&mut self, index: u16, text: &[u8]) -> Result<(), StoreError> {
-        check_next_line(self.count, self.total, self.capacity, index, text.len())?;
+        let next = self.state.next(self.capacity, index, text)?;
         self.storage
             .write(LINE_RECORDS + index, text)
             .map_err(|e| store_error(e.kind()))?;
-        let digest = digest_line(self.digest, index, text);
-        self.write_header(index, self.total, digest)?;
-        self.count = index;
-        self.digest = digest;
-        Ok(())
+        self.write_header(next)
     }
 
     fn clear(&mut self) -> Result<(), StoreError> {
-        if self.count == 0 && self.total == 0 {
+        if self.state == ProgramState::NONE {
             return Ok(());
         }
-        self.write_header(0, 0, 0)?;
-        self.count = 0;
-        self.total = 0;
-        self.digest = 0;
-        Ok(())
+        self.write_header(ProgramState::NONE)
     }
 }
 
