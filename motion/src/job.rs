@@ -47,9 +47,12 @@ impl ProgramState {
     };
 
     /// A program of `total` lines begun, no line stored yet, in a store with room for
-    /// `capacity` lines. Error: [`StoreError::Full`] ([`check_total`]).
+    /// `capacity` lines. Error: [`StoreError::Full`] when `total` is 0 or beyond the room (or
+    /// [`MAX_LINES`]).
     pub fn begin(total: u16, capacity: u16) -> Result<Self, StoreError> {
-        check_total(total, capacity)?;
+        if total == 0 || total > capacity.min(MAX_LINES) {
+            return Err(StoreError::Full);
+        }
         Ok(Self {
             count: 0,
             total,
@@ -58,10 +61,28 @@ impl ProgramState {
     }
 
     /// The state once line `index` with `text` is stored, if a store with room for `capacity`
-    /// lines may store it ([`check_next_line`]). A store takes it once the line is written, so
-    /// that a line refused or not written leaves it as it was.
+    /// lines may store it: a program is being stored (begun and not complete,
+    /// [`StoreError::NoUpload`]), lines come strictly in order ([`StoreError::OutOfOrder`]),
+    /// are at most [`MAX_LINE_LEN`] bytes ([`StoreError::TooLong`]) and fit
+    /// ([`StoreError::Full`]); the errors come in that order. A store takes the new state once
+    /// the line is written, so that a line refused or not written leaves it as it was.
     pub fn next(&self, capacity: u16, index: u16, text: &[u8]) -> Result<Self, StoreError> {
-        check_next_line(self.count, self.total, capacity, index, text.len())?;
+        if self.count >= self.total {
+            return Err(StoreError::NoUpload);
+        }
+        let expected = self.count.saturating_add(1);
+        if index != expected {
+            return Err(StoreError::OutOfOrder {
+                expected,
+                got: index,
+            });
+        }
+        if text.len() > MAX_LINE_LEN {
+            return Err(StoreError::TooLong);
+        }
+        if index > capacity {
+            return Err(StoreError::Full);
+        }
         Ok(Self {
             count: index,
             total: self.total,
@@ -155,46 +176,6 @@ impl<T: ProgramStore + ?Sized> ProgramStore for &mut T {
     fn clear(&mut self) -> Result<(), StoreError> {
         T::clear(self)
     }
-}
-
-/// The rule every [`ProgramStore`] applies before it stores line `index` of `len` bytes, holding
-/// `count` lines of a program of `total` with room for `capacity`: a program is being stored
-/// (begun and not complete), lines come strictly in order (1, 2, …), are at most
-/// [`MAX_LINE_LEN`] bytes, and fit. The errors come in that order, and a refused line leaves the
-/// store as it was.
-pub fn check_next_line(
-    count: u16,
-    total: u16,
-    capacity: u16,
-    index: u16,
-    len: usize,
-) -> Result<(), StoreError> {
-    if count >= total {
-        return Err(StoreError::NoUpload);
-    }
-    let expected = count.saturating_add(1);
-    if index != expected {
-        return Err(StoreError::OutOfOrder {
-            expected,
-            got: index,
-        });
-    }
-    if len > MAX_LINE_LEN {
-        return Err(StoreError::TooLong);
-    }
-    if index > capacity {
-        return Err(StoreError::Full);
-    }
-    Ok(())
-}
-
-/// The rule of [`ProgramStore::begin`]: a program of `total` lines fits a store with room for
-/// `capacity` lines. Error: [`StoreError::Full`].
-pub fn check_total(total: u16, capacity: u16) -> Result<(), StoreError> {
-    if total == 0 || total > capacity.min(MAX_LINES) {
-        return Err(StoreError::Full);
-    }
-    Ok(())
 }
 
 /// CRC-32 (IEEE 802.3, reflected, as zlib's `crc32`) continued from `crc` over `bytes`;
