@@ -257,8 +257,8 @@ impl<const N: usize, const Q: usize> StepQueue<N, Q> {
 /// of an axis towards a triggered switch then stops motion. A board with no pin-change
 /// interrupt calls it from a periodic timer instead, and gets hard limits within that period.
 ///
-/// Get one from [`crate::StepGenerator::switch_alert`] or [`crate::Kernel::switch_alert`]. It
-/// is `Copy` and may live in a `static`: it only holds a reference to the [`StepQueue`].
+/// Get one from [`crate::StepGenerator::switch_alert`]. It is `Copy` and may live in a
+/// `static`: it only holds a reference to the [`StepQueue`].
 ///
 /// Context: any, including interrupts of any priority. One load and one store; no
 /// read-modify-write atomics. Two contexts notifying at once may count one edge instead of
