@@ -12,7 +12,7 @@
 //! |---|---|---|
 //! | `SendConnected` | controller task | the client is the controller: `Controller::on_connect` (frame 54, a fresh decoder) |
 //! | `SendKeepAlive(n)` | controller task | `Controller::keep_alive(n)` (frame 55), every `keep_alive_ms` |
-//! | `RefuseSecondClient` | listening task | sends the new client [`LinkBusy`] (a 56 frame and a `//` notice line, code 300) and closes it |
+//! | `RefuseSecondClient` | listening task | sends the new client `busy_refusal` (a 56 frame and a `//` notice line, code 300 `link-busy`) and closes it |
 //!
 //! Each stack (station and access point) has [`LISTENERS`] listening sockets, each served by
 //! its own task ([`listen`]): one can hold the controlling client while another is free to
@@ -65,10 +65,7 @@ use embassy_sync::signal::Signal;
 use embassy_time::{Duration, Instant, Timer, with_deadline, with_timeout};
 use forja_drivers::session::{LinkSession, SessionAction};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
-use forja_motion::controller::DEFAULT_KEEP_ALIVE_MS;
-use forja_protocol::error::WireError;
-use forja_protocol::frame::{ControllerMessage, FRAME_LEN};
-use forja_protocol::reply::Reply;
+use forja_motion::controller::{BUSY_REFUSAL_LEN, DEFAULT_KEEP_ALIVE_MS, busy_refusal};
 
 /// The TCP port of the host link, the simulator's too.
 pub const PORT: u16 = 2323;
@@ -159,27 +156,6 @@ fn bump(counter: &AtomicU32, by: usize) {
     );
 }
 
-/// A client was refused because another is in control. Code 300, the first of the boards'
-/// range (300–399).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct LinkBusy;
-
-impl WireError for LinkBusy {
-    fn code(&self) -> u16 {
-        300
-    }
-
-    fn name(&self) -> &'static str {
-        "link-busy"
-    }
-}
-
-impl core::fmt::Display for LinkBusy {
-    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        f.write_str("another host is in control of this machine")
-    }
-}
-
 /// The milliseconds of the session clock (embassy's time base, wrapping).
 pub fn now_ms() -> u32 {
     Instant::now().as_millis() as u32
@@ -195,14 +171,6 @@ fn session<R>(f: impl FnOnce(&mut LinkSession) -> R) -> R {
 /// Context: init, before the listening tasks run.
 pub fn configure(keep_alive_ms: u32) {
     SESSION.lock(|s| s.borrow_mut().session = LinkSession::new(keep_alive_ms));
-}
-
-/// `message` as a frame line: 53 bytes and `\n`.
-fn frame_line(message: &ControllerMessage<'_>) -> Option<[u8; FRAME_LEN + 1]> {
-    let mut line = [b'\n'; FRAME_LEN + 1];
-    let (frame, _) = line.split_first_chunk_mut::<FRAME_LEN>()?;
-    message.encode(frame).ok()?;
-    Some(line)
 }
 
 /// The controller's end of the link: `embedded-io` reads and writes over the queues, and
@@ -437,15 +405,12 @@ async fn send(socket: &mut TcpSocket<'_>, mut bytes: &[u8]) -> Result<(), ()> {
 /// Tell a second client that another is in control.
 async fn refuse(socket: &mut TcpSocket<'_>) {
     bump(&FORJA_LINK_COUNTERS.refused, 1);
-    let frame = frame_line(&ControllerMessage::error(&LinkBusy));
-    let mut notice = [0u8; 32];
-    let notice_len = Reply::notice(&LinkBusy).encode(&mut notice).unwrap_or(0);
-    let _ = with_timeout(REFUSAL_TIMEOUT, async {
-        if let Some(frame) = frame {
-            send(socket, &frame).await?;
-        }
-        send(socket, notice.get(..notice_len).unwrap_or_default()).await
-    })
+    let mut refusal = [0u8; BUSY_REFUSAL_LEN];
+    let len = busy_refusal(&mut refusal);
+    let _ = with_timeout(
+        REFUSAL_TIMEOUT,
+        send(socket, refusal.get(..len).unwrap_or_default()),
+    )
     .await;
 }
 

@@ -73,8 +73,8 @@ use forja_hal_abstraction::link::LinkState;
 use forja_hal_abstraction::stepper::StepTiming;
 use forja_hal_abstraction::time::Instant;
 use forja_motion::controller::{
-    Controller, ControllerConfig, Key, Realtime, RecordProgramStore, Settings,
-    Stats as ControllerStats, realtime,
+    BUSY_REFUSAL_LEN, Controller, ControllerConfig, Key, Realtime, RecordProgramStore, Settings,
+    Stats as ControllerStats, busy_refusal, realtime,
 };
 use forja_motion::job::{JobState, Progress};
 use forja_motion::{
@@ -121,26 +121,12 @@ pub const UNLIMITED_TRAVEL_MM: f32 = 100_000.0;
 /// millisecond of virtual time: 4 MB/s, far above any host link).
 pub const READ_BUDGET: usize = 4096;
 
-/// Wire code of the busy refusal, `link-busy` (the boards' range; the ESP32 board sends the
-/// same).
-pub const LINK_BUSY_CODE: u16 = 300;
-
 /// The busy message sent by default to a host whose input is refused because another host is
-/// in control: frame 56 `Error:E300 link-busy` for a frame client, then the same as a G-code
-/// notice line.
+/// in control: the controller's [`busy_refusal`], as the ESP32 board sends it.
 pub fn default_busy_message() -> Vec<u8> {
-    let mut out = Vec::new();
-    let mut frame = [0u8; forja_protocol::frame::FRAME_LEN];
-    let busy = forja_protocol::frame::ControllerMessage::Error {
-        code: LINK_BUSY_CODE,
-        detail: "link-busy",
-    };
-    if busy.encode(&mut frame).is_ok() {
-        out.extend_from_slice(&frame);
-        out.push(b'\n');
-    }
-    out.extend_from_slice(b"// E300 link-busy another host is in control of this machine\n");
-    out
+    let mut out = [0u8; BUSY_REFUSAL_LEN];
+    let len = busy_refusal(&mut out);
+    out.get(..len).unwrap_or_default().to_vec()
 }
 
 /// A NOR flash on the heap, for the board's storage (a megabyte does not belong on a stack).

@@ -162,6 +162,48 @@ impl fmt::Display for ControllerError {
     }
 }
 
+/// A host refused because another host is in control of the machine: code 300 `link-busy`, the
+/// first of the boards' range (300–399). A board with several host links, or a link with
+/// sessions, sends a refused host [`busy_refusal`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LinkBusy;
+
+impl WireError for LinkBusy {
+    fn code(&self) -> u16 {
+        300
+    }
+
+    fn name(&self) -> &'static str {
+        "link-busy"
+    }
+}
+
+impl fmt::Display for LinkBusy {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("another host is in control of this machine")
+    }
+}
+
+/// Bytes of [`busy_refusal`] at most.
+pub const BUSY_REFUSAL_LEN: usize = FRAME_LEN + 1 + 32;
+
+/// The refusal of a host while another is in control, in both protocols, since the refused
+/// host's is not known: frame 56 `Error:E300 link-busy` for a frame client, then the notice line
+/// `// E300 link-busy` for a G-code host. Written into `out`; returns its length.
+pub fn busy_refusal(out: &mut [u8; BUSY_REFUSAL_LEN]) -> usize {
+    let Some((frame, rest)) = out.split_first_chunk_mut::<FRAME_LEN>() else {
+        return 0;
+    };
+    let Some((end, notice)) = rest.split_first_mut() else {
+        return 0;
+    };
+    if ControllerMessage::error(&LinkBusy).encode(frame).is_err() {
+        return 0;
+    }
+    *end = b'\n';
+    FRAME_LEN + 1 + Reply::notice(&LinkBusy).encode(notice).unwrap_or(0)
+}
+
 /// What the controller needs to know of its board, besides the kernel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ControllerConfig {

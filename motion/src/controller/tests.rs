@@ -1263,3 +1263,15 @@ fn a_program_line_that_fails_stops_the_job_with_an_error_frame() {
     assert!(b.position_mm()[0] <= 5.0);
     assert_eq!(b.ctl.stats().program_lines, 2);
 }
+
+#[test]
+fn the_busy_refusal_speaks_both_protocols() {
+    let mut out = [0u8; BUSY_REFUSAL_LEN];
+    let len = busy_refusal(&mut out);
+    let text = core::str::from_utf8(&out[..len]).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 2, "{text:?}");
+    assert_eq!(error_codes(&[lines[0].to_string()]), [300]);
+    assert_eq!(lines[1], "// E300 link-busy");
+    assert!(text.ends_with('\n'));
+}
