@@ -49,6 +49,14 @@ fn motor(s: &Sim<'_>) -> [i32; 4] {
 }
 
 /// Advance until the hold has come to rest (at most 5 s of virtual time).
+/// Send `line`, let it run half a second, then hold and wait until the machine is at rest.
+fn held_half_a_second_into(s: &mut Sim<'_>, line: &str) {
+    s.send(line).expect("ok");
+    s.advance(u64::from(HZ) / 2);
+    s.kernel.hold();
+    until_held(s);
+}
+
 fn until_held(s: &mut Sim<'_>) {
     for _ in 0..5000 {
         s.advance(u64::from(HZ) / 1000);
@@ -79,10 +87,7 @@ fn mm(steps: f64) -> i32 {
 fn stop_during_a_hold_resyncs_to_the_steps_and_drops_the_plan() {
     let mut q = StepQueue::<4, 256>::new();
     let mut s = sim(&mut q, router(), HZ);
-    s.send("G1 X50 F600").expect("ok");
-    s.advance(u64::from(HZ) / 2);
-    s.kernel.hold();
-    until_held(&mut s);
+    held_half_a_second_into(&mut s, "G1 X50 F600");
     let held = motor(&s);
     assert!(held[0] > 0 && held[0] < mm(50.0), "{held:?}");
     s.kernel.stop();
@@ -158,10 +163,7 @@ fn lines_taken_during_a_hold_run_once_after_resume() {
     let mut q = StepQueue::<4, 256>::new();
     let mut s = sim(&mut q, router(), HZ);
     s.send("G91").expect("ok");
-    s.send("G1 X20 F1200").expect("ok");
-    s.advance(u64::from(HZ) / 2);
-    s.kernel.hold();
-    until_held(&mut s);
+    held_half_a_second_into(&mut s, "G1 X20 F1200");
     let held = motor(&s);
     // Relative moves: running one twice (or dropping it) shows in the end position.
     s.send("G1 X5").expect("taken during the hold");
@@ -180,10 +182,7 @@ fn lines_taken_during_a_hold_run_once_after_resume() {
 fn a_line_that_waits_for_motion_waits_through_a_hold() {
     let mut q = StepQueue::<4, 256>::new();
     let mut s = sim(&mut q, router(), HZ);
-    s.send("G1 X20 F1200").expect("ok");
-    s.advance(u64::from(HZ) / 2);
-    s.kernel.hold();
-    until_held(&mut s);
+    held_half_a_second_into(&mut s, "G1 X20 F1200");
     // `M92` and `M5` wait for the motion before them; a hold does not end that motion.
     let m92 = Line::parse(b"M92 X100").expect("parses");
     assert_eq!(s.kernel.execute(&m92), Ok(Reply::Busy));
@@ -196,10 +195,7 @@ fn a_line_that_waits_for_motion_waits_through_a_hold() {
 fn a_jog_while_holding_is_refused_not_dropped() {
     let mut q = StepQueue::<4, 256>::new();
     let mut s = sim(&mut q, router(), HZ);
-    s.send("G1 X50 F600").expect("ok");
-    s.advance(u64::from(HZ) / 2);
-    s.kernel.hold();
-    until_held(&mut s);
+    held_half_a_second_into(&mut s, "G1 X50 F600");
     assert_eq!(
         s.kernel.jog(b'Y', Decimal::new(1, 0), 5),
         Err(CommandError::NotIdle)
