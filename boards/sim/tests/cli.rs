@@ -1,17 +1,17 @@
 //! The `forja-sim` program.
 
+mod common;
+
 use std::io::{BufRead, BufReader, Read as _, Write as _};
 use std::net::TcpStream;
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use nix::sys::signal::{Signal, kill};
 use nix::unistd::Pid;
 
-fn sim() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_forja-sim"))
-}
+use common::{Running, sim};
 
 fn temp_path(name: &str) -> PathBuf {
     std::env::temp_dir().join(format!("forja-sim-cli-{}-{name}", std::process::id()))
@@ -107,16 +107,6 @@ fn running_the_sample_job_prints_the_result() {
     let text = String::from_utf8(out.stdout).unwrap();
     assert!(text.contains("!! E127 unknown-axis Q"), "{text}");
     assert!(text.contains("final position: X 156.000"), "{text}");
-}
-
-/// Kills the child if the test fails before it ends.
-struct Running(Child);
-
-impl Drop for Running {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
 }
 
 #[test]

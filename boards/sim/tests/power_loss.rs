@@ -22,16 +22,20 @@
 //! computer (wall time, a random delay of a few milliseconds; nothing is asserted about
 //! time), so that they fall before, inside and just after them.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, ErrorKind, Read as _, Write as _};
 use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use forja_protocol::frame::{Action, ClientMessage, ControllerMessage, FRAME_LEN};
 use nix::sys::signal::{Signal, kill};
 use nix::unistd::Pid;
+
+use common::{Running, sim};
 
 /// The settings the test changes, with the values it picks from (whole numbers, which frame 50
 /// shows as sent).
@@ -79,25 +83,14 @@ fn env_number(name: &str, default: u64) -> u64 {
         .unwrap_or(default)
 }
 
-fn sim() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_forja-sim"))
-}
-
 /// A simulator serving TCP on a state file.
 struct Sim {
-    child: Child,
+    child: Running,
     tcp: SocketAddr,
     /// Where its standard error goes, for the failure messages.
     stderr: PathBuf,
     /// Kept open: the simulator prints a few more lines, which must not find the pipe closed.
     _stdout: BufReader<std::process::ChildStdout>,
-}
-
-impl Drop for Sim {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 impl Sim {
@@ -135,7 +128,7 @@ impl Sim {
         };
         // The rest of stdout is not read: it is a few lines, within the pipe's buffer.
         Sim {
-            child,
+            child: Running(child),
             tcp,
             stderr,
             _stdout: stdout,
@@ -143,7 +136,7 @@ impl Sim {
     }
 
     fn pid(&self) -> Pid {
-        Pid::from_raw(self.child.id() as i32)
+        Pid::from_raw(self.child.0.id() as i32)
     }
 
     /// Connect as the controlling host, and wait for the greeting (frame 54).
@@ -173,7 +166,7 @@ impl Sim {
     /// Kill with SIGKILL and reap.
     fn kill(mut self) {
         let _ = kill(self.pid(), Signal::SIGKILL);
-        let _ = self.child.wait();
+        let _ = self.child.0.wait();
     }
 }
 

@@ -1,30 +1,24 @@
 //! `forja-sim --listen` never waits for a host: a client that floods and stops reading is
 //! dropped, motion goes on, and SIGTERM ends the program promptly.
 
+mod common;
+
 use std::io::{BufRead, BufReader, ErrorKind, Read as _, Write as _};
 use std::net::{SocketAddr, TcpStream};
-use std::process::{Child, Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use nix::sys::signal::{Signal, kill};
 use nix::unistd::Pid;
 
-/// Kills the child if the test fails before it ends.
-struct Running(Child);
-
-impl Drop for Running {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
+use common::{Running, sim};
 
 /// Item 6: a client that stops reading blocked the simulator's thread in a write: virtual
 /// time stopped and SIGTERM was ignored.
 #[test]
 fn a_client_that_floods_and_never_reads_cannot_freeze_the_simulator() {
     let mut child = Running(
-        Command::new(env!("CARGO_BIN_EXE_forja-sim"))
+        sim()
             .args(["--listen", "--tcp-port", "0", "--time-limit", "600"])
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
