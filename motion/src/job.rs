@@ -369,7 +369,6 @@ pub struct Job {
     first_fed: u16,
     last_fed: u16,
     tracking: Tracking,
-    recovery: Option<bool>,
 }
 
 impl Default for Job {
@@ -392,7 +391,6 @@ impl Job {
             first_fed: 1,
             last_fed: 0,
             tracking: Tracking::OFF,
-            recovery: None,
         }
     }
 
@@ -488,17 +486,6 @@ impl Job {
             ..Tracking::OFF
         };
         Ok(())
-    }
-
-    /// Whether power-loss recovery records this job's progress: `None` until the controller
-    /// has read its setting.
-    pub fn recovery(&self) -> Option<bool> {
-        self.recovery
-    }
-
-    /// Set whether power-loss recovery records the progress of jobs.
-    pub fn set_recovery(&mut self, on: bool) {
-        self.recovery = Some(on);
     }
 
     /// What to write to the resume record now, if anything; call it at every poll with the

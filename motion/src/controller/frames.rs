@@ -10,7 +10,7 @@ use forja_protocol::gcode::{Decimal, Line, Recovery};
 
 use super::peripherals::Peripherals;
 use super::settings::Key;
-use super::store::{RECOVERY_RECORD, RESUME_RECORD, ResumeRecord};
+use super::store::{RESUME_RECORD, ResumeRecord};
 use super::text::{self, Refusal, Text};
 use super::{ControllerError, Core, JobState, wire};
 use crate::config::AxisKind;
@@ -396,27 +396,13 @@ where
         let _ = out.write_all(b"End file list\n");
     }
 
-    /// Whether power-loss recovery is on (read from the storage once).
-    fn recovery_on(&mut self) -> bool {
-        if let Some(on) = self.job.recovery() {
-            return on;
-        }
-        let mut buf = [0u8; 4];
-        let on =
-            !matches!(self.storage.read(RECOVERY_RECORD, &mut buf), Ok(Some(1)) if buf[0] == 0);
-        self.job.set_recovery(on);
-        on
-    }
-
     /// `M413`: report; `M413 S0|S1`: switch power-loss recovery off (forgetting the record)
-    /// or on, kept in the storage.
+    /// or on: the setting `power_loss_recovery`, stored as frame 00 stores it.
     fn recovery_command<W: Write>(&mut self, line: &Line<'_>, out: &mut W) -> Result<(), Refusal> {
-        let bad = || Refusal::with(&CommandError::BadValue { letter: b'S' }, format_args!("S"));
         let Some(s) = line.get(b'S') else {
-            let on = self.recovery_on();
             let _ = wire::reply(
                 out,
-                &Reply::Debug(if on {
+                &Reply::Debug(if self.settings.power_loss_recovery() {
                     "power-loss recovery on"
                 } else {
                     "power-loss recovery off"
@@ -424,19 +410,24 @@ where
             );
             return Ok(());
         };
-        let on = match s.as_integer() {
-            Some(0) => false,
-            Some(1) => true,
-            _ => return Err(bad()),
+        let value = match s.as_integer() {
+            Some(0) => "0",
+            Some(1) => "1",
+            _ => {
+                return Err(Refusal::with(
+                    &CommandError::BadValue { letter: b'S' },
+                    format_args!("S"),
+                ));
+            }
         };
-        let device = |_| Refusal::new(&StoreError::Device);
-        self.storage
-            .write(RECOVERY_RECORD, &[u8::from(on)])
-            .map_err(device)?;
-        if !on {
-            self.storage.remove(RESUME_RECORD).map_err(device)?;
+        self.settings
+            .set("power_loss_recovery", value, &mut self.storage, |_| Ok(()))
+            .map_err(|e| Refusal::new(&e))?;
+        if !self.settings.power_loss_recovery() {
+            self.storage
+                .remove(RESUME_RECORD)
+                .map_err(|_| Refusal::new(&StoreError::Device))?;
         }
-        self.job.set_recovery(on);
         Ok(())
     }
 
@@ -615,7 +606,7 @@ where
     /// finished. A write that fails is reported (`// E174 store-device resume`), the job goes
     /// on.
     pub(super) fn record_checkpoint<W: Write>(&mut self, out: &mut W) {
-        if !self.recovery_on() {
+        if !self.settings.power_loss_recovery() {
             return;
         }
         let settle_ms = 2 * u32::from(self.kernel.config().queue_lead_ms) + 50;

@@ -23,6 +23,7 @@
 //! | `keep_alive_ms` | period of frame 55, 100..=600000 ms | `0x0205` |
 //! | `link.ssid` | network name for a WiFi board, at most 32 bytes | `0x0206` |
 //! | `link.password` | its password, at most 35 bytes; read back as `<hidden>` | `0x0207` |
+//! | `power_loss_recovery` | `1` (the default): a running program records its progress for `M1000`; `0`: not (`M413 S0|S1` sets it too) | `0x0208` |
 //!
 //! `<axis>` is the axis letter in lower case (`x.steps_per_mm`); keys are matched without
 //! regard to case. A value is refused (and nothing changes) when it does not parse, or when the
@@ -123,9 +124,11 @@ pub enum Key {
     LinkSsid,
     /// `link.password`.
     LinkPassword,
+    /// `power_loss_recovery`.
+    PowerLossRecovery,
 }
 
-const GLOBALS: [(&str, Key); 8] = [
+const GLOBALS: [(&str, Key); 9] = [
     ("jog_feed", Key::JogFeed),
     ("default_feed", Key::DefaultFeed),
     ("junction_deviation", Key::JunctionDeviation),
@@ -134,6 +137,7 @@ const GLOBALS: [(&str, Key); 8] = [
     ("keep_alive_ms", Key::KeepAliveMs),
     ("link.ssid", Key::LinkSsid),
     ("link.password", Key::LinkPassword),
+    ("power_loss_recovery", Key::PowerLossRecovery),
 ];
 
 impl Key {
@@ -284,6 +288,7 @@ pub struct Settings<const N: usize> {
     keep_alive_ms: u32,
     ssid: Text<MAX_SSID_LEN>,
     password: Text<MAX_PASSWORD_LEN>,
+    power_loss_recovery: bool,
 }
 
 /// One setting's value, decoded.
@@ -313,13 +318,14 @@ fn store_error(kind: ErrorKind) -> StoreError {
 
 impl<const N: usize> Settings<N> {
     /// `machine` with the default link settings (keep-alive every
-    /// [`DEFAULT_KEEP_ALIVE_MS`], no network name or password).
+    /// [`DEFAULT_KEEP_ALIVE_MS`], no network name or password) and power-loss recovery on.
     pub fn new(machine: MachineConfig<N>) -> Self {
         Self {
             machine,
             keep_alive_ms: DEFAULT_KEEP_ALIVE_MS,
             ssid: Text::new(),
             password: Text::new(),
+            power_loss_recovery: true,
         }
     }
 
@@ -347,7 +353,7 @@ impl<const N: usize> Settings<N> {
             };
             let bytes = buf.get(..len).unwrap_or(&[]);
             let value = match key {
-                Key::HardLimits => decode::<bool>(bytes).map(Value::Flag),
+                Key::HardLimits | Key::PowerLossRecovery => decode::<bool>(bytes).map(Value::Flag),
                 Key::SoftLimits => decode::<SoftLimits>(bytes).map(Value::Limits),
                 Key::KeepAliveMs => decode::<u32>(bytes).map(Value::Millis),
                 Key::LinkSsid | Key::LinkPassword => {
@@ -388,6 +394,11 @@ impl<const N: usize> Settings<N> {
         self.password.as_str()
     }
 
+    /// Whether a running stored program records its progress, for `M1000` after a power cut.
+    pub fn power_loss_recovery(&self) -> bool {
+        self.power_loss_recovery
+    }
+
     fn apply(&mut self, key: Key, value: Value<'_>) -> Result<(), SettingError> {
         let m = &mut self.machine;
         match (key, value) {
@@ -405,6 +416,7 @@ impl<const N: usize> Settings<N> {
             (Key::DefaultFeed, Value::Number(v)) => m.default_feed_mm_min = v,
             (Key::JunctionDeviation, Value::Number(v)) => m.junction_deviation_mm = v,
             (Key::HardLimits, Value::Flag(v)) => m.hard_limits = v,
+            (Key::PowerLossRecovery, Value::Flag(v)) => self.power_loss_recovery = v,
             (Key::SoftLimits, Value::Limits(v)) => m.soft_limits = v,
             (Key::KeepAliveMs, Value::Millis(v)) if (100..=600_000).contains(&v) => {
                 self.keep_alive_ms = v;
@@ -432,7 +444,7 @@ impl<const N: usize> Settings<N> {
                 .ok_or(SettingError::BadValue)
         };
         Ok(match key {
-            Key::HardLimits => match text {
+            Key::HardLimits | Key::PowerLossRecovery => match text {
                 "0" => Value::Flag(false),
                 "1" => Value::Flag(true),
                 _ => return Err(SettingError::BadValue),
@@ -515,6 +527,9 @@ impl<const N: usize> Settings<N> {
             Key::KeepAliveMs => write!(out, "{}", self.keep_alive_ms),
             Key::LinkSsid => out.write_str(self.ssid.as_str()),
             Key::LinkPassword => out.write_str("<hidden>"),
+            Key::PowerLossRecovery => {
+                out.write_str(if self.power_loss_recovery { "1" } else { "0" })
+            }
         }
     }
 }

@@ -146,10 +146,6 @@ impl<S: RecordStorage> ProgramStore for RecordProgramStore<S> {
 /// of the last job, for power-loss recovery (`M1000`). See [`ResumeRecord`].
 pub const RESUME_RECORD: u16 = 0x0300;
 
-/// The record key, in the controller's settings storage, of the power-loss recovery switch
-/// (`M413 S0|S1`): one byte, 0 off, 1 on; on when absent.
-pub const RECOVERY_RECORD: u16 = 0x0301;
-
 /// The progress of a job, kept for power-loss recovery: which program ran (its digest and
 /// total) and how many of its lines had certainly finished. 8 bytes little-endian: digest
 /// (`u32`), total (`u16`), lines done (`u16`).

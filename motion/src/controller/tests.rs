@@ -232,7 +232,12 @@ impl<P: ProgramStore> Bench<P> {
     /// Switch on: a new kernel of `config` over `program` and the settings `storage`, the
     /// motors at `physical` (steps from where the machine was first switched on), the homing
     /// switches of X and Y 10 mm below that first place.
-    fn boot(config: MachineConfig<3>, program: P, storage: VecStorage, physical: [i32; 3]) -> Self {
+    fn boot(
+        config: MachineConfig<3>,
+        program: P,
+        mut storage: VecStorage,
+        physical: [i32; 3],
+    ) -> Self {
         let queue: &'static mut StepQueue<3, 256> = Box::leak(Box::new(StepQueue::new()));
         let timing = StepTiming::CONSERVATIVE;
         let (kernel, isr) = split::<3, 32, 256>(queue, config.clone(), TICK_HZ, timing).unwrap();
@@ -243,8 +248,8 @@ impl<P: ProgramStore> Bench<P> {
         let fake = Fake::new(sim.switches.clone());
         let mut cfg = ControllerConfig::new("test-bench", timing);
         cfg.extruders = 1;
-        let ctl = Controller::new(sim.kernel, program, fake, cfg)
-            .with_settings(Settings::new(config), storage);
+        let (settings, _) = Settings::load(config, &mut storage);
+        let ctl = Controller::new(sim.kernel, program, fake, cfg).with_settings(settings, storage);
         let mut b = Self {
             ctl,
             isr: sim.isr,

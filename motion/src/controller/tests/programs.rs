@@ -230,6 +230,19 @@ fn resume_refuses_a_changed_program_and_can_be_cancelled_or_switched_off() {
     assert_eq!(rig.ask("M413 S2"), ["!! E121 bad-value S", "ok"]);
     rig.ask_frame(&ClientMessage::Action(Action::Start));
     rig.run_ms(3_000);
-    let (_, mut storage, _) = rig.power_off();
+    let (store, mut storage, physical) = rig.power_off();
     assert_eq!(resume_record(&mut storage), None, "recovery off: no record");
+    // The switch is a setting, kept across a power cycle and read by frame 00.
+    let mut rig = switch_on(store, storage, physical);
+    assert_eq!(rig.ask("M413"), ["// power-loss recovery off", "ok"]);
+    let out = rig.ask_frame(&ClientMessage::ReadSetting {
+        key: "power_loss_recovery",
+    });
+    assert_eq!(
+        frames_of(&out),
+        [ControllerMessage::Setting {
+            key: "power_loss_recovery",
+            value: "0"
+        }]
+    );
 }
