@@ -90,6 +90,32 @@ struct Homing {
     triggered: Option<i32>,
 }
 
+/// An axis's bounds in machine nm, worked out from the configuration when it is set (at
+/// [`split`] and by `M92`), not at every move: its travel, and how far from 0 a position may
+/// be counted and reported ([`MAX_POSITION_MM`], `i32` steps).
+#[derive(Debug, Clone, Copy)]
+struct AxisBounds {
+    min: Nm,
+    max: Nm,
+    reach: Nm,
+}
+
+fn axis_bounds<const N: usize>(config: &MachineConfig<N>) -> [AxisBounds; N] {
+    core::array::from_fn(|i| {
+        let a = &config.axes[i];
+        let counted = f64::from(i32::MAX) / f64::from(a.steps_per_mm);
+        let reach_mm = match a.kind {
+            AxisKind::Extruder => counted,
+            _ => MAX_POSITION_MM.min(counted),
+        };
+        AxisBounds {
+            min: libm::round(f64::from(a.min_mm) * NM_PER_MM) as Nm,
+            max: libm::round(f64::from(a.max_mm) * NM_PER_MM) as Nm,
+            reach: libm::floor(reach_mm * NM_PER_MM) as Nm,
+        }
+    })
+}
+
 /// A pending arc: chords still to be planned.
 #[derive(Debug, Clone, Copy)]
 struct PendingArc<const N: usize> {
@@ -105,6 +131,7 @@ struct PendingArc<const N: usize> {
 /// of its methods block; none allocate.
 pub struct Kernel<'q, const N: usize, const B: usize = 32, const Q: usize = 256> {
     config: MachineConfig<N>,
+    bounds: [AxisBounds; N],
     tick_hz: u32,
     tx: Producer<'q, N, Q>,
     planner: Planner<N, B>,
@@ -186,6 +213,7 @@ pub fn split<'q, const N: usize, const B: usize, const Q: usize>(
         stops_seen: queue.stops.load(Ordering::Relaxed),
         lead_ticks: lead,
         line_tag: 0,
+        bounds: axis_bounds(&config),
         config,
     };
     Ok((kernel, isr))
@@ -606,6 +634,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
         c.validate()
             .map_err(|_| CommandError::BadValue { letter: b'M' })?;
+        self.bounds = axis_bounds(&c);
         self.config = c;
         self.resync();
         Ok(())
@@ -613,11 +642,8 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
 
     /// Machine nm limits of axis `i`.
     fn travel_nm(&self, i: usize) -> (Nm, Nm) {
-        let a = &self.config.axes[i];
-        (
-            libm::round(f64::from(a.min_mm) * NM_PER_MM) as Nm,
-            libm::round(f64::from(a.max_mm) * NM_PER_MM) as Nm,
-        )
+        let b = &self.bounds[i];
+        (b.min, b.max)
     }
 
     /// Refuse a move from the commanded position over `lo..=hi` (machine nm) that leaves the
@@ -648,17 +674,11 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// beyond what is counted in `i32` steps and reported ([`MAX_POSITION_MM`]).
     fn check_reach(&self, lo: &[Nm; N], hi: &[Nm; N]) -> Result<(), CommandError> {
         let from = self.interp.pos;
-        for (i, a) in self.config.axes.iter().enumerate() {
+        for (i, b) in self.bounds.iter().enumerate() {
             let low = lo[i].min(from[i]);
             let high = hi[i].max(from[i]);
-            let (min, max) = self.travel_nm(i);
-            let counted = f64::from(i32::MAX) / f64::from(a.steps_per_mm);
-            let bound_mm = match a.kind {
-                AxisKind::Extruder => counted,
-                _ => MAX_POSITION_MM.min(counted),
-            };
-            let bound = libm::floor(bound_mm * NM_PER_MM) as Nm;
-            if high.saturating_sub(low) > max.saturating_sub(min) || low < -bound || high > bound {
+            let longer_than_travel = high.saturating_sub(low) > b.max.saturating_sub(b.min);
+            if longer_than_travel || low < -b.reach || high > b.reach {
                 return Err(CommandError::OutOfReach { axis: i as u8 });
             }
         }
