@@ -359,6 +359,29 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
         let mut next = self.interp;
         let action = next.interpret(line, &self.config)?;
+        self.act(action, next)
+    }
+
+    /// A rapid move to `target` (machine nm), as a `G0` naming every axis would be taken:
+    /// refused, `Busy` or queued by the same rules. For a resumed job's return to its line.
+    pub(crate) fn rapid_to(&mut self, target: [Nm; N]) -> Result<Reply<'static, N>, CommandError> {
+        let mut next = self.interp;
+        next.pos = target;
+        let action = Action::Move {
+            target,
+            feed_mm_min: None,
+            ramp: false,
+        };
+        self.act(action, next)
+    }
+
+    /// Carry out `action`, interpreted from a line: `next` is the interpreter's state after
+    /// that line, kept when the action is taken. A refused action changes nothing.
+    fn act<'l>(
+        &mut self,
+        action: Action<'l, N>,
+        next: Interpreter<N>,
+    ) -> Result<Reply<'l, N>, CommandError> {
         // Always accepted: emergency stop, reports and immediate effects.
         match action {
             Action::Stop(StopKind::Emergency) => {

@@ -322,20 +322,6 @@ where
 /// pause, a stop and the end of the program are recorded at once.
 pub const CHECKPOINT_PERIOD_MS: u32 = 10_000;
 
-/// `X12.345678` for `nm` nanometres on axis `letter`, into `t`.
-fn put_mm(t: &mut Text<128>, letter: u8, nm: i64) {
-    use core::fmt::Write as _;
-    let sign = if nm < 0 { "-" } else { "" };
-    let a = nm.unsigned_abs();
-    let _ = write!(
-        t,
-        " {}{sign}{}.{:06}",
-        char::from(letter),
-        a / 1_000_000,
-        a % 1_000_000
-    );
-}
-
 // Program commands of G-code hosts (`M20`, `M413`, `M1000`) and the resume record.
 impl<const N: usize, const B: usize, const Q: usize, P, X, S> Core<'_, N, B, Q, P, X, S>
 where
@@ -580,21 +566,12 @@ where
         Ok(interp)
     }
 
-    /// Queue a rapid move from `from` to `target` (machine nm, the kernel's modal state
-    /// fresh), when they differ.
+    /// Queue a rapid move from `from` to `target` (machine nm), when they differ.
     fn rapid_to(&mut self, target: &[i64; N], from: &[i64; N]) -> Result<(), Refusal> {
         if target == from {
             return Ok(());
         }
-        let mut t = Text::<128>::new();
-        let _ = core::fmt::Write::write_str(&mut t, "G0");
-        for (i, a) in self.kernel.config().axes.iter().enumerate() {
-            if target[i] != from[i] {
-                put_mm(&mut t, a.letter, target[i]);
-            }
-        }
-        let line = Line::parse(t.as_bytes()).map_err(|e| Refusal::new(&e))?;
-        match self.kernel.execute(&line) {
+        match self.kernel.rapid_to(*target) {
             Ok(KernelReply::Ok) => Ok(()),
             Ok(_) => Err(Refusal::new(&CommandError::NotIdle)),
             Err(e) => Err(text::command_refusal(&e, &self.letters())),
