@@ -80,8 +80,9 @@ pub(crate) struct Refusal {
 }
 
 impl Refusal {
-    /// `error`'s code and name, without detail.
-    pub(crate) fn new(error: &impl WireError) -> Self {
+    /// `error`'s code and name, without detail. (A trait object: refusals are the cold path,
+    /// and one copy serves every error type.)
+    pub(crate) fn new(error: &dyn WireError) -> Self {
         let mut text = Text::new();
         let _ = fmt::Write::write_str(&mut text, error.name());
         Self {
@@ -91,7 +92,7 @@ impl Refusal {
     }
 
     /// `error`'s code and name, then a space and `detail`.
-    pub(crate) fn with(error: &impl WireError, detail: fmt::Arguments<'_>) -> Self {
+    pub(crate) fn with(error: &dyn WireError, detail: fmt::Arguments<'_>) -> Self {
         let mut r = Self::new(error);
         let _ = fmt::Write::write_str(&mut r.text, " ");
         let _ = fmt::Write::write_fmt(&mut r.text, detail);
