@@ -9,7 +9,7 @@ use forja_protocol::frame::{
 use forja_protocol::gcode::{Decimal, Line, Recovery};
 
 use super::peripherals::Peripherals;
-use super::settings::Key;
+use super::settings::{Key, SettingError};
 use super::store::{RESUME_RECORD, ResumeRecord};
 use super::text::{self, Refusal, Text};
 use super::{ControllerError, Core, JobState, wire};
@@ -68,7 +68,7 @@ where
             ClientMessage::ReadSetting { key } => match Key::parse(key, self.settings.machine()) {
                 Some(k) => self.send_setting(k, out),
                 None => self.error_frame(
-                    &Refusal::with(&super::SettingError::UnknownKey, format_args!("{key}")),
+                    &Refusal::with(&SettingError::UnknownKey, format_args!("{key}")),
                     out,
                 ),
             },
@@ -94,16 +94,21 @@ where
                 out,
             );
         }
-        let tick_hz = self.kernel.tick_hz();
-        let timing = self.config.timing;
-        let result = self.settings.set(key, value, &mut self.storage, |m| {
-            m.validate()?;
-            m.validate_timing(tick_hz, timing)
-        });
-        match result {
+        match self.store_setting(key, value) {
             Ok(k) => self.send_setting(k, out),
             Err(e) => self.error_frame(&Refusal::with(&e, format_args!("{key}")), out),
         }
+    }
+
+    /// Set and store the setting `key` (frame 00, `M413`), refused when the configuration it
+    /// makes is invalid or needs faster steps than the drivers allow.
+    fn store_setting(&mut self, key: &str, value: &str) -> Result<Key, SettingError> {
+        let tick_hz = self.kernel.tick_hz();
+        let timing = self.config.timing;
+        self.settings.set(key, value, &mut self.storage, |m| {
+            m.validate()?;
+            m.validate_timing(tick_hz, timing)
+        })
     }
 
     fn send_setting<W: Write>(&mut self, key: Key, out: &mut W) {
@@ -406,8 +411,7 @@ where
                 ));
             }
         };
-        self.settings
-            .set("power_loss_recovery", value, &mut self.storage, |_| Ok(()))
+        self.store_setting("power_loss_recovery", value)
             .map_err(|e| Refusal::new(&e))?;
         if !self.settings.power_loss_recovery() {
             self.storage
