@@ -80,8 +80,9 @@ pub(crate) struct Refusal {
 }
 
 impl Refusal {
-    /// `error`'s code and name, without detail. (A trait object: refusals are the cold path,
-    /// and one copy serves every error type.)
+    /// `error`'s code and name, without detail. (A trait object, and never inlined: refusals
+    /// are the cold path, and one copy serves every error type and every caller.)
+    #[inline(never)]
     pub(crate) fn new(error: &dyn WireError) -> Self {
         let mut text = Text::new();
         let _ = fmt::Write::write_str(&mut text, error.name());
