@@ -185,27 +185,35 @@ pub fn drain(conn: &mut Connection, limit: Duration) -> io::Result<()> {
 /// How long [`send_program`] waits for the `M115` answer.
 const PROBE_LIMIT: Duration = Duration::from_secs(2);
 
+/// How many times [`probe_line_check`] asks: an `M115` or its answer damaged on the link gets
+/// an `ok` (or a refusal) with no capabilities line, which a firmware without `M115` gives too.
+const PROBE_ATTEMPTS: u32 = 3;
+
 /// Ask the controller with `M115` which check it takes on numbered lines: [`Check::Crc16`]
 /// when its answer announces `LINE_CHECK:CRC16`, else [`Check::Xor`] (another firmware, or no
-/// answer within `limit`). Reads until the answer's `ok` line.
+/// answer within `limit`). An answer without a capabilities line (the question or the answer
+/// damaged on the link, or a firmware without `M115`) is asked again, [`PROBE_ATTEMPTS`] times
+/// in all, before the XOR is chosen.
 pub fn probe_line_check(conn: &mut Connection, limit: Duration) -> io::Result<Check> {
-    conn.send(b"\r\nM115\r\n")?;
     let end = Instant::now() + limit;
-    while let Some(wait) = end.checked_duration_since(Instant::now()) {
-        let Some(Incoming::Line(line)) = conn.receive(wait)? else {
-            continue;
-        };
-        match Reply::parse(&line) {
-            Ok(Reply::Capabilities(kv)) => {
-                let (key, value) = LINE_CHECK;
-                return Ok(if kv.get(key) == Some(value) {
-                    Check::Crc16
-                } else {
-                    Check::Xor
-                });
+    for _ in 0..PROBE_ATTEMPTS {
+        conn.send(b"\r\nM115\r\n")?;
+        while let Some(wait) = end.checked_duration_since(Instant::now()) {
+            let Some(Incoming::Line(line)) = conn.receive(wait)? else {
+                continue;
+            };
+            match Reply::parse(&line) {
+                Ok(Reply::Capabilities(kv)) => {
+                    let (key, value) = LINE_CHECK;
+                    return Ok(if kv.get(key) == Some(value) {
+                        Check::Crc16
+                    } else {
+                        Check::Xor
+                    });
+                }
+                Ok(Reply::Ok | Reply::OkWith(_)) => break,
+                _ => {}
             }
-            Ok(Reply::Ok | Reply::OkWith(_)) => return Ok(Check::Xor),
-            _ => {}
         }
     }
     Ok(Check::Xor)
@@ -271,8 +279,7 @@ pub fn send_program(
                     }
                 }
                 Event::Stalled { from } => observer.notice(&format!(
-                    "no answer for {} s; sending line {} again",
-                    config.reply_timeout.as_secs(),
+                    "no answer in time; sending line {} again",
                     source_line(from).unwrap_or(0)
                 )),
                 Event::Alarm { code, text } => {
@@ -435,5 +442,78 @@ fn console_line(streamer: &mut Streamer, text: &str) -> Option<String> {
     match streamer.push(&compact(&line, false)) {
         Ok(_) => None,
         Err(e) => Some(format!("not sent: {e}")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::link::Link;
+    use std::collections::VecDeque;
+
+    /// A controller that answers each `M115` with the next of `answers`.
+    struct Scripted {
+        answers: VecDeque<&'static [u8]>,
+        pending: Vec<u8>,
+        asked: usize,
+    }
+
+    impl Link for Scripted {
+        fn write_all(&mut self, bytes: &[u8]) -> io::Result<()> {
+            if bytes.windows(4).any(|w| w == b"M115") {
+                self.asked += 1;
+                if let Some(a) = self.answers.pop_front() {
+                    self.pending.extend_from_slice(a);
+                }
+            }
+            Ok(())
+        }
+
+        fn read(&mut self, buf: &mut [u8], _timeout: Duration) -> io::Result<usize> {
+            let n = buf.len().min(self.pending.len());
+            buf[..n].copy_from_slice(&self.pending[..n]);
+            self.pending.drain(..n);
+            Ok(n)
+        }
+    }
+
+    fn probe(answers: &[&'static [u8]]) -> (Check, usize) {
+        let link = Scripted {
+            answers: answers.iter().copied().collect(),
+            pending: Vec::new(),
+            asked: 0,
+        };
+        let mut conn = Connection::new(Box::new(link));
+        conn.record();
+        let check = probe_line_check(&mut conn, Duration::from_millis(200)).unwrap();
+        let asked = conn
+            .transcript()
+            .iter()
+            .filter(|(sent, b)| *sent && b.windows(4).any(|w| w == b"M115"))
+            .count();
+        (check, asked)
+    }
+
+    const CAPS: &[u8] = b"ok FIRMWARE_NAME:Forja LINE_CHECK:CRC16\n";
+
+    #[test]
+    fn a_damaged_m115_answer_is_asked_again_not_taken_for_the_xor() {
+        assert_eq!(
+            probe(&[b"!! E8 bad-character\nok\n", CAPS]),
+            (Check::Crc16, 2)
+        );
+        assert_eq!(probe(&[b"ok\n", b"ok\n", CAPS]), (Check::Crc16, 3));
+    }
+
+    #[test]
+    fn a_firmware_without_the_crc_gets_the_xor() {
+        assert_eq!(
+            probe(&[b"ok FIRMWARE_NAME:Marlin PROTOCOL_VERSION:1.0\n"]),
+            (Check::Xor, 1)
+        );
+        assert_eq!(
+            probe(&[b"ok\n", b"ok\n", b"ok\n", CAPS]),
+            (Check::Xor, PROBE_ATTEMPTS as usize)
+        );
     }
 }

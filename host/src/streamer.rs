@@ -49,6 +49,16 @@
 //! controller refuses as out of order; so the line window halves at each rewind (not below two
 //! lines) and grows back by one line for each window's worth of lines accepted in a row.
 //!
+//! **Recovery.** Replies are counted, not named, and a damaged link breaks the count: a line
+//! cut in two by a damaged byte gets two answers. A surplus answer frees a place in the window
+//! that no line left, and a host that sends as soon as an answer frees a place (one answer at a
+//! time, as `forja send` reads them) would keep the surplus forever, every `rs` sending a line
+//! that earns another `rs`: a resend storm. So after an `rs`, until a line is accepted, only
+//! the line asked for is sent, once and alone. An `rs` that then empties the in-flight count
+//! cannot tell a refused copy from a late surplus answer: the copy is sent again only after
+//! [`Config::quiet_timeout`] without an answer, and an answer that comes meanwhile finds
+//! nothing in flight and is dropped, which ends the surplus.
+//!
 //! **Refusals.** A refusal with a kernel code (100 and up) concerns an intact line: the line
 //! `accepted + 1` is reported at once. A refusal by the G-code parser (codes below 100) answers
 //! either a damaged scrap of a line (the controller still expects the same line) or a line
@@ -58,6 +68,13 @@
 //! **End of the job.** [`Streamer::finish`] appends one empty numbered line. The controller
 //! accepts it only after every line before it; its `ok` (or an `rs` naming the line after it)
 //! is the proof that the whole job was taken, so a stray `ok` cannot end the job early.
+//!
+//! **Nudge.** A line whose terminators were both lost waits in the controller, unanswered,
+//! until more bytes come; with only the line asked for in flight (recovery) or the window full,
+//! none would. So when lines are in flight and nothing is answered for
+//! [`Config::quiet_timeout`], one lone line end is sent: it ends such a line (whose answer was
+//! owed anyway) and is otherwise an empty line, which the controller drops without a reply. A
+//! command that blocks (a heating wait) gets one nudge per silence, not a stream of them.
 //!
 //! **Time-outs.** If lines are in flight and nothing is answered for
 //! [`Config::reply_timeout`], the streamer assumes replies were lost, forgets the in-flight
@@ -209,8 +226,13 @@ pub struct Stats {
     pub rewinds: u64,
     /// `rs` answers that needed no rewind (a copy was already on its way).
     pub resends_absorbed: u64,
+    /// `rs` answers to a line sent again alone, answered by sending it again only after
+    /// [`Config::quiet_timeout`] (see "Recovery" in the module documentation).
+    pub resends_deferred: u64,
     /// Time-outs.
     pub stalls: u64,
+    /// Lone line ends sent into a silence (see "Nudge" in the module documentation).
+    pub nudges: u64,
     /// Lines refused by the controller.
     pub refused: u64,
     /// Parser refusals that turned out not to concern a line of the job (the controller still
@@ -262,7 +284,12 @@ pub struct Streamer {
     /// Lines pushed by the caller (the closing line not counted).
     pushed: u32,
     finished: bool,
+    /// The next line to send.
     next: u32,
+    /// The highest line number sent so far: after a rewind, the controller may still have
+    /// accepted lines up to it (their first copies, when the `rs` was a surplus answer), and its
+    /// next `rs` may name any line up to the one after it.
+    sent_through: u32,
     accepted: u32,
     in_flight: VecDeque<Sent>,
     in_flight_bytes: usize,
@@ -284,6 +311,13 @@ pub struct Streamer {
     cap: usize,
     /// Lines accepted since the cap last changed.
     run: usize,
+    /// An `rs` came and no line was accepted since: only the line asked for is sent, alone
+    /// (see "Recovery" in the module documentation).
+    recovering: bool,
+    /// A lone line end is to be sent (see "Nudge" in the module documentation).
+    nudge_due: bool,
+    /// The nudge for the present silence was sent.
+    nudged: bool,
     stats: Stats,
     events: VecDeque<Event>,
 }
@@ -306,6 +340,7 @@ impl Streamer {
             pushed: 0,
             finished: false,
             next: 1,
+            sent_through: 0,
             accepted: 0,
             in_flight: VecDeque::new(),
             in_flight_bytes: 0,
@@ -318,6 +353,9 @@ impl Streamer {
             out_of_step: 0,
             cap: config.window.lines.max(1),
             run: 0,
+            recovering: false,
+            nudge_due: false,
+            nudged: false,
             stats: Stats::default(),
             events: VecDeque::new(),
         }
@@ -411,6 +449,12 @@ impl Streamer {
                 if let (Some(after), Some(t)) = (self.stall_after(), self.last_activity) {
                     take(t + after);
                 }
+                if let Some(t) = self.last_activity
+                    && !self.in_flight.is_empty()
+                    && !self.nudged
+                {
+                    take(t + self.config.quiet_timeout);
+                }
             }
             _ => {}
         }
@@ -455,8 +499,17 @@ impl Streamer {
     }
 
     fn transmit_lines(&mut self, now: Instant, out: &mut Vec<u8>) -> usize {
+        if self.nudge_due {
+            self.nudge_due = false;
+            out.extend_from_slice(TERMINATOR);
+            self.stats.bytes_sent += TERMINATOR.len() as u64;
+            self.stats.nudges += 1;
+        }
         let mut sent = 0;
         while let Some(line) = self.lines.get(self.next as usize - 1) {
+            if self.recovering && self.next > self.accepted + 1 {
+                break;
+            }
             let len = line.len();
             let full = self.in_flight.len() >= self.cap
                 || self.in_flight_bytes + len > self.config.window.bytes;
@@ -474,6 +527,7 @@ impl Streamer {
             self.in_flight_bytes += len;
             self.stats.bytes_sent += len as u64;
             self.stats.lines_sent += 1;
+            self.sent_through = self.sent_through.max(self.next);
             self.next += 1;
             sent += 1;
         }
@@ -503,6 +557,16 @@ impl Streamer {
         {
             let (code, text) = (*code, text.clone());
             self.alarm(code, text);
+        }
+        if self.phase == Phase::Streaming
+            && !self.in_flight.is_empty()
+            && !self.nudged
+            && self
+                .last_activity
+                .is_some_and(|t| now.duration_since(t) >= self.config.quiet_timeout)
+        {
+            self.nudged = true;
+            self.nudge_due = true;
         }
         let (Some(after), Some(t)) = (self.stall_after(), self.last_activity) else {
             return;
@@ -563,6 +627,7 @@ impl Streamer {
     /// The line a terminal reply answers: the oldest in flight.
     fn answered(&mut self, now: Instant) -> Option<Sent> {
         self.last_activity = Some(now);
+        self.nudged = false;
         let sent = self.in_flight.pop_front()?;
         self.in_flight_bytes -= sent.len;
         Some(sent)
@@ -602,14 +667,16 @@ impl Streamer {
         }
         self.answered(now);
         if self.accepted + 1 >= self.next {
-            // No line of ours is waiting for an answer.
+            // No line of ours is waiting for an answer. (After a rewind this may be the `ok` of
+            // a first copy sent before it, when the `rs` was a surplus answer: the `rs` that
+            // answers the new copy then tells, and counts it.)
             self.stats.stray_oks += 1;
             return;
         }
         self.out_of_step = 0;
         match refusal {
             None => {
-                self.accepted += 1;
+                self.accept_next();
                 self.run += 1;
                 if self.run >= self.cap && self.cap < self.config.window.lines {
                     self.cap += 1;
@@ -627,7 +694,7 @@ impl Streamer {
                 });
             }
             Some((code, text)) => {
-                self.accepted += 1;
+                self.accept_next();
                 if self.accepted <= self.pushed {
                     self.report_refusal(self.accepted, code, text.clone());
                     if is_alarm_code(code) {
@@ -638,6 +705,12 @@ impl Streamer {
             }
         }
         self.check_done();
+    }
+
+    /// The controller took line `accepted + 1`.
+    fn accept_next(&mut self) {
+        self.accepted += 1;
+        self.recovering = false;
     }
 
     fn report_refusal(&mut self, number: u32, code: u16, text: String) {
@@ -677,7 +750,7 @@ impl Streamer {
             _ => return,
         }
         self.answered(now);
-        if n == 0 || n > self.next {
+        if n == 0 || n > self.sent_through + 1 {
             self.out_of_step += 1;
             if self.out_of_step as usize > self.config.window.lines + 2 {
                 self.phase = Phase::Failed;
@@ -688,8 +761,16 @@ impl Streamer {
         self.out_of_step = 0;
         self.settle_uncounted(n);
         self.accepted = n - 1;
+        self.next = self.next.max(n);
+        let resent_alone = self.recovering && self.in_flight.is_empty() && self.next == n + 1;
+        self.recovering = true;
         if n == self.next || self.in_flight.iter().any(|s| s.number == n) {
             self.stats.resends_absorbed += 1;
+        } else if resent_alone {
+            // The copy of line `n` sent alone was refused, or this `rs` is the second answer to
+            // a line cut in two and the copy's answer is still coming: only the quiet time-out
+            // tells, and then sends it again.
+            self.stats.resends_deferred += 1;
         } else {
             self.stats.rewinds += 1;
             self.stats.lines_resent += u64::from(self.next - n);
@@ -783,23 +864,26 @@ mod tests {
         s.receive(now, b"rs 2"); // 2 damaged
         assert_eq!(s.next_event(), Some(Event::Rewound { from: 2 }));
         out.clear();
-        // Lines 3 and 4 are still in flight: the window has room for two.
-        assert_eq!(s.transmit(now, &mut out), 2);
-        assert_eq!(
-            lines_of(&out).iter().map(|l| &l[..2]).collect::<Vec<_>>(),
-            ["N2", "N3"]
-        );
+        // Until a line is accepted, only the line asked for goes, alone.
+        assert_eq!(s.transmit(now, &mut out), 1);
+        assert_eq!(lines_of(&out), ["N2 G1 X2*96"]);
         s.receive(now, b"rs 2"); // 3, out of order
         s.receive(now, b"rs 2"); // 4, out of order
+        out.clear();
+        assert_eq!(s.transmit(now, &mut out), 0);
         assert_eq!(s.next_event(), None, "no second rewind");
         assert_eq!(s.stats().resends_absorbed, 2);
         s.receive(now, b"ok"); // 2
-        s.receive(now, b"ok"); // 3
-        assert_eq!(s.accepted(), 3);
+        assert_eq!(s.accepted(), 2);
         out.clear();
-        s.transmit(now, &mut out);
+        assert_eq!(s.transmit(now, &mut out), 4, "the window is open again");
         for _ in 0..4 {
-            s.receive(now, b"ok"); // 4 5 6 closing
+            s.receive(now, b"ok"); // 3 4 5 6
+            out.clear();
+            s.transmit(now, &mut out);
+        }
+        for _ in 0..1 {
+            s.receive(now, b"ok"); // closing
             out.clear();
             s.transmit(now, &mut out);
         }
@@ -920,6 +1004,65 @@ mod tests {
         s.receive(now, b"rs 3");
         assert_eq!(s.phase(), Phase::Done);
         assert_eq!(s.accepted(), 1);
+    }
+
+    /// A line cut in two gets two answers. Read one answer at a time, each followed by what the
+    /// window allows, the surplus answer must not become a line sent: it would keep one answer
+    /// too many in the pipe for ever, each `rs` sending a line that earns another (a storm).
+    #[test]
+    fn a_surplus_answer_is_dropped_not_turned_into_a_line() {
+        let config = Config {
+            window: Window {
+                bytes: 256,
+                lines: 2,
+            },
+            ..Config::default()
+        };
+        let (mut s, now) = synced(config, &["G1 X1", "G1 X2"]);
+        let mut sent = Vec::new();
+        let mut turn = |s: &mut Streamer, reply: &[u8]| {
+            if !reply.is_empty() {
+                s.receive(now, reply);
+            }
+            let mut out = Vec::new();
+            s.transmit(now, &mut out);
+            sent.extend(lines_of(&out).into_iter().map(|l| l[..2].to_string()));
+        };
+        turn(&mut s, b""); // 1 2
+        turn(&mut s, b"rs 1"); // 1 cut in two: its first part
+        turn(&mut s, b"rs 1"); // its second part: the surplus
+        turn(&mut s, b"rs 1"); // 2, out of order
+        turn(&mut s, b"ok"); // the copy of 1
+        assert_eq!(s.accepted(), 1);
+        turn(&mut s, b"ok"); // 2
+        turn(&mut s, b"ok"); // the closing line
+        assert_eq!(sent, ["N1", "N2", "N1", "N2", "N3"]);
+        assert_eq!(s.phase(), Phase::Done);
+        assert_eq!(s.in_flight(), 0);
+        assert_eq!(s.stats().resends_deferred, 1);
+    }
+
+    /// A line whose terminators were lost waits in the controller until more bytes come: after
+    /// a quiet time with lines in flight, one lone line end goes out, once per silence.
+    #[test]
+    fn a_silence_with_lines_in_flight_is_nudged_once() {
+        let (mut s, now) = synced(Config::default(), &["G1 X1"]);
+        let mut out = Vec::new();
+        s.transmit(now, &mut out);
+        let quiet = now + Config::default().quiet_timeout;
+        assert_eq!(s.poll_at(), Some(quiet));
+        s.poll(quiet);
+        out.clear();
+        assert_eq!(s.transmit(quiet, &mut out), 0);
+        assert_eq!(out, b"\r\n");
+        s.poll(quiet + Duration::from_secs(1));
+        out.clear();
+        s.transmit(quiet + Duration::from_secs(1), &mut out);
+        assert!(out.is_empty(), "one nudge per silence");
+        assert_eq!(s.stats().nudges, 1);
+        s.receive(quiet, b"ok");
+        s.receive(quiet, b"ok");
+        assert_eq!(s.phase(), Phase::Done);
     }
 
     #[test]

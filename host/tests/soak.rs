@@ -16,28 +16,29 @@
 //! one step that runs on a thread with the wall clock, since `probe_line_check` reads with
 //! wall-clock waits: it only moves the start of the job in virtual time.)
 //!
-//! The host side reads the replies that arrived since the board's last poll, then sends what
-//! the window allows (a host that reads its link in blocks).
+//! The host side handles the replies one at a time, as `forja send` does: it sends what the
+//! window allows, reads one reply, and sends again, so that every answer that frees a place in
+//! the window is followed by a line at once. This is the harsher way to read: a surplus answer
+//! (a line cut in two is answered twice) used to start a resend storm here, millions of `rs`.
 //!
-//! Measured with the seed below (debug build, about 18 s for the three runs): the CRC run
-//! took 20,003 lines through 11,348 corrupted and 5,666 dropped bytes, with 18,858 `rs`, no
-//! refusal and every move exactly once. Two faults were found by this soak and fixed in
-//! `LineNumbering` (`protocol/src/gcode.rs`): a CRC line whose `N` was damaged and whose `*`
-//! was lost (`J1580 G1 Y0.1564948`) ran as a line without number, and the rest of a
-//! line cut by a damaged `*` with one more damaged byte (`%3100`) was refused with `!!`, which
-//! the streamer takes for an alarm; on a strong link both are now asked again.
+//! Measured with the seed below (debug build, about 17 s for the three runs): the CRC run
+//! took 20,003 lines through 13,011 corrupted and 6,501 dropped bytes, with 24,391 `rs`, no
+//! refusal and every move exactly once (one damaged record was a bare comment, which the
+//! controller takes as the no-op it is: counted below). Faults this soak found and that are
+//! fixed: in `LineNumbering` (`protocol/src/gcode.rs`), a CRC line whose `N` was damaged and
+//! whose `*` was lost ran as a line without number, and the rest of a line cut by a damaged
+//! `*` was refused with `!!`; in the streamer, a surplus answer (a line cut in two is answered
+//! twice) started a resend storm when the answers were handled one at a time, and a line whose
+//! terminators were lost waited unanswered (see "Recovery" and "Nudge" in
+//! `host/src/streamer.rs`).
 //!
 //! The same job is also streamed as a plain-XOR host would (no probe, the RepRap XOR on every
-//! line), on the same seed. What happened there: the job stopped at line 5,240, on the
-//! `!! E8 bad-character` of such a damaged rest of a line (on a link without the CRC it is
-//! refused like any line without number that is not G-code, and a `!!` with no line in flight
-//! stops the streamer). Up to there, replaying the host's bytes through the same faults and the
-//! firmware's decoder, 5 damaged records passed the XOR with bytes different from the line
-//! sent under their number; the controller asked again for what it could not run, and none of
-//! the 5,205 moves that ran differed from the clean run — by luck of the seed, not by
-//! guarantee: a damaged digit of a coordinate that passes the XOR runs as damaged. The test
-//! asserts what holds for any seed: no panic, no timing violation, and a move differs from the
-//! clean run only where the XOR let a damaged line through.
+//! line), on the same seed. It runs to its end, but the XOR cannot protect every line: 36
+//! damaged records passed it, and a damaged digit of a coordinate that passes the XOR runs as
+//! damaged; a line damaged so that it parses but cannot run (a repeated word) is asked again
+//! once and then refused, its move missing (the streamer reports it). The test asserts what
+//! holds for any seed: no panic, no timing violation, and what ran differs from the clean run
+//! only by the lines that passed the XOR damaged and the lines refused.
 //! `cargo test -p forja-host --test soak -- --nocapture` prints the figures.
 
 use std::collections::VecDeque;
@@ -144,6 +145,9 @@ struct Wire {
     damaged: u32,
     /// Damaged records that still passed their check (and so could run as damaged).
     passed: u32,
+    /// Damaged records that are nothing but a comment (a scrap of a line after a `;` or `(`
+    /// made by the damage): the controller takes them without number, as the no-op they are.
+    comments: u32,
 }
 
 /// The signed run lengths of `axis`'s steps in the trace.
@@ -209,6 +213,12 @@ fn replay(
             .is_some_and(|sent| sent == record);
         if !intact {
             wire.damaged += 1;
+            if parsed
+                .as_ref()
+                .is_ok_and(|l| l.number().is_none() && l.is_empty())
+            {
+                wire.comments += 1;
+            }
             if parsed.is_ok_and(|l| l.number().is_some()) {
                 wire.passed += 1;
             }
@@ -276,18 +286,21 @@ fn run(faults: FaultConfig, host: Host) -> Outcome {
     board
         .run(&mut sim, |board, _| {
             let now = base + Duration::from_micros(now_us(&machine));
-            // The replies that came since the last poll, then what the window allows: a host
-            // that reads its link in blocks.
-            while let Some(record) = conn.receive(Duration::ZERO).expect("the link reads") {
+            // What the window allows, then one reply, and again: `forja send`'s loop.
+            loop {
+                out.clear();
+                streamer.transmit(now, &mut out);
+                conn.send(&out)
+                    .expect("the in-memory link takes every byte");
+                let Some(record) = conn.receive(Duration::ZERO).expect("the link reads") else {
+                    break;
+                };
                 if let Incoming::Line(line) = record {
                     streamer.receive(now, &line);
                 }
+                streamer.poll(now);
             }
             streamer.poll(now);
-            out.clear();
-            streamer.transmit(now, &mut out);
-            conn.send(&out)
-                .expect("the in-memory link takes every byte");
             while let Some(event) = streamer.next_event() {
                 match event {
                     Event::Refused { number, code, text } => refusals.push((number, code, text)),
@@ -406,7 +419,9 @@ fn twenty_thousand_lines_through_the_fault_injector_run_every_move_once() {
     assert_eq!(lossy.bursts, clean.bursts);
     assert_eq!(lossy.steps, clean.steps);
     assert_eq!(lossy.positions, clean.positions);
-    assert_eq!(lossy.executed, clean.executed);
+    // And every other line once: the controller ran the same lines, but for the scraps of
+    // comments the damage made.
+    assert_eq!(lossy.executed, clean.executed + lossy.wire.comments);
 
     let xor = run(FAULTS, Host::Xor);
     report("xor", &xor);
@@ -414,21 +429,68 @@ fn twenty_thousand_lines_through_the_fault_injector_run_every_move_once() {
     assert!(xor.resends > 100, "{} rs", xor.resends);
     // What ran is the clean run's moves in order, but for moves of damaged lines that passed
     // the XOR (the last burst may be cut by the stop).
+    // What ran is the clean run's moves in order, but for moves of damaged lines that passed
+    // the XOR (run damaged: one move replaced) and lines refused after their one resend (a move
+    // missing).
     let ran = &xor.bursts[0];
-    let upto = ran.len().saturating_sub(1);
-    assert!(upto <= clean.bursts[0].len());
-    let differing = ran[..upto]
-        .iter()
-        .zip(&clean.bursts[0])
-        .filter(|(a, b)| a != b)
-        .count();
-    println!("xor: {upto} moves ran before the end, {differing} differ from the clean run");
+    let differing = differences(ran, &clean.bursts[0]);
+    println!(
+        "xor: {} of {} moves ran, {differing} differences from the clean run",
+        ran.len(),
+        clean.bursts[0].len()
+    );
     assert!(
-        differing <= 2 * xor.wire.passed as usize,
-        "{differing} moves differ, {} damaged lines passed the XOR",
-        xor.wire.passed
+        differing <= 2 * xor.wire.passed as usize + xor.refused as usize,
+        "{differing} differences; {} damaged lines passed the XOR, {} lines refused",
+        xor.wire.passed,
+        xor.refused
     );
     if xor.ended.is_none() {
-        assert_eq!(upto + 1, clean.bursts[0].len());
+        assert!(ran.len() + xor.refused as usize >= clean.bursts[0].len());
     }
+}
+
+/// How many moves must be removed from `a` and from `b` to leave the same sequence (the lengths
+/// minus twice the longest common subsequence), searched within a band of 64 moves: enough for
+/// the few moves a damaged link adds or removes.
+fn differences(a: &[i64], b: &[i64]) -> usize {
+    const BAND: usize = 64;
+    // lcs[i][j - i + BAND] for |i - j| <= BAND, row by row.
+    let width = 2 * BAND + 1;
+    let mut prev = vec![0usize; width];
+    let mut row = vec![0usize; width];
+    let at = |r: &[usize], i: usize, j: usize| -> usize {
+        if j + BAND < i || j > i + BAND {
+            0
+        } else {
+            r[j + BAND - i]
+        }
+    };
+    for i in 1..=a.len() {
+        for k in 0..width {
+            let Some(j) = (i + k)
+                .checked_sub(BAND)
+                .filter(|&j| j >= 1 && j <= b.len())
+            else {
+                row[k] = 0;
+                continue;
+            };
+            row[k] = if a[i - 1] == b[j - 1] {
+                at(&prev, i - 1, j - 1) + 1
+            } else {
+                at(&prev, i - 1, j).max(if k > 0 { row[k - 1] } else { 0 })
+            };
+        }
+        std::mem::swap(&mut prev, &mut row);
+    }
+    let lcs = (0..width)
+        .filter_map(|k| {
+            (a.len() + k)
+                .checked_sub(BAND)
+                .filter(|&j| j == b.len())
+                .map(|_| prev[k])
+        })
+        .max()
+        .unwrap_or(0);
+    a.len() + b.len() - 2 * lcs
 }
