@@ -1,12 +1,13 @@
 //! Power cuts of the whole firmware: the simulator, keeping its flash in a state file
 //! (`--state`), is killed with SIGKILL at random moments while a host uploads programs
-//! (frames 03), writes settings (frames 00) and runs a stored program (frame 02 `Start`).
-//! After every kill, the firmware starts again on the file (`--check --state`, which prints
-//! every setting and the stored program as the firmware finds them), and:
+//! (frames 03), writes settings (frames 00) and runs a stored program (frame 02 `Start`), and
+//! while a stored job runs that the firmware is to resume after the restart (Marlin's `M413`
+//! and `M1000`). After every kill, the firmware starts again on the file (`--check --state`,
+//! which prints every setting and the stored program as the firmware finds them), and:
 //!
-//! - each setting is the last value the firmware acknowledged (frame 50; before any, the old
-//!   value) or a value sent after it and not yet answered; never a refused one (frame 56):
-//!   acknowledged means stored, refused changes nothing;
+//! - each setting is the last value the firmware acknowledged (frame 50, or `ok` to `M413`;
+//!   before any, the old value) or a value sent after it and not yet answered; never a refused
+//!   one (frame 56): acknowledged means stored, refused changes nothing;
 //! - the program is the old complete one, the new complete one (the new one if its upload was
 //!   confirmed with frame 53), or else it is refused by `Start` (incomplete or absent): never a
 //!   program with wrong lines that runs;
@@ -16,13 +17,55 @@
 //! pages are erased and records copied forward during the campaign (checked: some turn sets
 //! bits again in the file's settings flash, which only an erase does).
 //!
-//! Seeded: `FORJA_POWER_LOSS_SEED` (default 1) and `FORJA_POWER_LOSS_KILLS` (default 200, about
-//! 20 s) set the campaign; a longer one is the same test with more kills. A failure names the
-//! seed and the turn. The kill moments are drawn from how long the operations take on this
-//! computer (wall time, a random delay of a few milliseconds; nothing is asserted about
-//! time), so that they fall before, inside and just after them.
+//! # Resume after a power cut
+//!
+//! In the resume turns, the machine is homed (`G28`) and runs a stored job of about a minute
+//! of its own time (the simulator runs 50 times faster than the wall clock; frame 52's elapsed
+//! time is the machine's): 100 feed moves zigzagging in Y while X rises, in blocks of relative
+//! (`G91`) and absolute (`G90`) lines with feed changes and, from a third of the way on, a work
+//! offset (`G92`), the last block relative. Every motion line moves X forward, so where the
+//! machine is along X tells which lines have finished. At every look during a run, the test
+//! first reads the resume record (key 0x0300 of the settings' flash) from the state file as
+//! the firmware reads it, then asks for frames 51 and 52. Three turns in four, with power-loss
+//! recovery on (`M413 S1`):
+//!
+//! - the job is killed at a random moment after the first periodic checkpoint of its run (at
+//!   least 15 s into it), or, one cut in four, within its first seconds (to resume from the
+//!   record the run wrote at its start);
+//! - a record read before a position names no line that had not finished at that position
+//!   (a record ahead of the steps by less than the time a look takes, about 25 ms of the
+//!   machine's time, goes unseen: the controller's unit tests hold that bound); it never goes
+//!   back, changes at most once per 10 s of the run (flash wear), and at the cut names every
+//!   line that had finished more than 14 s before (the 10 s checkpoint period, the step
+//!   queue's settling and frame 52's whole seconds, with room to spare), so past the run's
+//!   start after a checkpoint;
+//! - after the restart, `M1000` is refused before homing (`!! E187 not-homed`) and nothing
+//!   moves (frames 51 and 52 the same 20 ms later); after `G28` (back at the same home),
+//!   `M1000` answers `ok` and frame 52 reports the line after the record the cut left: the
+//!   job resumes after the last checkpoint, which is no later than the last line finished;
+//! - every position of a run lies on its path (within 0.05 mm): the program's lines and, for
+//!   a resumed run, the return from home, X and Y at home's height first, then Z down to the
+//!   start of the resumed line; frame 52 counts the lines up from there, never back;
+//! - a resumed run is, one time in two, cut and resumed again; the last one runs to the
+//!   program's end (frame 51 at its final position, which a wrongly replayed distance mode or
+//!   offset would miss, frame 52 at its last line), after which `M1000` has nothing to resume
+//!   (`!! E186 no-resume`) and the flash keeps no record.
+//!
+//! One turn in four, with recovery off (`M413 S0`): `M1000` at once has nothing to resume
+//! (`E186`) and moves nothing; the job, cut the same way, leaves no record in the flash; after
+//! the restart and `G28`, `M1000` is refused with `E186` and nothing moves.
+//!
+//! Seeded: `FORJA_POWER_LOSS_SEED` (default 1), `FORJA_POWER_LOSS_KILLS` (default 200, about
+//! 20 s) and `FORJA_POWER_LOSS_RESUMES` (default 8, placed at random among the kills, about
+//! 20 s more) set the campaign; a longer one is the same test with more kills. A failure names
+//! the seed and the turn. The kill moments are drawn from how long the operations take on this
+//! computer (wall time, a random delay of a few milliseconds; nothing is asserted about wall
+//! time), so that they fall before, inside and just after them; a job to resume is cut at a
+//! moment of its own time.
 
 mod common;
+#[path = "power_loss/resume.rs"]
+mod resume;
 
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, ErrorKind, Read as _, Write as _};
@@ -31,7 +74,7 @@ use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-use forja_protocol::frame::{Action, ClientMessage, ControllerMessage, FRAME_LEN};
+use forja_protocol::frame::{Action, ClientMessage, ControllerMessage, FRAME_LEN, Progress};
 use nix::sys::signal::{Signal, kill};
 use nix::unistd::Pid;
 
@@ -174,10 +217,14 @@ impl Sim {
 #[derive(Debug, Clone, PartialEq)]
 enum Reply {
     Setting(String, String),
-    Progress { lines: u32 },
+    Progress(Progress),
+    /// Frame 51: X, Y and Z, in tenths of a micrometre.
+    Positions([i64; 3]),
     Confirm,
     Connected,
     Error(u16, String),
+    /// A line that is not a frame: the answer to a G-code line (`ok`, `!! E186 no-resume`).
+    Text(String),
     Other,
 }
 
@@ -211,15 +258,16 @@ impl Host {
                 let line: Vec<u8> = self.pending.drain(..=end).collect();
                 let line = &line[..line.len() - 1];
                 let Ok(message) = ControllerMessage::decode(line) else {
-                    continue;
+                    return Some(Reply::Text(String::from_utf8_lossy(line).into_owned()));
                 };
                 return Some(match message {
                     ControllerMessage::Setting { key, value } => {
                         Reply::Setting(key.to_string(), value.to_string())
                     }
-                    ControllerMessage::Progress(p) => Reply::Progress {
-                        lines: p.total_lines,
-                    },
+                    ControllerMessage::Progress(p) => Reply::Progress(p),
+                    ControllerMessage::Positions(p) => Reply::Positions(
+                        [b'X', b'Y', b'Z'].map(|a| i64::from(p.get(a).unwrap_or(i32::MIN))),
+                    ),
                     ControllerMessage::Confirm { .. } => Reply::Confirm,
                     ControllerMessage::Connected => Reply::Connected,
                     ControllerMessage::Error { code, detail } => {
@@ -330,6 +378,10 @@ enum Op {
     Settings,
     Upload,
     Job,
+    /// A stored job cut and resumed (`M1000`), power-loss recovery on or off (`M413`).
+    Resume {
+        recovery: bool,
+    },
 }
 
 /// Mean wall time of an operation, to draw kill moments from (microseconds).
@@ -363,7 +415,7 @@ fn start_refused(host: &mut Host) -> bool {
     loop {
         match host.next(deadline) {
             Some(Reply::Error(..)) => refused = true,
-            Some(Reply::Progress { .. }) => break,
+            Some(Reply::Progress(_)) => break,
             Some(_) => {}
             None => panic!("no answer to Start and 04 52"),
         }
@@ -460,6 +512,7 @@ fn write_settings(
 fn killed_at_random_moments_the_firmware_keeps_old_or_new_never_a_mix() {
     let seed = env_number("FORJA_POWER_LOSS_SEED", 1);
     let kills = env_number("FORJA_POWER_LOSS_KILLS", 200);
+    let resumes = env_number("FORJA_POWER_LOSS_RESUMES", 8);
     let mut rng = Rng(seed);
     let state: PathBuf = std::env::temp_dir().join(format!(
         "forja-sim-power-loss-{}-{seed}.flash",
@@ -498,9 +551,22 @@ fn killed_at_random_moments_the_firmware_keeps_old_or_new_never_a_mix() {
     let mut durations = Durations(BTreeMap::new());
     let mut failures: Vec<String> = Vec::new();
     let mut counts: BTreeMap<String, u32> = BTreeMap::new();
+    // The resume turns, among the others: every fourth with power-loss recovery off.
+    let mut resume_turns: BTreeMap<u64, bool> = BTreeMap::new();
+    while (resume_turns.len() as u64) < resumes {
+        resume_turns.insert(rng.range(0, kills + resumes - 1), true);
+    }
+    for (j, recovery) in resume_turns.values_mut().enumerate() {
+        *recovery = j % 4 != 3;
+    }
+    // Resume records read from the flash during a job and checked against a later position.
+    let mut records_checked = 0;
 
-    for turn in 0..kills {
+    for turn in 0..kills + resumes {
         let op = match rng.range(0, 9) {
+            _ if resume_turns.contains_key(&turn) => Op::Resume {
+                recovery: resume_turns[&turn],
+            },
             0 => Op::Boot,
             1..=3 => Op::Settings,
             4..=7 => Op::Upload,
@@ -509,15 +575,32 @@ fn killed_at_random_moments_the_firmware_keeps_old_or_new_never_a_mix() {
         };
         let context = format!("seed {seed}, turn {turn}, {op:?}");
         let boot_started = Instant::now();
-        let sim = Sim::start(&state);
         let mut sent = BTreeMap::new();
         let mut upload: Option<(Vec<String>, bool)> = None;
-        if op == Op::Boot {
+        if let Op::Resume { recovery } = op {
+            let t = resume::turn(
+                &state,
+                &mut rng,
+                recovery,
+                must_refuse,
+                known.program.len(),
+                &context,
+            );
+            failures.extend(t.failures);
+            sent = t.sent;
+            upload = t.upload;
+            records_checked += t.records_checked;
+            for c in t.counts {
+                *counts.entry(c.into()).or_default() += 1;
+            }
+        } else if op == Op::Boot {
+            let sim = Sim::start(&state);
             let delay = Duration::from_micros(rng.range(0, durations.get("boot") as u64));
             std::thread::sleep(delay);
             sim.kill();
             *counts.entry("boot".into()).or_default() += 1;
         } else {
+            let sim = Sim::start(&state);
             let mut host = sim.connect();
             durations.record("boot", boot_started.elapsed().as_micros() as f64);
             if must_refuse && !start_refused(&mut host) {
@@ -672,5 +755,18 @@ fn killed_at_random_moments_the_firmware_keeps_old_or_new_never_a_mix() {
     assert!(
         erasing_turns >= 1,
         "the settings' flash never reclaimed a page under the kills: {counts:?}"
+    );
+    let on = resume_turns.values().filter(|&&r| r).count() as u32;
+    let off = resume_turns.len() as u32 - on;
+    let count = |k: &str| counts.get(k).copied().unwrap_or(0);
+    assert!(
+        count("resumed") + count("resumed after an early cut") == on
+            && count("job ran to its end") >= on
+            && count("resume refused (recovery off)") == off,
+        "not every resume turn was cut, resumed (or refused) and ran to its end: {counts:?}"
+    );
+    assert!(
+        on == 0 || records_checked >= 1,
+        "no resume record was read during a job and checked against the machine's position"
     );
 }
