@@ -128,8 +128,8 @@ impl HeaterConfig {
 }
 
 /// Why a heater was shut off, or a target refused. The codes go on the wire and are stable.
+/// Exhaustive on purpose: every fault has a wire code where it is reported.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-#[non_exhaustive]
 pub enum HeaterFault {
     /// The sensor is open, shorted, out of range or unreadable. Code 210.
     Sensor,

@@ -2,8 +2,9 @@
 //!
 //! Concrete drivers for the traits of [`forja_hal_abstraction`], written against
 //! `embedded-hal` 1.0, `embedded-io` and `embedded-storage` only: no chip, no vendor HAL, no
-//! executor. A board crate builds them from its HAL's pins, PWM channels, ADC, UART and flash,
-//! and hands them to the kernel.
+//! executor, no Forja crate but the traits' own. A board crate builds them from its HAL's pins,
+//! PWM channels, ADC, UART and flash, and hands them to the application layer (`forja-app`),
+//! which gathers the heaters, fans and spindle into the controller's peripherals.
 //!
 //! ## Drivers and their execution contexts
 //!
@@ -18,9 +19,8 @@
 //! | [`heater`] | [`PidHeater`](heater::PidHeater), [`HeaterChannel`](heater::HeaterChannel) | (sans-IO controller) | thread: the temperature loop |
 //! | [`pwm`] | [`Fan`](pwm::Fan), [`Spindle`](pwm::Spindle), [`PwmHeater`](pwm::PwmHeater) | `Heater` (for `PwmHeater`) | thread |
 //! | [`storage`] | [`FlashRecordStorage`](storage::FlashRecordStorage), [`Records`](storage::Records) | `RecordStorage` | thread: may block for a flash erase |
-//! | [`program_flash`] | [`SlotProgramStore`](program_flash::SlotProgramStore) | `forja_motion::job::ProgramStore` | thread: one flash read per line read; may block for a sector erase while a program is loaded |
+//! | [`program_flash`] | [`SlotProgramStore`](program_flash::SlotProgramStore) | `ProgramStore` | thread: one flash read per line read; may block for a sector erase while a program is loaded |
 //! | [`ram_flash`] | [`RamNorFlash`](ram_flash::RamNorFlash) | `embedded_storage::nor_flash::NorFlash` | a simulated flash for the host simulator and tests |
-//! | [`peripherals`] | [`DriverPeripherals`](peripherals::DriverPeripherals) | `forja_motion::controller::Peripherals` | thread: the controller's heaters, fans, spindle, motor power and `M119` |
 //!
 //! "Interrupt" methods are integer-only, allocation-free, panic-free and constant-time: a pin
 //! write or read and a few instructions. "Thread" methods may use `f32` (the heater and the
@@ -69,7 +69,6 @@
 pub mod heater;
 pub mod limit;
 pub mod max31855;
-pub mod peripherals;
 pub mod pin;
 pub mod program_flash;
 pub mod pwm;

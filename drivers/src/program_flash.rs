@@ -15,7 +15,7 @@
 //! | 2 | the text's length, 0..=[`MAX_LINE_LEN`] |
 //! | 3..3+len | the text; the rest up to byte 42 is 0 |
 //! | 42..44 | the program's total number of lines, `u16` little-endian |
-//! | 44..48 | the program's digest through this line ([`digest_line`](forja_motion::job::digest_line)), `u32` little-endian |
+//! | 44..48 | the program's digest through this line ([`digest_line`](forja_hal_abstraction::program::digest_line)), `u32` little-endian |
 //! | 48..60 | 0 |
 //! | 60..64 | CRC-32 (IEEE) of bytes 0..60, little-endian |
 //!
@@ -80,8 +80,9 @@
 use core::ops::Range;
 
 use embedded_storage::nor_flash::{NorFlash, NorFlashError};
-use forja_motion::error::StoreError;
-use forja_motion::job::{MAX_LINE_LEN, MAX_LINES, ProgramState, ProgramStore, crc32_update};
+use forja_hal_abstraction::program::{
+    MAX_LINE_LEN, MAX_LINES, ProgramState, ProgramStore, StoreError, crc32_update,
+};
 
 use crate::storage::StorageError;
 
@@ -386,7 +387,7 @@ impl<F: NorFlash> ProgramStore for SlotProgramStore<F> {
 mod tests {
     use super::*;
     use crate::ram_flash::RamNorFlash;
-    use forja_motion::job::{RamStore, digest_line, digest_start};
+    use forja_hal_abstraction::program::{RamStore, digest_line, digest_start};
 
     /// Four slots per 256-byte sector, so that short programs cross sectors.
     type Flash = RamNorFlash<2048, 4, 256>;

@@ -13,6 +13,7 @@
 //! | [`thermal`] | [`thermal::Heater`], [`thermal::TemperatureSensor`] | heater power and temperature reading |
 //! | [`pwm`] | [`pwm::PwmOutput`] | fans and spindles (the `embedded-hal` PWM trait) |
 //! | [`storage`] | [`storage::RecordStorage`] | power-loss-safe keyed records (over `embedded-storage`) |
+//! | [`program`] | [`program::ProgramStore`] | where a program's lines are kept, stored whole or not at all |
 //!
 //! ## Contract
 //!
@@ -33,6 +34,7 @@
 pub mod clock;
 pub mod limit;
 pub mod link;
+pub mod program;
 pub mod pwm;
 pub mod stepper;
 pub mod storage;

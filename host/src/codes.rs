@@ -138,19 +138,22 @@ mod tests {
     #[test]
     fn every_code_the_controller_sends_is_described() {
         // The codes as their owners define them: the protocol's lines and frames (1–39; 40–59
-        // are the client's own encode and parse errors), the kernel's and the controller's
-        // tables, the drivers' heaters and storage, the boards' busy refusal.
+        // are the client's own encode and parse errors), the kernel's, the application's and
+        // the controller's tables, the drivers' heaters and storage, the boards' busy refusal.
         let protocol = match_arm_codes(include_str!("../../protocol/src/error.rs"));
         let kernel = table_codes(include_str!("../../motion/src/error.rs"));
-        let controller = table_codes(include_str!("../../motion/src/controller/mod.rs"));
+        let application = table_codes(include_str!("../../app/src/error.rs"));
+        let controller = table_codes(include_str!("../../app/src/controller/mod.rs"));
         let heater = match_arm_codes(include_str!("../../drivers/src/heater.rs"));
         let storage = match_arm_codes(include_str!("../../drivers/src/storage.rs"));
-        assert!(protocol.contains(&15) && kernel.contains(&188) && controller.contains(&198));
+        assert!(protocol.contains(&15) && kernel.contains(&131) && controller.contains(&198));
+        assert!(application.contains(&175) && application.contains(&188));
         assert!(heater.contains(&215) && storage.contains(&238));
         let all = protocol
             .into_iter()
             .filter(|c| *c < 40)
             .chain(kernel)
+            .chain(application)
             .chain(controller)
             .chain(heater)
             .chain(storage)

@@ -13,8 +13,7 @@ use std::time::{Duration, Instant as WallInstant};
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use forja_hal_abstraction::stepper::StepTiming;
 use forja_hal_abstraction::time::Instant;
-use forja_motion::job::{ProgramStore, RamStore, estimate_seconds};
-use forja_motion::{Kernel, Reply, StepGenerator, StepQueue, split};
+use forja_motion::{Estimate, Kernel, Reply, StepGenerator, StepQueue, split};
 use forja_protocol::gcode::Line;
 
 mod common;
@@ -22,18 +21,20 @@ use common::{Pin, Switch, config, program};
 
 fn plan(c: &mut Criterion) {
     let lines = program(2000);
-    let mut store = RamStore::<2000>::new();
-    store.begin(lines.len() as u16).expect("fits");
-    for (i, l) in lines.iter().enumerate() {
-        store.store(i as u16 + 1, l.as_bytes()).expect("fits");
-    }
     let mut q = StepQueue::<3, 256>::new();
     let (kernel, _isr): (Kernel<'_, 3>, _) =
         split(&mut q, config(), 1_000_000, StepTiming::CONSERVATIVE).expect("valid");
     let mut g = c.benchmark_group("plan");
     g.throughput(Throughput::Elements(lines.len() as u64));
     g.bench_function("1mm_lines", |b| {
-        b.iter(|| estimate_seconds(&kernel, &mut store, 1).expect("estimate"))
+        b.iter(|| {
+            let mut estimate = Estimate::new(&kernel);
+            for text in &lines {
+                let line = Line::parse(text.as_bytes()).expect("valid G-code");
+                estimate.line(&line);
+            }
+            estimate.seconds()
+        })
     });
     g.finish();
 }

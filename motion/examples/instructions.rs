@@ -14,8 +14,7 @@
 
 use forja_hal_abstraction::stepper::StepTiming;
 use forja_hal_abstraction::time::Instant;
-use forja_motion::job::{ProgramStore, RamStore, estimate_seconds};
-use forja_motion::{Kernel, Reply, StepGenerator, StepQueue, split};
+use forja_motion::{Estimate, Kernel, Reply, StepGenerator, StepQueue, split};
 use forja_protocol::gcode::Line;
 
 #[path = "../benches/common/mod.rs"]
@@ -23,8 +22,14 @@ mod common;
 use common::{Pin, Switch, config, program};
 
 #[inline(never)]
-fn count_plan<P: ProgramStore>(kernel: &Kernel<'_, 3>, store: &mut P) -> f32 {
-    estimate_seconds(kernel, store, 1).unwrap_or(0.0)
+fn count_plan(kernel: &Kernel<'_, 3>, lines: &[String]) -> f32 {
+    let mut estimate = Estimate::new(kernel);
+    for text in lines {
+        if let Ok(line) = Line::parse(text.as_bytes()) {
+            estimate.line(&line);
+        }
+    }
+    estimate.seconds()
 }
 
 #[inline(never)]
@@ -52,17 +57,13 @@ fn count_execute(kernel: &mut Kernel<'_, 3>, text: &str) -> bool {
 
 fn main() {
     let lines = program(1000);
-    let mut store = RamStore::<1000>::new();
-    for (i, l) in lines.iter().enumerate() {
-        let _ = store.store(i as u16 + 1, l.as_bytes());
-    }
     let mut q = StepQueue::<3, 256>::new();
     let Ok((mut kernel, mut isr)) =
         split::<3, 32, 256>(&mut q, config(), 1_000_000, StepTiming::CONSERVATIVE)
     else {
         return;
     };
-    let t = count_plan(&kernel, &mut store);
+    let t = count_plan(&kernel, &lines);
     println!("plan: {} lines, estimate {t:.2} s", lines.len());
 
     let mut pins = [Pin(0), Pin(0), Pin(0)];

@@ -91,8 +91,9 @@ pub enum StopKind {
 
 /// A command for a subsystem other than motion, returned in stream order. See the module
 /// documentation for when each is returned.
+/// Every effect is handled by the application layer: the enum is exhaustive on purpose, so
+/// that a new effect does not compile until it is.
 #[derive(Debug, Clone, Copy, PartialEq)]
-#[non_exhaustive]
 pub enum Effect<'l> {
     /// `M104`, `M109` (`wait`), `M140`: set a heater's target, °C (`S`, 0 = off).
     SetTemperature {
@@ -167,7 +168,7 @@ fn rebase_slice<'a>(s: &[u8], from: &[u8], to: &'a [u8]) -> &'a [u8] {
 
 impl Effect<'_> {
     /// The same effect with its texts borrowed from `to`, a copy of the line `from`.
-    pub(crate) fn rebase<'a>(self, from: &[u8], to: &'a [u8]) -> Effect<'a> {
+    pub fn rebase<'a>(self, from: &[u8], to: &'a [u8]) -> Effect<'a> {
         let r = |s: &[u8]| rebase_slice(s, from, to);
         match self {
             Effect::Storage(st) => Effect::Storage(match st {

@@ -41,23 +41,9 @@
 //! | 153 | [`Alarm::EmergencyStop`] | `M112` |
 //! | 154 | [`Alarm::StepUnderrun`] | the step queue ran dry during motion (segment preparation too slow) |
 //! | 155 | [`Alarm::DriverFault`] | a stepper driver or limit switch reported an error |
-//! | 170 | [`StoreError::OutOfOrder`] | a program line is not the one after the last stored |
-//! | 171 | [`StoreError::Full`] | the program store has no room |
-//! | 172 | [`StoreError::TooLong`] | a program line is longer than 39 bytes |
-//! | 173 | [`StoreError::NoSuchLine`] | a line index outside the stored program |
-//! | 174 | [`StoreError::Device`] | the storage device failed |
-//! | 175 | [`StoreError::NoUpload`] | a program line that continues no upload in progress (send line 1 first) |
-//! | 180 | [`JobError::Empty`] | start asked with no program stored |
-//! | 181 | [`JobError::NotRunning`] | pause or resume with no job running |
-//! | 182 | [`JobError::Busy`] | the action needs the job stopped (load, rewind, jog) |
-//! | 183 | [`JobError::Line`] | a stored line failed: the job stopped at it (see the inner error) |
-//! | 184 | [`JobError::Syntax`] | a stored line does not parse as G-code, or cannot be read |
-//! | 185 | [`JobError::Incomplete`] | start asked while the program's upload is not complete |
-//! | 186 | [`JobError::NothingToResume`] | resume (`M1000`) with no interrupted job recorded |
-//! | 187 | [`JobError::NotHomed`] | resume (`M1000`) before the machine is homed |
-//! | 188 | [`JobError::ProgramChanged`] | resume (`M1000`) of a job whose program has changed since |
 //!
-//! Codes not listed are reserved. A code is never reused for a different meaning.
+//! Codes not listed are reserved. A code is never reused for a different meaning. Codes
+//! `170..=199` belong to the application layer (`forja-app`: the program store and jobs).
 //!
 //! Every error also implements `forja_protocol::error::WireError` (the code and a short
 //! kebab-case name), so that the controller writes it with `Reply::fault`/`Reply::notice` or
@@ -369,135 +355,6 @@ impl fmt::Display for Alarm {
     }
 }
 
-/// A program store refused an operation; the store is left as it was.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[non_exhaustive]
-pub enum StoreError {
-    /// Line `got` was offered but line `expected` (the one after the last stored) is next.
-    OutOfOrder {
-        /// The index the store expects.
-        expected: u16,
-        /// The index offered.
-        got: u16,
-    },
-    /// The store is full.
-    Full,
-    /// The line is longer than [`crate::job::MAX_LINE_LEN`] bytes.
-    TooLong,
-    /// No line with this index is stored.
-    NoSuchLine,
-    /// The storage device failed.
-    Device,
-    /// A line other than line 1 while no upload is in progress: the store holds a complete
-    /// program or none, or the upload was interrupted (a restart, another host): a new upload
-    /// starts with line 1.
-    NoUpload,
-}
-
-impl StoreError {
-    /// The stable wire code (see the module table).
-    pub const fn code(&self) -> u16 {
-        match self {
-            Self::OutOfOrder { .. } => 170,
-            Self::Full => 171,
-            Self::TooLong => 172,
-            Self::NoSuchLine => 173,
-            Self::Device => 174,
-            Self::NoUpload => 175,
-        }
-    }
-}
-
-impl fmt::Display for StoreError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match *self {
-            Self::OutOfOrder { expected, got } => {
-                write!(f, "line-order {got:04} (expected {expected:04})")
-            }
-            Self::Full => f.write_str("store-full"),
-            Self::TooLong => f.write_str("line-too-long"),
-            Self::NoSuchLine => f.write_str("no-such-line"),
-            Self::Device => f.write_str("store-device"),
-            Self::NoUpload => f.write_str("no-upload"),
-        }
-    }
-}
-
-/// A job action that cannot be done now.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[non_exhaustive]
-pub enum JobError {
-    /// No program is stored.
-    Empty,
-    /// Pause or resume with no job running.
-    NotRunning,
-    /// The action needs the job stopped.
-    Busy,
-    /// A stored line does not parse (or cannot be read); the job stopped at it.
-    Syntax {
-        /// The 1-based program line.
-        line: u16,
-    },
-    /// A stored line failed; the job stopped at `line`.
-    Line {
-        /// The 1-based program line.
-        line: u16,
-        /// What was wrong with it.
-        error: CommandError,
-    },
-    /// The stored program's upload is not complete: `stored` of its `total` lines arrived.
-    Incomplete {
-        /// Lines stored.
-        stored: u16,
-        /// Lines the program has.
-        total: u16,
-    },
-    /// Resume (`M1000`) with no interrupted job recorded.
-    NothingToResume,
-    /// Resume (`M1000`) before every axis with a homing cycle is homed.
-    NotHomed,
-    /// Resume (`M1000`) of a job whose program is no longer the stored one.
-    ProgramChanged,
-}
-
-impl JobError {
-    /// The stable wire code (see the module table).
-    pub const fn code(&self) -> u16 {
-        match self {
-            Self::Empty => 180,
-            Self::NotRunning => 181,
-            Self::Busy => 182,
-            Self::Line { .. } => 183,
-            Self::Syntax { .. } => 184,
-            Self::Incomplete { .. } => 185,
-            Self::NothingToResume => 186,
-            Self::NotHomed => 187,
-            Self::ProgramChanged => 188,
-        }
-    }
-}
-
-impl fmt::Display for JobError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Self::Empty => f.write_str("job: no program stored"),
-            Self::NotRunning => f.write_str("job: not running"),
-            Self::Busy => f.write_str("job: stop it first"),
-            Self::Line { line, error } => write!(f, "job: line {line:04}: {error}"),
-            Self::Syntax { line } => write!(f, "job: line {line:04}: not G-code"),
-            Self::Incomplete { stored, total } => {
-                write!(
-                    f,
-                    "job: program incomplete ({stored} of {total} lines stored)"
-                )
-            }
-            Self::NothingToResume => f.write_str("job: nothing to resume"),
-            Self::NotHomed => f.write_str("job: home the machine first"),
-            Self::ProgramChanged => f.write_str("job: the program changed since it ran"),
-        }
-    }
-}
-
 impl WireError for ConfigError {
     fn code(&self) -> u16 {
         ConfigError::code(self)
@@ -563,41 +420,6 @@ impl WireError for Alarm {
     }
 }
 
-impl WireError for StoreError {
-    fn code(&self) -> u16 {
-        StoreError::code(self)
-    }
-    fn name(&self) -> &'static str {
-        match self {
-            Self::OutOfOrder { .. } => "line-order",
-            Self::Full => "store-full",
-            Self::TooLong => "line-too-long",
-            Self::NoSuchLine => "no-such-line",
-            Self::Device => "store-device",
-            Self::NoUpload => "no-upload",
-        }
-    }
-}
-
-impl WireError for JobError {
-    fn code(&self) -> u16 {
-        JobError::code(self)
-    }
-    fn name(&self) -> &'static str {
-        match self {
-            Self::Empty => "job-empty",
-            Self::NotRunning => "job-not-running",
-            Self::Busy => "job-busy",
-            Self::Line { .. } => "job-line",
-            Self::Syntax { .. } => "job-syntax",
-            Self::Incomplete { .. } => "program-incomplete",
-            Self::NothingToResume => "no-resume",
-            Self::NotHomed => "not-homed",
-            Self::ProgramChanged => "program-changed",
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -644,33 +466,6 @@ mod tests {
             Alarm::EmergencyStop.code(),
             Alarm::StepUnderrun.code(),
             Alarm::DriverFault { axis: 0 }.code(),
-            StoreError::OutOfOrder {
-                expected: 1,
-                got: 2,
-            }
-            .code(),
-            StoreError::Full.code(),
-            StoreError::TooLong.code(),
-            StoreError::NoSuchLine.code(),
-            StoreError::Device.code(),
-            StoreError::NoUpload.code(),
-            JobError::Empty.code(),
-            JobError::NotRunning.code(),
-            JobError::Busy.code(),
-            JobError::Line {
-                line: 1,
-                error: CommandError::Locked,
-            }
-            .code(),
-            JobError::Syntax { line: 1 }.code(),
-            JobError::Incomplete {
-                stored: 1,
-                total: 2,
-            }
-            .code(),
-            JobError::NothingToResume.code(),
-            JobError::NotHomed.code(),
-            JobError::ProgramChanged.code(),
         ];
         for (i, c) in codes.iter().enumerate() {
             assert!((100..=199).contains(c), "{c}");

@@ -322,10 +322,32 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         self.interp
     }
 
-    /// Take `interp` as the interpreter's state (a resumed job's modal state). Its commanded
-    /// position must be where the last queued move ends.
-    pub(crate) fn set_interpreter(&mut self, interp: Interpreter<N>) {
-        self.interp = interp;
+    /// Where the last queued move ends, in machine nanometres per axis.
+    pub fn commanded_position_nm(&self) -> [Nm; N] {
+        self.interp.pos
+    }
+
+    /// Take the power-on modal state (mm, absolute, no offsets) where the last queued move
+    /// ends: the state a resumed job's return moves are made in (see [`crate::Replay`]).
+    pub fn reset_modal_state(&mut self) {
+        let pos = self.interp.pos;
+        self.interp = Interpreter::new(&self.config);
+        self.interp.pos = pos;
+    }
+
+    /// Take a program's modal state ([`crate::Replay`]) to go on with it, the last queued move
+    /// ending at `at` (machine nm): the program's own position there, but for the extruders,
+    /// which are not moved back and keep their place (their work position is rebased, as `G92`
+    /// does).
+    pub fn take_modal_state(&mut self, replay: &crate::Replay<N>, at: [Nm; N]) {
+        let mut state = replay.interp;
+        for (i, a) in self.config.axes.iter().enumerate() {
+            if a.kind == AxisKind::Extruder {
+                state.rebase_axis(i, at[i]);
+            }
+        }
+        state.pos = at;
+        self.interp = state;
     }
 
     /// Where the last queued move ends, in machine steps.
@@ -364,7 +386,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
 
     /// A rapid move to `target` (machine nm), as a `G0` naming every axis would be taken:
     /// refused, `Busy` or queued by the same rules. For a resumed job's return to its line.
-    pub(crate) fn rapid_to(&mut self, target: [Nm; N]) -> Result<Reply<'static, N>, CommandError> {
+    pub fn rapid_to(&mut self, target: [Nm; N]) -> Result<Reply<'static, N>, CommandError> {
         let mut next = self.interp;
         next.pos = target;
         let action = Action::Move {

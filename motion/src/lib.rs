@@ -43,10 +43,10 @@
 //! | module | what |
 //! |---|---|
 //! | [`config`] | [`MachineConfig`], [`AxisConfig`], validation, `postcard` storage |
-//! | [`controller`] | [`controller::Controller`]: the link (G-code lines and frames), replies, jobs, settings and peripherals around the kernel, for every board |
 //! | [`effect`] | [`Effect`]: commands for other subsystems, returned in stream order |
 //! | [`error`] | the error enums and the table of their wire codes |
-//! | [`job`] | program store, job runner, progress and time estimate |
+//! | [`estimate`] | [`Estimate`]: how long a program takes, by a dry run of the interpreter and planner |
+//! | [`replay`] | [`Replay`]: the modal state a program leaves after some of its lines (a resumed job) |
 //! | `sim` (feature `std`) | a deterministic host simulation of the interrupt side |
 #![no_std]
 #![forbid(unsafe_code)]
@@ -57,25 +57,27 @@ extern crate std;
 
 mod arc;
 pub mod config;
-pub mod controller;
 pub mod effect;
 pub mod error;
+pub mod estimate;
 mod interp;
-pub mod job;
 mod kernel;
 mod planner;
 mod prep;
 mod profile;
 mod queue;
+pub mod replay;
 #[cfg(any(test, feature = "std"))]
 pub mod sim;
 mod stepgen;
 
 pub use config::{AxisConfig, AxisKind, HomeDirection, HomingConfig, MachineConfig, SoftLimits};
 pub use effect::{Effect, Sync};
-pub use error::{Alarm, CommandError, ConfigError, JobError, StoreError};
+pub use error::{Alarm, CommandError, ConfigError};
+pub use estimate::Estimate;
 pub use kernel::{Kernel, MachineState, PositionReport, Reply, split};
 pub use queue::{StepQueue, SwitchAlert};
+pub use replay::Replay;
 pub use stepgen::StepGenerator;
 
 /// The most axes a machine can have (step masks are 8 bits wide).

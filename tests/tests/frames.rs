@@ -5,8 +5,8 @@
 
 use std::time::Duration;
 
+use forja_app::job::JobState;
 use forja_motion::MachineState;
-use forja_motion::job::JobState;
 use forja_protocol::frame::{Action, ClientMessage, ControllerMessage};
 use forja_protocol::gcode::Decimal;
 use forja_sim::board::BoardConfig;

@@ -1,14 +1,16 @@
 //! A printer job of several hundred numbered, checksummed lines streamed over the
-//! pseudo-terminal, as Printrun streams it: homing on the switches, heating, moves with
-//! extrusion, the fan, and every report (`M105`, `M114`, `M119`).
+//! pseudo-terminal by the `forja` client's streamer, one line at a time as Printrun streams:
+//! homing on the switches, heating, moves with extrusion, the fan, and every report (`M105`,
+//! `M114`, `M119`).
 
 use std::time::{Duration, Instant};
 
+use forja_host::streamer::{Config, Window};
 use forja_protocol::reply::Reply;
 use forja_sim::board::BoardConfig;
-use forja_sim::host::GcodeSender;
+use forja_sim::host::StreamHost;
 use forja_sim::link::{PtyLink, TcpLink};
-use forja_tests::{HostEnd, PtyHost, Replies, Rig, same_mm, wall_ms};
+use forja_tests::{HostEnd, PtyHost, Rig, same_mm, wall_ms};
 
 /// The job: home, heat, a zig-zag of `moves` extruding moves, reports, cool down.
 fn job(moves: usize) -> (Vec<String>, (f64, f64, f64)) {
@@ -59,30 +61,46 @@ fn a_printer_job_over_the_pseudo_terminal() {
     let mut host = PtyHost::open(&path);
 
     let (lines, (x, y, e)) = job(420);
-    let mut sender = GcodeSender::new(lines.iter().map(String::as_str)).unwrap();
-    sender.timeout_ms = 1_000;
+    let config = Config {
+        window: Window::PING_PONG,
+        ..Config::default()
+    };
+    let mut sender = StreamHost::new(config, lines.iter().map(String::as_str)).unwrap();
     let start = Instant::now();
-    let mut replies = Replies::default();
     let done = rig.run_until(Duration::from_secs(50), |board, _| {
-        let received = host.receive();
-        replies.feed(&received);
-        let out = sender.poll(&received, wall_ms(start));
+        let out = sender.exchange(&host.receive(), wall_ms(start));
         if !out.is_empty() {
             host.send(&out);
         }
         let s = board.status();
-        sender.is_done() && s.idle && !s.holding
+        sender.is_over() && s.idle && !s.holding
     });
-    assert!(done, "the job did not finish: {:?}", rig.board.status());
+    assert!(
+        done && sender.is_done(),
+        "the job did not finish: {:?}, {:?}",
+        sender.events(),
+        rig.board.status()
+    );
 
-    // Every line taken once, none refused, none resent on a clean link.
+    // Every line sent once and taken, none refused, none resent on a clean link.
     let stats = sender.stats();
-    assert_eq!(stats.acked, sender.len() as u64);
-    assert!(stats.faults.is_empty(), "{:?}", stats.faults);
+    let pushed = sender.streamer().pushed();
+    assert_eq!(pushed as usize, lines.len());
+    assert_eq!(sender.streamer().accepted(), pushed);
+    // The job's lines and the closing line.
+    assert_eq!(stats.lines_sent, u64::from(pushed) + 1);
+    assert_eq!(
+        (stats.lines_resent, stats.stalls, stats.refused),
+        (0, 0, 0),
+        "{stats:?}"
+    );
+    let faults: Vec<&str> = sender.faults().collect();
+    assert!(faults.is_empty(), "{faults:?}");
     let status = rig.board.status();
-    assert_eq!(status.stats.executed, sender.len() as u32);
+    // The job's lines, the handshake's `M110` and the closing line.
+    assert_eq!(status.stats.executed, pushed + 2);
     assert_eq!((status.stats.resends, status.stats.refused), (0, 0));
-    assert_eq!(replies.lines.first().map(String::as_str), Some("start"));
+    assert_eq!(sender.replies().first().map(String::as_str), Some("start"));
 
     // Where the machine is: the kernel's position and the physical one agree.
     let want = [x, y, 10.0, e];
@@ -95,8 +113,8 @@ fn a_printer_job_over_the_pseudo_terminal() {
     assert_eq!(rig.machine.violation_count(), 0);
 
     // The reports.
-    let oks: Vec<Reply<'_>> = stats
-        .other
+    let replies = sender.replies();
+    let oks: Vec<Reply<'_>> = replies
         .iter()
         .filter_map(|l| Reply::parse(l.as_bytes()).ok())
         .collect();
@@ -104,7 +122,7 @@ fn a_printer_job_over_the_pseudo_terminal() {
         Reply::Temperatures { extruder, bed } => Some((extruder, bed)),
         _ => None,
     }) else {
-        panic!("no M105 answer: {:?}", stats.other);
+        panic!("no M105 answer: {replies:?}");
     };
     assert!((extruder.to_f64() - 200.0).abs() <= 2.0, "{extruder}");
     assert!((bed.to_f64() - 60.0).abs() <= 2.0, "{bed}");
@@ -121,11 +139,8 @@ fn a_printer_job_over_the_pseudo_terminal() {
     assert_eq!(last[0].value.to_f64(), x);
     assert_eq!(last[2].value.to_f64(), 10.0);
     assert!(
-        stats
-            .other
-            .contains(&"ok x_min:open y_min:open z_min:open".to_string()),
-        "{:?}",
-        stats.other
+        replies.contains(&"ok x_min:open y_min:open z_min:open".to_string()),
+        "{replies:?}"
     );
 
     // The fan ran at 200/255 between M106 and M107, the heaters are off again.

@@ -2,7 +2,7 @@
 //! runs, a line of another host's upload is never spliced in, and an interrupted upload stays
 //! incomplete across a restart until it is uploaded again from line 1.
 
-use forja_motion::job::JobState;
+use forja_app::job::JobState;
 use forja_protocol::frame::{Action, ClientMessage, ControllerMessage};
 use forja_sim::board::BoardConfig;
 use forja_sim::link::TcpLink;

@@ -10,6 +10,7 @@ use clap::{Parser, Subcommand};
 
 mod bench;
 mod firmware;
+mod graph;
 mod qemu;
 
 /// Forja's build, test and run tasks.
@@ -32,15 +33,29 @@ enum Task {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
-    /// Run every fuzz target for the given time each (needs the nightly toolchain; installs
-    /// cargo-fuzz when it is missing).
+    /// Run every fuzz target for the given time each, or for a number of executions each
+    /// (needs the nightly toolchain; installs cargo-fuzz when it is missing). A target's
+    /// corpus grows in fuzz/corpus/<target>, its failing inputs land in
+    /// fuzz/artifacts/<target>; the first failure stops the run.
     Fuzz {
         /// Seconds per target.
         #[arg(long, default_value_t = 60)]
         seconds: u64,
+        /// Stop each target after this many executions instead of after `--seconds`
+        /// (libFuzzer's `-runs`; with `--workers`, executions of all workers together).
+        #[arg(long, conflicts_with = "seconds")]
+        runs: Option<u64>,
         /// Run only this target.
         #[arg(long)]
         target: Option<String>,
+        /// Fuzzing processes per target (libFuzzer's `-fork`); 1 fuzzes in one process.
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+        workers: u32,
+        /// The sanitizer the targets are built with: address (cargo-fuzz's default), leak,
+        /// memory, thread, or none (fastest: the safe-Rust checks, debug assertions and
+        /// overflow checks stay on).
+        #[arg(long, default_value = "address")]
+        sanitizer: String,
     },
     /// Run the criterion benchmarks of the portable crates on the host, then count the motion
     /// kernel's instructions as Cortex-M4 machine code (an STM32F4 bench image in the Unicorn
@@ -93,6 +108,8 @@ enum Task {
     /// Build every default firmware release image and print its flash and RAM use against
     /// the smallest chip it must fit (fails when one does not).
     Size,
+    /// Check the crate graph's rules (the layers point one way; part of `test`).
+    Graph,
 }
 
 /// Portable crates that must build for every firmware target.
@@ -100,6 +117,7 @@ const PORTABLE: &[&str] = &[
     "forja-hal-abstraction",
     "forja-protocol",
     "forja-motion",
+    "forja-app",
     "forja-drivers",
 ];
 
@@ -114,7 +132,18 @@ fn main() -> ExitCode {
     let result = match cli.task {
         Task::Test => test(),
         Task::Sim { args } => sim(&args),
-        Task::Fuzz { seconds, target } => fuzz(seconds, target.as_deref()),
+        Task::Fuzz {
+            seconds,
+            runs,
+            target,
+            workers,
+            sanitizer,
+        } => fuzz(&Campaign {
+            length: runs.map_or(Length::Seconds(seconds), Length::Runs),
+            only: target,
+            workers,
+            sanitizer,
+        }),
         Task::Bench {
             host_only,
             target_only,
@@ -130,6 +159,7 @@ fn main() -> ExitCode {
         Task::Flash { board, variant } => firmware::flash(&board, variant.as_deref()),
         Task::Qemu { board, port, check } => firmware::run_qemu(&board, port, check),
         Task::Size => firmware::size(),
+        Task::Graph => graph::check(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -215,6 +245,7 @@ fn run_all(steps: Vec<Step>) -> Result<(), String> {
 fn test() -> Result<(), String> {
     let mut steps = vec![
         Step::cargo("format check", &["fmt", "--all", "--check"]),
+        Step::call("crate graph".to_string(), graph::check),
         Step::cargo(
             "clippy (all targets, -D warnings)",
             &[
@@ -287,14 +318,59 @@ fn ensure_cargo_tool(probe: &[&str], install: &[&str], what: &str) -> Result<(),
     Step::cargo(format!("install {what}"), &args).run()
 }
 
-fn fuzz(seconds: u64, only: Option<&str>) -> Result<(), String> {
+/// How long each fuzz target runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Length {
+    /// Wall-clock seconds.
+    Seconds(u64),
+    /// Executions of the target, all workers together.
+    Runs(u64),
+}
+
+/// A `cargo xtask fuzz` run.
+#[derive(Debug)]
+struct Campaign {
+    length: Length,
+    /// Only this target, or every one.
+    only: Option<String>,
+    /// Fuzzing processes per target.
+    workers: u32,
+    /// `cargo fuzz --sanitizer`.
+    sanitizer: String,
+}
+
+/// Sanitizers `cargo fuzz` builds with.
+const SANITIZERS: &[&str] = &["address", "leak", "memory", "thread", "none"];
+
+/// What a fuzz target needs beyond the defaults: `cargo fuzz` build options, then libFuzzer
+/// options.
+///
+/// `controller` runs the whole firmware on the simulator for every input, so its inputs are
+/// capped at 80 bytes (40 operations, the length of its proptest's scripts), and it is built
+/// without the instrumentation of every integer comparison, which makes an execution about
+/// three times slower and helps little: its input is decoded by remainders, not compared.
+fn fuzz_target_options(target: &str) -> (&'static [&'static str], &'static [&'static str]) {
+    match target {
+        "controller" => (&["--no-trace-compares"], &["-max_len=80"]),
+        _ => (&[], &[]),
+    }
+}
+
+fn fuzz(campaign: &Campaign) -> Result<(), String> {
+    if !SANITIZERS.contains(&campaign.sanitizer.as_str()) {
+        return Err(format!(
+            "no sanitizer named {}; the sanitizers are: {}",
+            campaign.sanitizer,
+            SANITIZERS.join(", ")
+        ));
+    }
     ensure_cargo_tool(
         &["+nightly", "fuzz", "--version"],
         &["cargo-fuzz"],
         "cargo-fuzz",
     )?;
     let targets = fuzz_targets()?;
-    let chosen: Vec<&String> = match only {
+    let chosen: Vec<&String> = match &campaign.only {
         Some(t) => {
             let found: Vec<&String> = targets.iter().filter(|n| *n == t).collect();
             if found.is_empty() {
@@ -307,12 +383,29 @@ fn fuzz(seconds: u64, only: Option<&str>) -> Result<(), String> {
         }
         None => targets.iter().collect(),
     };
-    let max_time = format!("-max_total_time={seconds}");
+    let (length, what) = match campaign.length {
+        Length::Seconds(s) => (format!("-max_total_time={s}"), format!("{s} s")),
+        Length::Runs(n) => (format!("-runs={n}"), format!("{n} executions")),
+    };
+    let fork = format!("-fork={}", campaign.workers);
     for target in chosen {
+        let (build, options) = fuzz_target_options(target);
+        let mut args = vec!["fuzz", "run", "--sanitizer", &campaign.sanitizer];
+        args.extend(build);
+        args.extend([target.as_str(), "--", &length, "-print_final_stats=1"]);
+        args.extend(options);
+        if campaign.workers > 1 {
+            args.push(&fork);
+        }
         Step::cargo_on(
             "nightly",
-            format!("fuzz {target} for {seconds} s"),
-            &["fuzz", "run", target, "--", &max_time],
+            format!(
+                "fuzz {target} for {what} ({} worker{}, sanitizer {})",
+                campaign.workers,
+                if campaign.workers == 1 { "" } else { "s" },
+                campaign.sanitizer
+            ),
+            &args,
         )
         .run()?;
     }

@@ -12,15 +12,22 @@
 //! `boot` waits for it. The firmware resets on a panic or a fault, and QEMU runs with
 //! `-no-reboot`, so such a reset ends QEMU: [`QemuBoard::is_running`] tells.
 //!
-//! It uses the standard library and the `object` crate only.
+//! The G-code job goes through the `forja` client's own code
+//! ([`forja_host::client::send_program`]: its `M115` probe, its handshake, its streamer and
+//! window) over [`QemuBoard::stream`]; the rest of the harness uses the standard library and
+//! the `object` crate.
 
 use std::fmt;
-use std::io::{self, BufRead, BufReader, Write};
+use std::io::{self, BufRead, BufReader, Read, Write};
 use std::net::{Ipv4Addr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use forja_host::client::{Observer, SendReport, send_program};
+use forja_host::link::{Connection, Link};
+use forja_host::program::Program;
+use forja_host::streamer::Config;
 use object::{Object, ObjectSymbol};
 
 /// The QEMU binary.
@@ -333,9 +340,10 @@ pub const JOB: &[&str] = &[
     "G0 Z4",
 ];
 
-/// The line of [`JOB`] (0-based) first sent with a damaged checksum: the firmware must ask for
-/// it again (`rs`), and take it when resent.
-pub const CORRUPTED: usize = 9;
+/// The number of the line of [`JOB`] (1-based, as the streamer numbers them) whose first copy
+/// is sent with a damaged check: the firmware must ask for it again (`rs`), and take it when
+/// resent.
+pub const CORRUPTED: u32 = 10;
 
 /// The program of the end-to-end test, uploaded with frames 03 and run with frame 02 `Start`.
 pub const PROGRAM: &[&str] = &[
@@ -361,14 +369,86 @@ const REPLY_TIMEOUT: Duration = Duration::from_secs(20);
 /// How long the machine may take to finish the job, or the program.
 const MOTION_TIMEOUT: Duration = Duration::from_secs(60);
 
-/// `N<n> <text>*<checksum>` with a newline; `corrupt` flips the checksum.
-fn numbered(n: u32, text: &str, corrupt: bool) -> Vec<u8> {
-    let body = format!("N{n} {text}");
-    let mut sum = forja_protocol::gcode::checksum(body.as_bytes());
-    if corrupt {
-        sum ^= 0x5A;
+/// `bytes` with the check of the numbered line `number` in them damaged, if they hold that line:
+/// the last digit after its `*` changed to its neighbour (`0` and `1`, `2` and `3`, …), which
+/// keeps the check in range (at most 255 for the XOR, 65535 for the CRC-16) and wrong.
+fn damage_check(bytes: &[u8], number: u32) -> Option<Vec<u8>> {
+    let head = format!("N{number} ");
+    let start = (0..bytes.len()).find(|&i| {
+        (i == 0 || bytes.get(i - 1) == Some(&b'\n'))
+            && bytes
+                .get(i..)
+                .is_some_and(|rest| rest.starts_with(head.as_bytes()))
+    })?;
+    let line = bytes.get(start..)?;
+    let len = line.iter().position(|&b| b == b'\r' || b == b'\n')?;
+    let line = line.get(..len)?;
+    let star = line.iter().rposition(|&b| b == b'*')?;
+    let last = start + len - 1;
+    if star + 1 == len || !bytes.get(last)?.is_ascii_digit() {
+        return None;
     }
-    format!("{body}*{sum}\n").into_bytes()
+    let mut out = bytes.to_vec();
+    *out.get_mut(last)? ^= 1;
+    Some(out)
+}
+
+/// The board's host link as the client's byte link ([`Link`]), damaging the check of the first
+/// copy of line `damage` it writes.
+struct ClientLink {
+    stream: TcpStream,
+    /// Bytes the board had already read from the link and not returned.
+    buffered: Vec<u8>,
+    /// The line still to damage.
+    damage: Option<u32>,
+}
+
+impl Link for ClientLink {
+    fn write_all(&mut self, bytes: &[u8]) -> io::Result<()> {
+        if let Some(number) = self.damage
+            && let Some(damaged) = damage_check(bytes, number)
+        {
+            self.damage = None;
+            return self.stream.write_all(&damaged);
+        }
+        self.stream.write_all(bytes)
+    }
+
+    fn read(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
+        if !self.buffered.is_empty() {
+            let n = buf.len().min(self.buffered.len());
+            buf[..n].copy_from_slice(&self.buffered[..n]);
+            self.buffered.drain(..n);
+            return Ok(n);
+        }
+        self.stream
+            .set_read_timeout(Some(timeout.max(Duration::from_millis(1))))?;
+        match self.stream.read(buf) {
+            Ok(0) => Err(io::Error::new(
+                io::ErrorKind::ConnectionAborted,
+                "the host link closed (QEMU ended?)",
+            )),
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                ) =>
+            {
+                Ok(0)
+            }
+            read => read,
+        }
+    }
+}
+
+/// What the client told about the job as it went.
+#[derive(Default)]
+struct Notices(Vec<String>);
+
+impl Observer for Notices {
+    fn notice(&mut self, text: &str) {
+        self.0.push(text.to_string());
+    }
 }
 
 /// Positions read from `M114` or frame 51, in [`AXES`] order, mm.
@@ -437,31 +517,39 @@ impl QemuBoard {
         }
     }
 
-    /// Send line `n` and return its terminal reply (`ok …` or `rs …`).
-    fn line(&mut self, n: u32, text: &str, corrupt: bool) -> Result<String, Error> {
-        self.send(&numbered(n, text, corrupt))?;
+    /// Send `text` as an unnumbered line and expect `ok …`.
+    fn command(&mut self, text: &str) -> Result<String, Error> {
+        self.send(format!("{text}\n").as_bytes())?;
         let reply = self
             .reply(REPLY_TIMEOUT)
-            .map_err(|e| Error(format!("line N{n} `{text}`: {e}")))?;
-        if reply.starts_with("ok") || reply.starts_with("rs") {
-            Ok(reply)
-        } else {
-            Err(Error(format!(
-                "line N{n} `{text}`: unexpected reply {reply:?}"
-            )))
-        }
-    }
-
-    /// Send line `n` and expect `ok`.
-    fn line_ok(&mut self, n: u32, text: &str) -> Result<String, Error> {
-        let reply = self.line(n, text, false)?;
+            .map_err(|e| Error(format!("`{text}`: {e}")))?;
         if reply.starts_with("ok") {
             Ok(reply)
         } else {
-            Err(Error(format!(
-                "line N{n} `{text}`: expected ok, got {reply:?}"
-            )))
+            Err(Error(format!("`{text}`: expected ok, got {reply:?}")))
         }
+    }
+
+    /// Stream `program` as `forja send` does ([`send_program`] with the settings of a serial
+    /// link, [`Config::default`]), the first copy of line `damage` sent with a damaged check.
+    /// Returns the client's report and what it told as it went.
+    fn stream(&mut self, program: &Program, damage: u32) -> Result<(SendReport, Notices), Error> {
+        let stream = self
+            .link
+            .get_ref()
+            .try_clone()
+            .map_err(|e| err("host link", e))?;
+        let buffered = self.link.buffer().to_vec();
+        self.link.consume(buffered.len());
+        let mut conn = Connection::new(Box::new(ClientLink {
+            stream,
+            buffered,
+            damage: Some(damage),
+        }));
+        let mut notices = Notices::default();
+        let report = send_program(&mut conn, program, Config::default(), &mut notices)
+            .map_err(|e| Error(format!("forja send: {e}")))?;
+        Ok((report, notices))
     }
 
     /// Send a frame (and a newline).
@@ -558,8 +646,8 @@ pub fn simulate() -> Result<(Position, forja_sim::MachineConfig), Error> {
     Ok((out, config))
 }
 
-/// The end-to-end test: boot the image, stream [`JOB`] (with [`CORRUPTED`] sent damaged
-/// once), check `M114`, upload [`PROGRAM`] with frames 03, run it with 02 `Start`, poll 04 → 52
+/// The end-to-end test: boot the image, stream [`JOB`] as `forja send` does (with line
+/// [`CORRUPTED`] sent damaged once), check `M114`, upload [`PROGRAM`] with frames 03, run it with 02 `Start`, poll 04 → 52
 /// until it is done, read `M114` and 51, and compare them with the simulator's run of the same
 /// job and program on the same machine (steps per mm read from the board with frame 00).
 pub fn end_to_end(elf: &Path) -> Result<EndToEnd, Error> {
@@ -592,30 +680,41 @@ pub fn end_to_end(elf: &Path) -> Result<EndToEnd, Error> {
         }
     }
 
-    // Stream the job, one line at a time, each sent when the previous one is answered.
+    // Stream the job with the client's streamer: the damaged line is asked for again, once,
+    // and every line is taken, none refused.
     let started = Instant::now();
-    let mut resends = 0;
-    for (i, text) in JOB.iter().enumerate() {
-        let n = i as u32 + 1;
-        if i == CORRUPTED {
-            let reply = board.line(n, text, true)?;
-            if reply != format!("rs {n}") {
-                return Err(Error(format!(
-                    "line N{n} with a damaged checksum: expected `rs {n}`, got {reply:?}"
-                )));
-            }
-            resends += 1;
-        }
-        board.line_ok(n, text)?;
+    let text: String = JOB.iter().map(|l| format!("{l}\n")).collect();
+    let program = Program::parse(text.as_bytes()).map_err(|e| Error(format!("JOB: {e}")))?;
+    let (report, notices) = board.stream(&program, CORRUPTED)?;
+    let resends: Vec<&String> = notices
+        .0
+        .iter()
+        .filter(|n| n.starts_with("resending") || n.starts_with("no answer"))
+        .collect();
+    let stats = report.stats;
+    if resends != [&format!("resending from line {CORRUPTED}")] || stats.rewinds != 1 {
+        return Err(Error(format!(
+            "line {CORRUPTED} with a damaged check: expected one resend from it, got {resends:?} \
+             ({stats:?})"
+        )));
     }
-    let n = JOB.len() as u32 + 1;
-    let m114 = parse_m114(&board.line_ok(n, "M114")?)?;
+    if !report.refused.is_empty() || stats.stalls != 0 {
+        return Err(Error(format!(
+            "the job was not taken cleanly: refused {:?} ({stats:?})",
+            report.refused
+        )));
+    }
+    let m114 = parse_m114(&board.command("M114")?)?;
     let streamed = board.wait_at(&m114, "streamed job")?;
     let stream_time = started.elapsed();
     eprintln!(
-        "streamed {} lines ({resends} resend) in {:.1} s; M114 {}; 51 {}",
-        JOB.len(),
+        "streamed {} lines with forja send's streamer in {:.1} s ({} bytes, {} resend, {} lines \
+         sent again); M114 {}; 51 {}",
+        report.lines,
         stream_time.as_secs_f64(),
+        stats.bytes_sent,
+        stats.rewinds,
+        stats.lines_resent,
         show(&m114),
         show(&streamed)
     );
@@ -673,7 +772,7 @@ pub fn end_to_end(elf: &Path) -> Result<EndToEnd, Error> {
         }
         std::thread::sleep(Duration::from_millis(100));
     };
-    let m114 = parse_m114(&board.line_ok(n + 1, "M114")?)?;
+    let m114 = parse_m114(&board.command("M114")?)?;
     let positions = board.wait_at(&m114, "program")?;
     let run_time = started.elapsed();
     eprintln!(
@@ -718,4 +817,26 @@ pub fn end_to_end(elf: &Path) -> Result<EndToEnd, Error> {
         simulated,
         times: [stream_time, upload_time, run_time],
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_the_check_of_the_named_line_is_damaged_and_stays_in_range() {
+        let bytes = b"N9 G0 Z2*56\r\nN10 G0 X10 Y6.25*255\r\nN100 G90*12\r\n";
+        let damaged = damage_check(bytes, 10).unwrap();
+        assert_eq!(
+            damaged,
+            b"N9 G0 Z2*56\r\nN10 G0 X10 Y6.25*254\r\nN100 G90*12\r\n"
+        );
+        assert_eq!(
+            damage_check(b"\r\nN10 G21*65535\r\n", 10).unwrap(),
+            b"\r\nN10 G21*65534\r\n"
+        );
+        assert_eq!(damage_check(bytes, 1), None);
+        assert_eq!(damage_check(b"N100 G90*12\r\n", 10), None);
+        assert_eq!(damage_check(b"N10 G90\r\n", 10), None);
+    }
 }

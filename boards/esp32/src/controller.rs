@@ -16,13 +16,11 @@
 //! a stored program runs on.
 
 use embassy_time::{Duration, Instant as EmbassyInstant};
-use forja_drivers::peripherals::{
-    DriverPeripherals, MotorEnables, NoHeater, NoPwm, NoSpindle, Parts,
-};
+use forja_app::controller::{Controller, ControllerConfig, Settings};
+use forja_app::peripherals::{DriverPeripherals, MotorEnables, NoHeater, NoPwm, NoSpindle, Parts};
 use forja_drivers::session::SessionAction;
 use forja_hal_abstraction::clock::Clock;
 use forja_hal_abstraction::time::Instant;
-use forja_motion::controller::{Controller, ControllerConfig, Settings};
 use forja_motion::{Kernel, StepQueue};
 use static_cell::StaticCell;
 

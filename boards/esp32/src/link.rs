@@ -63,9 +63,9 @@ use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::pipe::Pipe;
 use embassy_sync::signal::Signal;
 use embassy_time::{Duration, Instant, Timer, with_deadline, with_timeout};
+use forja_app::controller::{BUSY_REFUSAL_LEN, DEFAULT_KEEP_ALIVE_MS, busy_refusal};
 use forja_drivers::session::{LinkSession, SessionAction};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
-use forja_motion::controller::{BUSY_REFUSAL_LEN, DEFAULT_KEEP_ALIVE_MS, busy_refusal};
 
 /// The TCP port of the host link, the simulator's too.
 pub const PORT: u16 = 2323;

@@ -1,7 +1,7 @@
 //! The WiFi link's settings: which network to join.
 //!
 //! The network is the controller's `link.ssid` and `link.password` settings (frame 00, kept in
-//! the store with the other settings by `forja_motion::controller::Settings`). When no network
+//! the store with the other settings by `forja_app::controller::Settings`). When no network
 //! was ever set there, the build's `FORJA_WIFI_SSID` and `FORJA_WIFI_PASSWORD` (read by
 //! `option_env!`; an empty or unset password means an open network) are used. Without either,
 //! the board starts its own access point (see [`crate::wifi`]).

@@ -5,7 +5,7 @@
 //! |---|---|
 //! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`crate::SimStepDirPins`], and `forja_drivers::limit::LimitInput`s on [`crate::SimSwitchPin`]s (the homing switch of each homed axis) |
 //! | thread side | [`Firmware::poll`]: the links, one `LinkSession` per port (admission of TCP clients, frames 54/55, the idle time-out), one controlling host across the ports, `Controller::poll` with at most [`READ_BUDGET`] bytes of input |
-//! | peripherals | `forja_drivers::peripherals::DriverPeripherals`: PID `HeaterChannel`s over the simulated heaters, fans and the spindle on the PWM outputs, the drivers' enable lines, the switches read again for `M119` |
+//! | peripherals | `forja_app::peripherals::DriverPeripherals`: PID `HeaterChannel`s over the simulated heaters, fans and the spindle on the PWM outputs, the drivers' enable lines, the switches read again for `M119` |
 //! | storage | two `FlashRecordStorage`s on NOR flashes ([`Flash`], [`HeapFlash`]): the settings, and the uploaded program (`RecordProgramStore`); kept in a file with `--state` ([`crate::state`]) |
 //!
 //! The kernel's [`forja_motion::MachineConfig`] is made from the machine file
@@ -59,9 +59,14 @@ use core::fmt;
 use std::io;
 
 use embedded_storage::nor_flash::{ErrorType as FlashErrorType, NorFlash, ReadNorFlash};
+use forja_app::controller::{
+    BUSY_REFUSAL_LEN, Controller, ControllerConfig, Key, Realtime, RecordProgramStore, Settings,
+    Stats as ControllerStats, busy_refusal, realtime,
+};
+use forja_app::job::{JobState, Progress};
+use forja_app::peripherals::{DriverPeripherals, MotorEnables, Parts};
 use forja_drivers::heater::{HeaterChannel, HeaterConfig, PidGains};
 use forja_drivers::limit::{LimitConfig, LimitInput, Polarity};
-use forja_drivers::peripherals::{DriverPeripherals, MotorEnables, Parts};
 use forja_drivers::pin::NoPin;
 use forja_drivers::pwm::{Fan, FanConfig, Spindle, SpindleConfig};
 use forja_drivers::ram_flash::RamFlashError;
@@ -72,11 +77,6 @@ use forja_hal_abstraction::clock::Alarm as _;
 use forja_hal_abstraction::link::LinkState;
 use forja_hal_abstraction::stepper::StepTiming;
 use forja_hal_abstraction::time::Instant;
-use forja_motion::controller::{
-    BUSY_REFUSAL_LEN, Controller, ControllerConfig, Key, Realtime, RecordProgramStore, Settings,
-    Stats as ControllerStats, busy_refusal, realtime,
-};
-use forja_motion::job::{JobState, Progress};
 use forja_motion::{
     AxisConfig, AxisKind as KernelAxisKind, HomeDirection, HomingConfig, Kernel,
     MachineConfig as KernelConfig, MachineState, StepGenerator, StepQueue, SwitchAlert,
@@ -591,6 +591,34 @@ fn homing_switch(machine: &SimMachine, axis: usize) -> Option<Switch> {
     ))
 }
 
+/// The step queue of a board, on the heap: the kernel and the step interrupt hold it as
+/// `'static` (as a firmware board's `static`), and it is freed when the board is dropped.
+///
+/// It must be the last field of [`Wired`]: fields drop in declaration order, so everything
+/// that borrows the queue (the controller's kernel, the step interrupt, the switch alert) is
+/// gone before it is freed.
+struct QueueBox<const N: usize>(core::ptr::NonNull<StepQueue<N, QUEUE_EVENTS>>);
+
+impl<const N: usize> QueueBox<N> {
+    /// A new queue, and the one reference to it the kernel is split from.
+    #[allow(unsafe_code)]
+    fn new() -> (Self, &'static mut StepQueue<N, QUEUE_EVENTS>) {
+        let ptr = core::ptr::NonNull::from(Box::leak(Box::new(StepQueue::new())));
+        // SAFETY: the allocation lives until `drop`, which runs after every borrower of this
+        // reference is dropped (see the type's documentation); no other reference is made.
+        (Self(ptr), unsafe { &mut *ptr.as_ptr() })
+    }
+}
+
+impl<const N: usize> Drop for QueueBox<N> {
+    #[allow(unsafe_code)]
+    fn drop(&mut self) {
+        // SAFETY: the pointer comes from `Box::leak` in `new`, and the references made from it
+        // were held only by fields of `Wired` dropped before this one.
+        drop(unsafe { Box::from_raw(self.0.as_ptr()) });
+    }
+}
+
 struct Wired<const N: usize> {
     controller: SimController<N>,
     isr: StepGenerator<'static, N, QUEUE_EVENTS>,
@@ -605,6 +633,8 @@ struct Wired<const N: usize> {
     booted: bool,
     /// Stored setting values ignored at start-up.
     ignored_settings: u16,
+    /// The step queue: last, freed after everything that borrows it.
+    _queue: QueueBox<N>,
 }
 
 fn storage_error(e: impl fmt::Debug) -> BoardError {
@@ -631,7 +661,7 @@ impl<const N: usize> Wired<N> {
             FlashRecordStorage::new(flash.settings, 0..SETTINGS_FLASH_LEN as u32)
                 .map_err(storage_error)?;
         let (settings, loaded) = Settings::load(base, &mut settings_store);
-        let queue: &'static mut StepQueue<N, QUEUE_EVENTS> = Box::leak(Box::new(StepQueue::new()));
+        let (queue_box, queue) = QueueBox::<N>::new();
         let (kernel, isr): (Kernel<'static, N, PLANNER_BLOCKS, QUEUE_EVENTS>, _) =
             forja_motion::split(queue, settings.machine().clone(), machine.tick_hz(), timing)
                 .map_err(BoardError::Config)?;
@@ -711,6 +741,7 @@ impl<const N: usize> Wired<N> {
             machine: machine.clone(),
             booted: false,
             ignored_settings: loaded.ignored,
+            _queue: queue_box,
         })
     }
 
@@ -940,7 +971,9 @@ impl<const N: usize> Wiring for Wired<N> {
             holding: self.controller.is_holding(),
             machine_mm: k.position().machine_mm.to_vec(),
             homed: k.homed_axes(),
-            program_lines: forja_motion::job::ProgramStore::len(self.controller.program()),
+            program_lines: forja_hal_abstraction::program::ProgramStore::len(
+                self.controller.program(),
+            ),
             active_port: None,
         }
     }
@@ -950,9 +983,10 @@ impl<const N: usize> Wiring for Wired<N> {
     }
 
     fn program_line(&mut self, index: u16) -> Option<String> {
-        let mut buf = [0u8; forja_motion::job::MAX_LINE_LEN];
+        let mut buf = [0u8; forja_hal_abstraction::program::MAX_LINE_LEN];
         let store = self.controller.program_mut();
-        let len = forja_motion::job::ProgramStore::read(store, index, &mut buf).ok()?;
+        let len =
+            forja_hal_abstraction::program::ProgramStore::read(store, index, &mut buf).ok()?;
         Some(String::from_utf8_lossy(buf.get(..len)?).into_owned())
     }
 
@@ -968,8 +1002,8 @@ impl<const N: usize> Wiring for Wired<N> {
             })
             .collect();
         let store = self.controller.program();
-        let len = forja_motion::job::ProgramStore::len(store);
-        let program_total = forja_motion::job::ProgramStore::total(store);
+        let len = forja_hal_abstraction::program::ProgramStore::len(store);
+        let program_total = forja_hal_abstraction::program::ProgramStore::total(store);
         Stored {
             settings,
             ignored_settings: self.ignored_settings,
@@ -1000,7 +1034,7 @@ pub struct BoardConfig {
 impl Default for BoardConfig {
     fn default() -> Self {
         Self {
-            program_lines: forja_motion::job::MAX_LINES,
+            program_lines: forja_hal_abstraction::program::MAX_LINES,
             flash: Flash::erased(),
         }
     }

@@ -57,9 +57,10 @@
 //!
 //! [`board::SimBoard`] is the Forja firmware on a [`SimMachine`], wired as a firmware board
 //! wires it: the kernel's step interrupt on [`Firmware::on_alarm`] with the `forja-drivers`
-//! step/dir driver and limit inputs on the simulated pins, and `forja_motion::controller` on
-//! [`Firmware::poll`], serving the links. [`run::run_job`] streams a job to it as a host does
-//! ([`host::GcodeSender`]); [`run::listen`] serves hosts on TCP and a pseudo-terminal.
+//! step/dir driver and limit inputs on the simulated pins, and `forja_app::controller` on
+//! [`Firmware::poll`], serving the links. [`run::run_job`] streams a job to it as `forja send`
+//! does, with the client's own streamer ([`host::StreamHost`]); [`run::listen`] serves hosts on
+//! TCP and a pseudo-terminal.
 //!
 //! The loop itself is not tied to the firmware: anything that implements [`Firmware`] runs on
 //! the simulated hardware, as this stand-in for the kernel does:

@@ -10,13 +10,15 @@ use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use embedded_io::{Read, ReadReady, Write, WriteReady};
+use forja_app::controller::Stats as ControllerStats;
 use forja_drivers::session::LinkSession;
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
-use forja_motion::controller::Stats as ControllerStats;
+use forja_host::program::Program;
+use forja_host::streamer::{Config, Stats};
 
 use crate::board::{PortId, SimBoard};
 use crate::config::MachineConfig;
-use crate::host::{GcodeSender, SenderStats};
+use crate::host::StreamHost;
 use crate::job::Job;
 use crate::link::{FaultConfig, FaultInjector, HostLink, MemoryLink, PtyLink, TcpLink};
 use crate::machine::{SimClock, SimMachine};
@@ -57,6 +59,14 @@ impl Default for JobOptions {
     }
 }
 
+/// The reply time-out of [`run_job`]'s streamer ([`Config::reply_timeout`]; its other settings
+/// are `forja send`'s for a serial link, [`Config::default`]). The controller answers a line
+/// only when it can take it, so a line held by homing, a heater wait or a full planner goes
+/// unanswered for as long as that lasts (homing the default router takes over 20 s of virtual
+/// time), and the in-memory link loses no reply: copies sent after a shorter time-out would
+/// only be refused as out of order.
+pub const JOB_REPLY_TIMEOUT: Duration = Duration::from_secs(600);
+
 /// What [`run_job`] did.
 #[derive(Debug, Clone)]
 pub struct JobRun {
@@ -66,12 +76,17 @@ pub struct JobRun {
     pub job: String,
     /// Whether `G28` was sent first.
     pub homed_first: bool,
-    /// Whether every line was answered and the machine came to rest.
+    /// Whether the controller took every line and the machine came to rest.
     pub finished: bool,
-    /// Lines streamed (the opening `M110`, and `G28` when homed first, included).
+    /// Lines of the job streamed (`G28` included when homed first; blank and comment lines,
+    /// the handshake's `M110` and the closing line not counted).
     pub lines: usize,
-    /// The sender's view.
-    pub sender: SenderStats,
+    /// How many of them the controller took.
+    pub accepted: usize,
+    /// The streamer's counters.
+    pub sender: Stats,
+    /// The `!!` lines received (refused lines and faults), in order.
+    pub faults: Vec<String>,
     /// The controller's view.
     pub controller: ControllerStats,
     /// Virtual time the run took, seconds.
@@ -89,7 +104,7 @@ impl JobRun {
     /// Whether the job ran through, with every line taken and nothing wrong with the steps.
     pub fn is_clean(&self) -> bool {
         self.finished
-            && self.sender.faults.is_empty()
+            && self.faults.is_empty()
             && self.violations == 0
             && self.axes.iter().all(|a| a.3 == 0)
     }
@@ -115,19 +130,20 @@ impl fmt::Display for JobRun {
         )?;
         writeln!(
             f,
-            "lines run: {} of {} ({}); executed {}, refused {}, resends {}",
-            self.sender.acked,
+            "lines run: {} of {}{}; executed {} (with M110 and the closing line), refused {}, \
+             resends {}",
+            self.accepted,
             self.lines,
             if self.homed_first {
-                "the opening M110 and G28 included"
+                " (G28 included)"
             } else {
-                "the opening M110 included"
+                ""
             },
             self.controller.executed,
             self.controller.refused,
-            self.sender.resends
+            self.controller.resends
         )?;
-        for fault in &self.sender.faults {
+        for fault in &self.faults {
             writeln!(f, "  {fault}")?;
         }
         writeln!(
@@ -154,12 +170,15 @@ impl fmt::Display for JobRun {
 }
 
 /// Stream `job` to the firmware on a new machine as `config` describes it, over an in-memory
-/// link, as a host does (numbered, checksummed lines, each sent when the previous one is
-/// answered), as fast as the computer runs, until every line is answered and the machine is at
-/// rest.
+/// link, as `forja send` does (its program check, then its streamer with the window of a serial
+/// link and [`JOB_REPLY_TIMEOUT`]), as fast as the computer runs, until the controller has taken every
+/// line and the machine is at rest, or the streamer stops (an alarm).
 ///
-/// Errors: a job line that cannot be sent, a board that cannot be built, a simulation error.
+/// Errors: a job line that does not parse or cannot be sent, a board that cannot be built, a
+/// simulation error.
 pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Result<JobRun, String> {
+    let program =
+        Program::parse(job.text().as_bytes()).map_err(|e| format!("{}: {e}", job.name()))?;
     let machine = SimMachine::new(config);
     machine.set_tracing(options.trace.is_some());
     let board_config = crate::state::board_config(options.state.as_deref())?;
@@ -168,8 +187,20 @@ pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Resul
     let link = FaultInjector::new(link, options.faults).map_err(|e| e.to_string())?;
     board.add_port(link, false);
     let home = options.home_first && config.axes.iter().any(|a| a.homing.is_some());
-    let mut sender = GcodeSender::new(home.then_some("G28").into_iter().chain(job.lines()))?;
-    let lines = sender.len();
+    let lines = home.then_some("G28").into_iter().chain(program.texts());
+    let streamer = Config {
+        reply_timeout: JOB_REPLY_TIMEOUT,
+        ..Config::default()
+    };
+    let mut sender = StreamHost::new(streamer, lines).map_err(|(i, e)| {
+        let source = (i - 1)
+            .checked_sub(usize::from(home))
+            .and_then(|k| program.lines.get(k));
+        match source {
+            Some(l) => format!("{}, line {}: {e}", job.name(), l.source_line),
+            None => format!("G28: {e}"),
+        }
+    })?;
     let mut sim_config = SimulationConfig::new(config.tick_hz);
     sim_config.time_limit_ticks = options.time_limit_ticks;
     sim_config.pacing = options.pacing;
@@ -178,12 +209,12 @@ pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Resul
     let report = board
         .run(&mut sim, |board, _| {
             let now_ms = board.machine().now_ticks() * 1000 / tick_hz;
-            let out = sender.poll(&host.take_received(), now_ms);
+            let out = sender.exchange(&host.take_received(), now_ms);
             if !out.is_empty() {
                 host.send(&out);
             }
             let status = board.status();
-            if sender.is_done() && status.idle && !status.holding {
+            if sender.is_over() && status.idle && !status.holding {
                 Flow::Stop
             } else {
                 Flow::Continue
@@ -213,9 +244,11 @@ pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Resul
         machine: config.name.clone(),
         job: job.name().to_string(),
         homed_first: home,
-        finished: report.stop == StopReason::Firmware,
-        lines,
-        sender: sender.stats().clone(),
+        finished: report.stop == StopReason::Firmware && sender.is_done(),
+        lines: sender.streamer().pushed() as usize,
+        accepted: sender.streamer().accepted() as usize,
+        sender: sender.stats(),
+        faults: sender.faults().map(str::to_string).collect(),
         controller: board.status().stats,
         virtual_s: report.virtual_ticks() as f64 / config.tick_hz as f64,
         wall: report.wall,

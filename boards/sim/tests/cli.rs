@@ -84,7 +84,7 @@ fn running_the_sample_job_prints_the_result() {
     assert!(out.status.success(), "{text}");
     assert!(text.contains("result: finished"), "{text}");
     assert!(
-        text.contains("lines run: 314 of 314 (the opening M110 and G28 included); executed 314"),
+        text.contains("lines run: 313 of 313 (G28 included); executed 315 (with M110"),
         "{text}"
     );
     assert!(text.contains("refused 0, resends 0"), "{text}");

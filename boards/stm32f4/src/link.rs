@@ -13,8 +13,8 @@
 
 use core::sync::atomic::{AtomicU32, Ordering};
 
+use forja_app::controller::Stats;
 use forja_drivers::uart::{UartReader, UartWriter};
-use forja_motion::controller::Stats;
 
 use crate::uart::{RX_LEN, TX_LEN};
 

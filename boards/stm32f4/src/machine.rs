@@ -20,13 +20,13 @@
 //! full rate. The stored program takes at most [`PROGRAM_LINES`] lines (see
 //! [`crate::storage`]).
 
-use forja_drivers::peripherals::{
+use forja_app::controller::{
+    Controller, ControllerConfig, PollOutcome, RecordProgramStore, Settings,
+};
+use forja_app::peripherals::{
     DriverPeripherals, MotorEnables, NoHeater, NoLimit, NoPwm, NoSpindle, Parts,
 };
 use forja_hal_abstraction::time::Instant;
-use forja_motion::controller::{
-    Controller, ControllerConfig, PollOutcome, RecordProgramStore, Settings,
-};
 use forja_motion::{Kernel, StepGenerator, StepQueue, SwitchAlert};
 
 use crate::board::{self, AXES, DRIVERS, LIMITS};

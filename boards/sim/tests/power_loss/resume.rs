@@ -4,10 +4,10 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use forja_app::controller::store::{RESUME_RECORD, ResumeRecord};
 use forja_drivers::storage::FlashRecordStorage;
+use forja_hal_abstraction::program::{digest_line, digest_start};
 use forja_hal_abstraction::storage::RecordStorage as _;
-use forja_motion::controller::store::{RESUME_RECORD, ResumeRecord};
-use forja_motion::job::{digest_line, digest_start};
 use forja_protocol::frame::{Action, ClientMessage, Progress};
 use forja_sim::board::{SETTINGS_FLASH_LEN, SettingsFlash};
 use nix::unistd::Pid;
@@ -73,7 +73,7 @@ struct Program {
     /// Where the machine is once each line has run: `ends[0]` is the start (home), `ends[k]`
     /// the end of line `k`.
     ends: Vec<Point>,
-    /// The digest the firmware keeps of it ([`forja_motion::job::digest_line`]).
+    /// The digest the firmware keeps of it ([`forja_hal_abstraction::program::digest_line`]).
     digest: u32,
 }
 

@@ -4,7 +4,11 @@ use core::fmt;
 
 use forja_protocol::error::WireError;
 
-use crate::error::{Alarm, CommandError, JobError, StoreError};
+use forja_motion::error::{Alarm, CommandError};
+
+use crate::error::{JobError, StoreRefusal};
+
+use forja_hal_abstraction::program::StoreError;
 
 /// ASCII text of at most `C` bytes, written with `core::fmt`. What does not fit is dropped
 /// (the write reports an error, the text keeps what fit).
@@ -158,10 +162,11 @@ pub(crate) fn job_refusal(e: &JobError) -> Refusal {
 /// A program store error, naming the line expected next when the order was wrong.
 pub(crate) fn store_refusal(e: &StoreError) -> Refusal {
     match *e {
-        StoreError::OutOfOrder { expected, got } => {
-            Refusal::with(e, format_args!("{got:04} expected {expected:04}"))
-        }
-        _ => Refusal::new(e),
+        StoreError::OutOfOrder { expected, got } => Refusal::with(
+            &StoreRefusal(*e),
+            format_args!("{got:04} expected {expected:04}"),
+        ),
+        _ => Refusal::new(&StoreRefusal(*e)),
     }
 }
 
@@ -185,7 +190,10 @@ mod tests {
             got: 5,
         });
         assert_eq!((r.code, r.text()), (170, "line-order 0005 expected 0003"));
-        let long = Refusal::with(&StoreError::Full, format_args!("{}", "x".repeat(100)));
+        let long = Refusal::with(
+            &StoreRefusal(StoreError::Full),
+            format_args!("{}", "x".repeat(100)),
+        );
         assert_eq!(long.text().len(), REFUSAL_TEXT);
     }
 

@@ -3,14 +3,14 @@
 //!
 //! [`Peripherals`] is one small trait so that the controller stays free of drivers and chips.
 //! `forja-drivers` implements it once, generically, over its PID heater channels, fans,
-//! spindle, stepper enables and limit inputs (`forja_drivers::peripherals::DriverPeripherals`);
+//! spindle, stepper enables and limit inputs (`forja_app::peripherals::DriverPeripherals`);
 //! a board builds that from its pins and hands it to the controller.
 
 use core::fmt;
 
 use forja_protocol::error::WireError;
 
-use crate::effect::{Heater, Spindle};
+use forja_motion::effect::{Heater, Spindle};
 
 /// Current and target temperature of one heater, in thousandths of a degree Celsius.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

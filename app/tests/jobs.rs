@@ -1,13 +1,15 @@
 //! Jobs from the program store: the frame actions, progress, and the time estimate against
 //! the simulated execution.
 
+#[path = "../../motion/tests/common/mod.rs"]
 mod common;
 
 use common::{machine, sim};
+use forja_app::job::{Job, JobState};
+use forja_hal_abstraction::program::{ProgramStore, RamStore, StoreError};
 use forja_hal_abstraction::time::Instant;
-use forja_motion::job::{Job, JobState, ProgramStore, RamStore};
 use forja_motion::sim::Simulation;
-use forja_motion::{Effect, StepQueue, StoreError};
+use forja_motion::{Effect, StepQueue};
 
 const HZ: u32 = 1_000_000;
 

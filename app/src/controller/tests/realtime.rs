@@ -40,7 +40,7 @@ fn m112_acts_at_once(b: &mut Bench, sent: u32) {
     let out = b.take();
     assert_eq!(
         b.ctl.kernel().state(),
-        MachineState::Alarm(crate::error::Alarm::EmergencyStop),
+        MachineState::Alarm(forja_motion::Alarm::EmergencyStop),
         "{out:?}"
     );
     assert_eq!(
@@ -320,7 +320,7 @@ fn m112_behind_queued_lines_answers_them_in_order_without_running_them() {
     );
     assert_eq!(
         b.ctl.kernel().state(),
-        MachineState::Alarm(crate::error::Alarm::EmergencyStop)
+        MachineState::Alarm(forja_motion::Alarm::EmergencyStop)
     );
     // The numbering went on through the refused lines: line 6 is next.
     b.send_numbered(6, "M999");
@@ -355,7 +355,7 @@ fn a_damaged_m112_behind_queued_lines_still_stops_and_is_asked_again() {
     );
     assert_eq!(
         b.ctl.kernel().state(),
-        MachineState::Alarm(crate::error::Alarm::EmergencyStop)
+        MachineState::Alarm(forja_motion::Alarm::EmergencyStop)
     );
     b.send(&good);
     b.run_ms(5);

@@ -17,13 +17,14 @@ use forja_protocol::gcode::{Decimal, checksum, write_numbered};
 
 use super::settings::tests::VecStorage;
 use super::*;
-use crate::config::{AxisConfig, HomeDirection, HomingConfig, MachineConfig};
-use crate::effect::{Heater, Spindle};
-use crate::job::{JobState, ProgramStore, RamStore};
-use crate::kernel::{MachineState, split};
-use crate::queue::StepQueue;
-use crate::sim::{EdgeWatch, Recorder, SimStepper, SimSwitch, Simulation};
-use crate::stepgen::StepGenerator;
+use crate::job::JobState;
+use forja_hal_abstraction::program::{ProgramStore, RamStore};
+use forja_motion::StepGenerator;
+use forja_motion::StepQueue;
+use forja_motion::config::{AxisConfig, HomeDirection, HomingConfig, MachineConfig};
+use forja_motion::effect::{Heater, Spindle};
+use forja_motion::sim::{EdgeWatch, Recorder, SimStepper, SimSwitch, Simulation};
+use forja_motion::{MachineState, split};
 
 mod numbering;
 mod programs;
@@ -1079,7 +1080,7 @@ fn a_thermal_fault_raises_an_alarm_and_shuts_down() {
     assert_eq!(error_codes(&out), [212]);
     assert!(matches!(
         b.ctl.kernel().state(),
-        MachineState::Alarm(crate::error::Alarm::EmergencyStop)
+        MachineState::Alarm(forja_motion::Alarm::EmergencyStop)
     ));
     assert_eq!(b.ctl.peripherals().hot.target_mc, 0);
     assert_eq!(b.ask("M104 S200"), ["!! E125 alarm-locked", "ok"]);

@@ -16,7 +16,7 @@
 //!
 //! ```
 //! use forja_drivers::heater::{HeaterChannel, HeaterConfig, PidGains};
-//! use forja_drivers::peripherals::{
+//! use forja_app::peripherals::{
 //!     DriverPeripherals, NoHeater, NoLimit, NoMotors, NoPwm, NoSpindle, Parts,
 //! };
 //! # use forja_hal_abstraction::{ErrorType, thermal::{Heater, TemperatureSensor}};
@@ -25,7 +25,7 @@
 //! # impl TemperatureSensor for Sensor { fn read_millicelsius(&mut self) -> Result<i32, Self::Error> { Ok(25_000) } }
 //! # impl ErrorType for Element { type Error = core::convert::Infallible; }
 //! # impl Heater for Element { fn set_power(&mut self, _: u16) -> Result<(), Self::Error> { Ok(()) } }
-//! use forja_motion::controller::Peripherals;
+//! use forja_app::controller::Peripherals;
 //!
 //! let gains = PidGains { kp: 0.087, ki: 0.0042, kd: 0.45 };
 //! let hot_end = HeaterChannel::new(Sensor, Element, HeaterConfig::hot_end(gains));
@@ -50,17 +50,17 @@
 
 use core::convert::Infallible;
 
+use crate::controller::{PeripheralError, Peripherals, Reading, Temperatures};
 use embedded_hal::digital::OutputPin;
 use embedded_hal::pwm::{self, SetDutyCycle};
 use forja_hal_abstraction::ErrorType;
 use forja_hal_abstraction::limit::LimitSwitch;
 use forja_hal_abstraction::stepper::StepperEnable;
 use forja_hal_abstraction::thermal::{Heater, TemperatureSensor};
-use forja_motion::controller::{PeripheralError, Peripherals, Reading, Temperatures};
 use forja_motion::effect::{Heater as Which, Spindle as SpindleCommand};
 
-use crate::heater::{HeaterChannel, HeaterFault, HeaterReport, PidHeater};
-use crate::pwm::{Fan, Spindle, SpindleError, SpindleState};
+use forja_drivers::heater::{HeaterChannel, HeaterFault, HeaterReport, PidHeater};
+use forja_drivers::pwm::{Fan, Spindle, SpindleError, SpindleState};
 
 /// A temperature control loop: what [`DriverPeripherals`] needs of a hot end or a bed.
 pub trait TemperatureLoop {
@@ -451,9 +451,24 @@ where
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::heater::{HeaterConfig, PidGains};
-    use crate::pwm::{FanConfig, SpindleConfig};
-    use crate::test_fakes::FakeOutput;
+    use forja_drivers::heater::{HeaterConfig, PidGains};
+    use forja_drivers::pwm::{FanConfig, SpindleConfig};
+
+    /// A direction pin that takes every level.
+    struct FakeOutput;
+
+    impl embedded_hal::digital::ErrorType for FakeOutput {
+        type Error = Infallible;
+    }
+
+    impl OutputPin for FakeOutput {
+        fn set_low(&mut self) -> Result<(), Infallible> {
+            Ok(())
+        }
+        fn set_high(&mut self) -> Result<(), Infallible> {
+            Ok(())
+        }
+    }
     use forja_protocol::gcode::Decimal;
     use std::cell::Cell;
     use std::rc::Rc;
@@ -464,7 +479,7 @@ mod tests {
     struct Plant(Rc<Cell<i32>>, Rc<Cell<Option<()>>>);
 
     impl ErrorType for Plant {
-        type Error = crate::heater::HeaterFault;
+        type Error = forja_drivers::heater::HeaterFault;
     }
 
     impl TemperatureSensor for Plant {
@@ -551,12 +566,9 @@ mod tests {
             kd: 0.45,
         };
         let on = Rc::new(Cell::new(false));
-        let spindle = Spindle::with_direction(
-            Pwm::default(),
-            FakeOutput::default(),
-            SpindleConfig::new(10_000),
-        )
-        .unwrap();
+        let spindle =
+            Spindle::with_direction(Pwm::default(), FakeOutput, SpindleConfig::new(10_000))
+                .unwrap();
         let p = DriverPeripherals::new(Parts {
             hot_end: Some(HeaterChannel::new(
                 plant.clone(),

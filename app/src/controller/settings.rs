@@ -45,8 +45,10 @@ use serde::Serialize;
 use serde::de::DeserializeOwned;
 
 use super::text::Text;
-use crate::config::{MachineConfig, SoftLimits};
-use crate::error::{ConfigError, StoreError};
+use crate::error::StoreRefusal;
+use forja_hal_abstraction::program::StoreError;
+use forja_motion::config::{MachineConfig, SoftLimits};
+use forja_motion::error::ConfigError;
 
 /// The period of frame 55 when no setting says otherwise, ms.
 pub const DEFAULT_KEEP_ALIVE_MS: u32 = 1000;
@@ -231,7 +233,7 @@ impl WireError for SettingError {
             Self::UnknownKey => 190,
             Self::BadValue => 191,
             Self::Invalid(e) => e.code(),
-            Self::Storage(e) => e.code(),
+            Self::Storage(e) => StoreRefusal(*e).code(),
         }
     }
 
@@ -240,7 +242,7 @@ impl WireError for SettingError {
             Self::UnknownKey => "unknown-setting",
             Self::BadValue => "bad-setting",
             Self::Invalid(e) => e.name(),
-            Self::Storage(e) => e.name(),
+            Self::Storage(e) => StoreRefusal(*e).name(),
         }
     }
 }
@@ -537,7 +539,7 @@ impl<const N: usize> Settings<N> {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::config::AxisConfig;
+    use forja_motion::config::AxisConfig;
     use std::string::String;
     use std::vec::Vec;
 

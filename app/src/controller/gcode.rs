@@ -10,11 +10,12 @@ use forja_protocol::reply::{Axes, FORJA_CAPABILITIES, KeyValues, LINE_CHECK, Rep
 use super::peripherals::{Peripherals, Reading};
 use super::text::{self, Refusal, Text};
 use super::{ControllerError, Core, Dropped, Held, JobState, LineBuf, Queued, wire};
-use crate::config::HomeDirection;
-use crate::effect::{Effect, Heater, Spindle, StopKind, Storage};
-use crate::error::{Alarm, CommandError, JobError};
-use crate::job::ProgramStore;
-use crate::kernel::{MachineState, PositionReport, Reply as KernelReply};
+use crate::error::JobError;
+use forja_hal_abstraction::program::ProgramStore;
+use forja_motion::config::HomeDirection;
+use forja_motion::effect::{Effect, Heater, Spindle, StopKind, Storage};
+use forja_motion::error::{Alarm, CommandError};
+use forja_motion::{MachineState, PositionReport, Reply as KernelReply};
 
 /// An effect, owned (the stored program's effects borrow the job's line buffer).
 #[derive(Debug, Clone, Copy)]

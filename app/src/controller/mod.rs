@@ -113,9 +113,10 @@ pub use settings::{
 };
 pub use store::{HEADER_RECORD, LINE_RECORDS, RecordProgramStore};
 
-use crate::error::Alarm;
-use crate::job::{Job, JobState, ProgramStore};
-use crate::kernel::{Kernel, MachineState};
+use crate::job::{Job, JobState};
+use forja_hal_abstraction::program::ProgramStore;
+use forja_motion::error::Alarm;
+use forja_motion::{Kernel, MachineState};
 
 /// A refusal of the controller itself (not of the kernel, a store or a peripheral).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

@@ -2,7 +2,7 @@
 
 use embedded_io::Write;
 use forja_hal_abstraction::storage::RecordStorage;
-use forja_protocol::error::FrameError;
+use forja_protocol::error::{FrameError, WireError};
 use forja_protocol::frame::{
     Action, AxisPosition, CONFIRM_GCODE_LOAD, ClientMessage, ControllerMessage, Frame, Positions,
 };
@@ -13,11 +13,13 @@ use super::settings::{Key, SettingError};
 use super::store::{RESUME_RECORD, ResumeRecord};
 use super::text::{self, Refusal, Text};
 use super::{ControllerError, Core, JobState, wire};
-use crate::config::AxisKind;
-use crate::error::{CommandError, JobError, StoreError};
-use crate::interp::{Action as InterpAction, Interpreter};
-use crate::job::{Checkpoint, MAX_LINE_LEN, ProgramStore};
-use crate::kernel::{MachineState, Reply as KernelReply};
+use crate::error::{JobError, StoreRefusal};
+use crate::job::Checkpoint;
+use forja_hal_abstraction::program::StoreError;
+use forja_hal_abstraction::program::{MAX_LINE_LEN, ProgramStore};
+use forja_motion::config::AxisKind;
+use forja_motion::error::CommandError;
+use forja_motion::{MachineState, Replay, Reply as KernelReply};
 use forja_protocol::reply::Reply;
 
 impl<const N: usize, const B: usize, const Q: usize, P, X, S> Core<'_, N, B, Q, P, X, S>
@@ -273,7 +275,7 @@ where
             }
             if self.load_total.is_none() {
                 return Err(Refusal::with(
-                    &StoreError::NoUpload,
+                    &StoreRefusal(StoreError::NoUpload),
                     format_args!("{index:04}"),
                 ));
             }
@@ -285,7 +287,7 @@ where
             // A refused line 1 (a total the store has no room for) keeps the old program.
             self.program
                 .begin(total)
-                .map_err(|e| Refusal::with(&e, format_args!("{total:04}")))?;
+                .map_err(|e| Refusal::with(&StoreRefusal(e), format_args!("{total:04}")))?;
             self.load_total = Some(total);
             let _ = self.job.rewind();
         }
@@ -416,7 +418,7 @@ where
         if !self.settings.power_loss_recovery() {
             self.storage
                 .remove(RESUME_RECORD)
-                .map_err(|_| Refusal::new(&StoreError::Device))?;
+                .map_err(|_| Refusal::new(&StoreRefusal(StoreError::Device)))?;
         }
         Ok(())
     }
@@ -428,7 +430,7 @@ where
         }
         self.storage
             .remove(RESUME_RECORD)
-            .map_err(|_| Refusal::new(&StoreError::Device))
+            .map_err(|_| Refusal::new(&StoreRefusal(StoreError::Device)))
     }
 
     /// The resume record, if one is kept.
@@ -437,7 +439,7 @@ where
         match self.storage.read(RESUME_RECORD, &mut buf) {
             Ok(Some(n)) => Ok(buf.get(..n).and_then(ResumeRecord::decode)),
             Ok(None) => Ok(None),
-            Err(_) => Err(Refusal::new(&StoreError::Device)),
+            Err(_) => Err(Refusal::new(&StoreRefusal(StoreError::Device))),
         }
     }
 
@@ -481,15 +483,14 @@ where
         if self.kernel.homed_axes() & homing != homing {
             return Err(Refusal::new(&JobError::NotHomed));
         }
-        let here = self.kernel.interpreter().pos;
-        let replayed = self.replay(record.done, here)?;
+        let here = self.kernel.commanded_position_nm();
+        let replayed = self.replay(record.done)?;
+        let resumed_at = replayed.position();
 
         // Go to the resumed line's start in machine coordinates (a fresh modal state: mm,
         // absolute, no offsets), then take the program's modal state.
         let config = self.kernel.config().clone();
-        let mut fresh = Interpreter::new(&config);
-        fresh.pos = here;
-        self.kernel.set_interpreter(fresh);
+        self.kernel.reset_modal_state();
         self.kernel.set_line_tag(u32::from(record.done + 1));
         let z = config.axis_index(b'Z');
         let moves = |i: usize| {
@@ -497,33 +498,26 @@ where
                 .axes
                 .get(i)
                 .is_some_and(|a| a.kind != AxisKind::Extruder)
-                && replayed.pos[i] != here[i]
+                && resumed_at[i] != here[i]
         };
         let mut target = here;
         if let Some(z) = z.filter(|&z| moves(z)) {
-            target[z] = here[z].max(replayed.pos[z]);
+            target[z] = here[z].max(resumed_at[z]);
             self.rapid_to(&target, &here)?;
         }
         let before = target;
         for (i, t) in target.iter_mut().enumerate() {
             if Some(i) != z && moves(i) {
-                *t = replayed.pos[i];
+                *t = resumed_at[i];
             }
         }
         self.rapid_to(&target, &before)?;
         let before = target;
         if let Some(z) = z.filter(|&z| moves(z)) {
-            target[z] = replayed.pos[z];
+            target[z] = resumed_at[z];
         }
         self.rapid_to(&target, &before)?;
-        let mut state = replayed;
-        for (i, a) in config.axes.iter().enumerate() {
-            if a.kind == AxisKind::Extruder {
-                state.rebase_axis(i, target[i]);
-            }
-        }
-        state.pos = target;
-        self.kernel.set_interpreter(state);
+        self.kernel.take_modal_state(&replayed, target);
         self.job
             .start_resumed(
                 &mut self.kernel,
@@ -536,38 +530,22 @@ where
         Ok(())
     }
 
-    /// The interpreter's state after lines `1..=done` of the program, from the power-on
-    /// modal state at machine position `here`, without moving: a homing line leaves the homed
-    /// axes where they are now (the machine has just been homed); lines the kernel would
-    /// refuse change nothing, as when they ran.
-    fn replay(&mut self, done: u16, here: [i64; N]) -> Result<Interpreter<N>, Refusal> {
+    /// The program's modal state after lines `1..=done`, from the power-on state at the
+    /// position the machine has now ([`Replay`]), without moving.
+    fn replay(&mut self, done: u16) -> Result<Replay<N>, Refusal> {
         let config = self.kernel.config().clone();
-        let mut interp = Interpreter::new(&config);
-        interp.pos = here;
+        let mut replay = Replay::new(&self.kernel);
         let mut buf = [0u8; MAX_LINE_LEN];
         for index in 1..=done {
             let len = self
                 .program
                 .read(index, &mut buf)
                 .map_err(|e| text::store_refusal(&e))?;
-            let Ok(line) = Line::parse(buf.get(..len).unwrap_or(&[])) else {
-                continue;
-            };
-            let mut next = interp;
-            match next.interpret(&line, &config) {
-                Ok(InterpAction::Home { mask }) => {
-                    for (i, h) in here.iter().enumerate() {
-                        if mask & (1 << i) != 0 {
-                            next.pos[i] = *h;
-                        }
-                    }
-                    interp = next;
-                }
-                Ok(_) => interp = next,
-                Err(_) => {}
+            if let Ok(line) = Line::parse(buf.get(..len).unwrap_or(&[])) {
+                replay.line(&line, &config);
             }
         }
-        Ok(interp)
+        Ok(replay)
     }
 
     /// Queue a rapid move from `from` to `target` (machine nm), when they differ.
@@ -612,7 +590,7 @@ where
             let _ = wire::reply(
                 out,
                 &Reply::Notice {
-                    code: StoreError::Device.code(),
+                    code: StoreRefusal(StoreError::Device).code(),
                     text: "store-device resume",
                 },
             );

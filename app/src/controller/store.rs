@@ -3,7 +3,7 @@
 //! One record per line, the line's text as it is (at most 39 bytes), under record key
 //! [`LINE_RECORDS`]` + index`; one header record under [`HEADER_RECORD`], 8 bytes
 //! little-endian: the number of lines stored (`u16`), the program's total (`u16`) and the
-//! digest of the lines stored ([`crate::job::digest_line`], `u32`). The program is complete
+//! digest of the lines stored ([`forja_hal_abstraction::program::digest_line`], `u32`). The program is complete
 //! when the two counts are equal.
 //!
 //! Storing line `k` writes the line, then the header: a power cut between the two leaves the
@@ -17,8 +17,8 @@
 use forja_hal_abstraction::storage::RecordStorage;
 use forja_hal_abstraction::{Error as _, ErrorKind};
 
-use crate::error::StoreError;
-use crate::job::{MAX_LINE_LEN, MAX_LINES, ProgramState, ProgramStore};
+use forja_hal_abstraction::program::StoreError;
+use forja_hal_abstraction::program::{MAX_LINE_LEN, MAX_LINES, ProgramState, ProgramStore};
 
 /// The record key of the header (lines stored, total, digest).
 pub const HEADER_RECORD: u16 = 0x1000;

@@ -1,0 +1,48 @@
+//! # Forja's application layer
+//!
+//! Everything between a host link and the motion kernel, once for every board: the
+//! [`controller`] (RepRap G-code lines and the 53-byte frames on the same link, their replies,
+//! the receive queue and the realtime path), [`job`]s run from a program store, the settings
+//! and their records, and the dispatch of G- and M-codes to the machine's [`peripherals`]
+//! (heaters, fans, spindle, motor power, end-stops).
+//!
+//! ```text
+//!  board (wiring)  ──link bytes──►  forja-app: controller ──lines──► forja-motion: kernel
+//!                                     │  jobs, settings            (interpreter, planner,
+//!                                     ▼                             steps, homing)
+//!                               peripherals (forja-drivers over forja-hal-abstraction)
+//! ```
+//!
+//! ## Contract
+//!
+//! - `no_std`, no allocation, no panics, no clock: every entry point takes the time, and the
+//!   link is any `embedded-io` `Read + ReadReady + Write`.
+//! - Thread context only (a task or the main loop); nothing here runs in an interrupt. The step
+//!   interrupt belongs to the kernel's `StepGenerator`.
+//! - What the board provides is reached through traits: the program store
+//!   ([`ProgramStore`](forja_hal_abstraction::program::ProgramStore)) and the settings' record
+//!   storage from `forja-hal-abstraction`, the peripherals through [`controller::Peripherals`]
+//!   (implemented from `forja-drivers`' parts by [`peripherals::DriverPeripherals`]).
+//! - Acknowledged means done: a line answered `ok` runs exactly once, a refused line changes
+//!   nothing, and the emergency path (`M112`, the frames) never waits behind a queue
+//!   (`docs/protocol.md` §7.6 states each guarantee and its limit).
+//!
+//! ## Modules
+//!
+//! | module | what |
+//! |---|---|
+//! | [`controller`] | [`controller::Controller`]: the link, both protocols' replies, jobs, settings and peripherals around the kernel |
+//! | [`job`] | the job runner over a program store: start, pause, stop, rewind, progress, checkpoints |
+//! | [`peripherals`] | [`peripherals::DriverPeripherals`]: the controller's peripherals from the drivers' parts |
+//! | [`error`] | the errors of jobs and program stores, and their wire codes (170–199) |
+#![no_std]
+#![forbid(unsafe_code)]
+#![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::panic))]
+
+#[cfg(test)]
+extern crate std;
+
+pub mod controller;
+pub mod error;
+pub mod job;
+pub mod peripherals;

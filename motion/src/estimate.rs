@@ -1,0 +1,150 @@
+//! How long a program takes, worked out before it runs.
+//!
+//! An [`Estimate`] is a dry run of the kernel's own interpreter and planner (same depth, same
+//! configuration, starting from the kernel's position and modal state): lines are planned until
+//! the planner is full, then the oldest block is timed with its final entry and exit speeds, as
+//! segment preparation will execute it. Homing counts as the seek over the whole travel. The
+//! caller feeds the program's lines in order ([`Estimate::line`]) and reads the total
+//! ([`Estimate::seconds`]); where the lines come from (a program store, a file) is its concern.
+//!
+//! Context: thread. Nothing moves and the kernel is not changed.
+
+use forja_protocol::gcode::Line;
+
+use crate::arc::Nm;
+use crate::config::MachineConfig;
+use crate::effect::Effect;
+use crate::interp::{Action, Interpreter, nm_to_steps};
+use crate::kernel::Kernel;
+use crate::planner::{BlockKind, MoveRequest, Planner};
+use crate::profile::Profile;
+
+/// A dry run of a program, line by line. See the [module documentation](self).
+pub struct Estimate<'k, const N: usize, const B: usize> {
+    config: &'k MachineConfig<N>,
+    interp: Interpreter<N>,
+    steps: [i32; N],
+    planner: Planner<N, B>,
+    total: f64,
+    v_carry: f64,
+    ended: bool,
+}
+
+impl<'k, const N: usize, const B: usize> Estimate<'k, N, B> {
+    /// A dry run from where `kernel` stands now: its position, modal state and configuration.
+    pub fn new<const Q: usize>(kernel: &'k Kernel<'_, N, B, Q>) -> Self {
+        Self {
+            config: kernel.config(),
+            interp: kernel.interpreter(),
+            steps: kernel.commanded_steps(),
+            planner: Planner::new(),
+            total: 0.0,
+            v_carry: 0.0,
+            ended: false,
+        }
+    }
+
+    /// Plan the program's next line. A line the kernel would refuse changes nothing, as when it
+    /// runs. Returns `false` once the program has ended (`M2`/`M30`): later lines do not count.
+    pub fn line(&mut self, line: &Line<'_>) -> bool {
+        if self.ended {
+            return false;
+        }
+        let mut next = self.interp;
+        let Ok(action) = next.interpret(line, self.config) else {
+            return true;
+        };
+        self.interp = next;
+        match action {
+            Action::Move {
+                target,
+                feed_mm_min,
+                ramp,
+            } => self.push(&target, feed_mm_min, ramp),
+            Action::Arc {
+                mut cutter,
+                feed_mm_min,
+                ramp,
+            } => {
+                while let Some(p) = cutter.peek() {
+                    let first = cutter.is_first();
+                    cutter.advance();
+                    self.push(&p, Some(feed_mm_min), ramp && first);
+                }
+            }
+            Action::Dwell { ms } => {
+                if self.planner.is_full() {
+                    self.retire();
+                }
+                let _ = self.planner.push_dwell(ms, 0);
+            }
+            Action::Effect(Effect::ProgramEnd) => self.ended = true,
+            Action::Home { mask } => {
+                while !self.planner.is_empty() {
+                    self.retire();
+                }
+                for (i, a) in self.config.axes.iter().enumerate() {
+                    if let (true, Some(h)) = (mask & (1 << i) != 0, a.homing) {
+                        self.total += f64::from(a.travel_mm()) / f64::from(h.seek_mm_min / 60.0);
+                    }
+                }
+            }
+            _ => {}
+        }
+        !self.ended
+    }
+
+    /// The program's duration so far, seconds: every block planned, timed to a stop at the end.
+    pub fn seconds(mut self) -> f32 {
+        while !self.planner.is_empty() {
+            self.retire();
+        }
+        self.total as f32
+    }
+
+    /// Time the oldest block with its final speeds, and drop it.
+    fn retire(&mut self) {
+        let exit_sqr = self.planner.tail_exit_sqr();
+        if let Some(b) = self.planner.tail().copied() {
+            match b.kind {
+                BlockKind::Dwell(ms) => {
+                    self.total += f64::from(ms) / 1000.0;
+                    self.v_carry = 0.0;
+                }
+                BlockKind::Move => {
+                    let p = Profile::plan(
+                        f64::from(b.mm),
+                        self.v_carry,
+                        libm::sqrt(f64::from(b.nominal_sqr)),
+                        libm::sqrt(f64::from(exit_sqr)),
+                        f64::from(b.accel),
+                    );
+                    self.total += p.duration();
+                    self.v_carry = p.exit_speed();
+                }
+            }
+        }
+        self.planner.retire_tail();
+    }
+
+    /// Plan a straight move to `target`, timing the oldest block first when the planner is full.
+    fn push(&mut self, target: &[Nm; N], feed: Option<f32>, ramp: bool) {
+        if self.planner.is_full() {
+            self.retire();
+        }
+        let mut delta = [0i32; N];
+        for (i, a) in self.config.axes.iter().enumerate() {
+            let s = nm_to_steps(target[i], a.steps_per_mm);
+            delta[i] = s.wrapping_sub(self.steps[i]);
+            self.steps[i] = s;
+        }
+        let req = MoveRequest {
+            steps: delta,
+            feed_mm_min: feed,
+            ramp,
+            line: 0,
+            homing_mask: 0,
+        };
+        let _ = self.planner.push_move(&req, self.config);
+    }
+}

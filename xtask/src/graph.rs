@@ -1,0 +1,162 @@
+//! The crate graph's rules, checked from `cargo metadata` (`cargo xtask test`, step "crate
+//! graph").
+//!
+//! The layers point one way (see `docs/architecture.md`): the hardware traits and the codecs
+//! stand alone, the drivers know only the traits, the kernel knows no driver, application or
+//! board, and the operator's client knows none of the firmware. A forbidden arrow fails the
+//! check, whether it is a direct dependency or reached through another Forja crate. Only what
+//! ships counts (normal and build dependencies): a test may use anything.
+//!
+//! The firmware boards are outside the workspace (they pin their own targets), so their
+//! manifests are read as well.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+use std::process::Command;
+
+use serde_json::Value;
+
+use crate::root;
+
+/// Manifests read besides the workspace's: the firmware boards.
+const FIRMWARE_MANIFESTS: &[&str] = &["boards/stm32f4/Cargo.toml", "boards/esp32/Cargo.toml"];
+
+const HAL: &str = "forja-hal-abstraction";
+const PROTOCOL: &str = "forja-protocol";
+const KERNEL: &str = "forja-motion";
+const APP: &str = "forja-app";
+const DRIVERS: &str = "forja-drivers";
+const CLIENT: &str = "forja-host";
+const SIMULATOR: &str = "forja-sim";
+
+/// A Forja package: its name, whether it is a board, and the Forja crates it depends on
+/// (normal and build dependencies).
+struct Package {
+    board: bool,
+    deps: BTreeSet<String>,
+}
+
+/// The Forja packages of `manifest`'s workspace (or of the one package, for a firmware board).
+fn packages_of(manifest: &Path, into: &mut BTreeMap<String, Package>) -> Result<(), String> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = Command::new(cargo)
+        .args([
+            "metadata",
+            "--no-deps",
+            "--format-version",
+            "1",
+            "--offline",
+        ])
+        .arg("--manifest-path")
+        .arg(manifest)
+        .current_dir(root())
+        .output()
+        .map_err(|e| format!("cargo metadata: {e}"))?;
+    if !out.status.success() {
+        return Err(format!(
+            "cargo metadata --manifest-path {}: {}",
+            manifest.display(),
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    let meta: Value =
+        serde_json::from_slice(&out.stdout).map_err(|e| format!("cargo metadata's output: {e}"))?;
+    let boards = root().join("boards");
+    for p in meta["packages"].as_array().into_iter().flatten() {
+        let Some(name) = p["name"].as_str().filter(|n| n.starts_with("forja-")) else {
+            continue;
+        };
+        let board = p["manifest_path"]
+            .as_str()
+            .is_some_and(|m| Path::new(m).starts_with(&boards));
+        let deps = p["dependencies"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter(|d| d["kind"].as_str() != Some("dev"))
+            .filter_map(|d| d["name"].as_str())
+            .filter(|n| n.starts_with("forja-"))
+            .map(str::to_string)
+            .collect();
+        into.insert(name.to_string(), Package { board, deps });
+    }
+    Ok(())
+}
+
+/// Every Forja crate `name` reaches through its dependencies.
+fn reach(name: &str, packages: &BTreeMap<String, Package>) -> BTreeSet<String> {
+    let mut seen = BTreeSet::new();
+    let mut todo = vec![name.to_string()];
+    while let Some(n) = todo.pop() {
+        for d in packages.get(&n).map(|p| &p.deps).into_iter().flatten() {
+            if seen.insert(d.clone()) {
+                todo.push(d.clone());
+            }
+        }
+    }
+    seen
+}
+
+/// The crates `name` must not reach, with the reason.
+fn forbidden(name: &str, packages: &BTreeMap<String, Package>) -> Vec<(String, &'static str)> {
+    let boards = packages
+        .iter()
+        .filter(|(_, p)| p.board)
+        .map(|(n, _)| n.clone());
+    let named = |list: &[&str], why: &'static str| -> Vec<(String, &'static str)> {
+        list.iter().map(|n| (n.to_string(), why)).collect()
+    };
+    match name {
+        HAL | PROTOCOL => packages
+            .keys()
+            .filter(|n| n.as_str() != name)
+            .map(|n| (n.clone(), "the traits and the codecs stand alone"))
+            .collect(),
+        DRIVERS => named(
+            &[KERNEL, APP],
+            "a driver implements the traits of hal-abstraction only",
+        ),
+        KERNEL => {
+            let mut v = named(
+                &[DRIVERS, APP],
+                "the kernel reaches hardware through traits",
+            );
+            v.extend(boards.map(|b| (b, "the kernel is board-agnostic")));
+            v
+        }
+        CLIENT => named(
+            &[KERNEL, APP, SIMULATOR],
+            "the client speaks the protocol, it does not embed the firmware",
+        ),
+        _ => Vec::new(),
+    }
+}
+
+/// Check the rules; the error lists every forbidden arrow.
+pub fn check() -> Result<(), String> {
+    let mut packages = BTreeMap::new();
+    packages_of(&root().join("Cargo.toml"), &mut packages)?;
+    for m in FIRMWARE_MANIFESTS {
+        packages_of(&root().join(m), &mut packages)?;
+    }
+    for must in [HAL, PROTOCOL, KERNEL, APP, DRIVERS, CLIENT, SIMULATOR] {
+        if !packages.contains_key(must) {
+            return Err(format!("no package {must} in the workspace"));
+        }
+    }
+    let mut wrong = Vec::new();
+    for name in packages.keys() {
+        let reached = reach(name, &packages);
+        for (to, why) in forbidden(name, &packages) {
+            if reached.contains(&to) {
+                wrong.push(format!("{name} → {to} ({why})"));
+            }
+        }
+    }
+    if wrong.is_empty() {
+        eprintln!("{} Forja crates, no forbidden arrow", packages.len());
+        Ok(())
+    } else {
+        Err(format!("forbidden arrows:\n  {}", wrong.join("\n  ")))
+    }
+}
