@@ -32,6 +32,7 @@
 //! | module | what |
 //! |---|---|
 //! | [`controller`] | [`controller::Controller`]: the link, both protocols' replies, jobs, settings and peripherals around the kernel |
+//! | [`firmware`] | [`firmware::assemble`]: the firmware built from a board's parts, and its thread side |
 //! | [`job`] | the job runner over a program store: start, pause, stop, rewind, progress, checkpoints |
 //! | [`peripherals`] | [`peripherals::DriverPeripherals`]: the controller's peripherals from the drivers' parts |
 //! | [`error`] | the errors of jobs and program stores, and their wire codes (170–199) |
@@ -44,5 +45,6 @@ extern crate std;
 
 pub mod controller;
 pub mod error;
+pub mod firmware;
 pub mod job;
 pub mod peripherals;

@@ -11,6 +11,7 @@ use clap::{Parser, Subcommand};
 mod bench;
 mod firmware;
 mod graph;
+mod lines;
 mod qemu;
 
 /// Forja's build, test and run tasks.
@@ -158,7 +159,7 @@ fn main() -> ExitCode {
         Task::Build { board, variant } => firmware::build(&board, variant.as_deref()),
         Task::Flash { board, variant } => firmware::flash(&board, variant.as_deref()),
         Task::Qemu { board, port, check } => firmware::run_qemu(&board, port, check),
-        Task::Size => firmware::size(),
+        Task::Size => firmware::size().and_then(|()| lines::report()),
         Task::Graph => graph::check(),
     };
     match result {

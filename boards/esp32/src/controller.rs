@@ -5,7 +5,7 @@
 //! |---|---|
 //! | step interrupt | [`crate::step::on_interrupt`]: `StepGenerator::on_alarm` over `StepDir` drivers on the STEP/DIR outputs and debounced `LimitInput`s on the switch inputs, sampled from each motion's start until all are released and settled, during homing and after a reported edge |
 //! | switch interrupt | [`crate::limits::on_interrupt`]: the GPIO interrupt on either edge of a switch input; acknowledges it and reports the edge through the step generator's `SwitchAlert` |
-//! | thread side | [`run`]: `LinkSession` (frames 54/55) through [`WifiLink::poll_session`], `Controller::poll`, the step alarm, the WiFi settings, the watchdog |
+//! | thread side | [`run`]: `LinkSession` (frames 54/55) through [`WifiLink::poll_session`] and `Firmware::session`, `Firmware::poll` (`forja_app::firmware`, which also assembles the kernel and the controller: [`build`]), the step alarm, the WiFi settings, the watchdog |
 //! | peripherals | `DriverPeripherals`: the shared enable line, the switches read again for `M119`; no heater, fan or spindle |
 //! | storage | the `forja` partition ([`crate::storage`]): the settings in a `FlashRecordStorage`, the uploaded program in a `SlotProgramStore` (one flash read per line) |
 //!
@@ -16,12 +16,12 @@
 //! a stored program runs on.
 
 use embassy_time::{Duration, Instant as EmbassyInstant};
-use forja_app::controller::{Controller, ControllerConfig, Settings};
+use forja_app::controller::ControllerConfig;
+use forja_app::firmware::{self, Firmware, Parts as FirmwareParts};
 use forja_app::peripherals::{DriverPeripherals, MotorEnables, NoHeater, NoPwm, NoSpindle, Parts};
-use forja_drivers::session::SessionAction;
 use forja_hal_abstraction::clock::Clock;
 use forja_hal_abstraction::time::Instant;
-use forja_motion::{Kernel, StepQueue};
+use forja_motion::StepQueue;
 use static_cell::StaticCell;
 
 use crate::board::{self, AXES};
@@ -55,9 +55,9 @@ pub type BoardPeripherals = DriverPeripherals<
 /// The uploaded program's store.
 pub type ProgramStore = ProgramFlash;
 
-/// The controller of this board.
-pub type BoardController =
-    Controller<'static, AXES, PLANNER_BLOCKS, QUEUE_EVENTS, ProgramStore, BoardPeripherals, Store>;
+/// The firmware of this board, as the application layer assembles it.
+pub type BoardFirmware =
+    Firmware<'static, AXES, PLANNER_BLOCKS, QUEUE_EVENTS, ProgramStore, BoardPeripherals, Store>;
 
 static QUEUE: StaticCell<StepQueue<AXES, QUEUE_EVENTS>> = StaticCell::new();
 
@@ -72,21 +72,10 @@ pub fn build(
     stores: Stores,
     enable: EnableLine,
     limits: [ThreadLimit; board::LIMITS],
-) -> Result<BoardController, SetupError> {
-    let Stores {
-        settings: mut settings_store,
-        program,
-    } = stores;
-    let (settings, _report) = Settings::load(board::MACHINE, &mut settings_store);
+) -> Result<BoardFirmware, SetupError> {
     let queue = QUEUE
         .try_init(StepQueue::new())
         .ok_or(SetupError::Storage)?;
-    let timing = board::DRIVERS.timing;
-    let (kernel, generator): (Kernel<'static, AXES, PLANNER_BLOCKS, QUEUE_EVENTS>, _) =
-        forja_motion::split(queue, settings.machine().clone(), clock.tick_hz(), timing)
-            .map_err(|_| SetupError::Kernel)?;
-    step::attach(generator);
-
     let peripherals = DriverPeripherals::new(Parts {
         hot_end: None,
         bed: None,
@@ -96,9 +85,18 @@ pub fn build(
         limits: limits.map(Some),
         tolerance_mc: 0,
     });
-    let config = ControllerConfig::new("cnc", timing);
-    Ok(Controller::new(kernel, program, peripherals, config)
-        .with_settings(settings, settings_store))
+    let (generator, firmware, _) = firmware::assemble(FirmwareParts {
+        machine: board::MACHINE,
+        settings: stores.settings,
+        queue,
+        tick_hz: clock.tick_hz(),
+        config: ControllerConfig::new("cnc", board::DRIVERS.timing),
+        program: stores.program,
+        peripherals,
+    })
+    .map_err(|_| SetupError::Kernel)?;
+    step::attach(generator);
+    Ok(firmware)
 }
 
 /// `at` on embassy's clock: `at` is an instant of the step clock, compared with `now`.
@@ -114,7 +112,7 @@ fn embassy_deadline(clock: StepClock, now: Instant, at: Instant) -> EmbassyInsta
 ///
 /// Context: the controller task. Never returns.
 pub async fn run(
-    mut controller: BoardController,
+    mut firmware: BoardFirmware,
     mut link: WifiLink,
     clock: StepClock,
     mut watchdog: Watchdog,
@@ -123,23 +121,18 @@ pub async fn run(
     loop {
         let now_ms = link::now_ms();
         while let Some(action) = link.poll_session(now_ms) {
-            match action {
-                SessionAction::SendConnected => controller.on_connect(&mut link),
-                SessionAction::SendKeepAlive(n) => controller.keep_alive(n, &mut link),
-                SessionAction::RefuseSecondClient => {}
-            }
+            firmware.session(action, &mut link);
         }
         let now = clock.now();
-        let outcome = controller.poll(now, &mut link);
-        if let Some(at) = outcome.arm_alarm {
+        if let Some(at) = firmware.poll(now, &mut link, true) {
             step::arm(at);
         }
-        let s = controller.settings();
+        let s = firmware.controller().settings();
         settings::track(&mut applied, s.ssid(), s.password());
         watchdog.feed();
 
         let mut deadline = EmbassyInstant::now() + Duration::from_millis(MAX_SLEEP_MS);
-        if let Some(at) = outcome.wake_at {
+        if let Some(at) = firmware.wake_at() {
             deadline = deadline.min(embassy_deadline(clock, now, at));
         }
         if let Some(at_ms) = link.session_poll_at() {

@@ -50,7 +50,7 @@ use embassy_net::Stack;
 use esp_radio::wifi::{Interface, WifiController};
 use heapless::String;
 
-use crate::controller::BoardController;
+use crate::controller::BoardFirmware;
 use crate::hardware::Watchdog;
 use crate::link::WifiLink;
 use crate::settings::Credentials;
@@ -81,9 +81,9 @@ async fn main(spawner: Spawner) -> ! {
 
     // The kernel from the machine and the stored settings; its step generator goes to the
     // step interrupt.
-    let controller = controller::build(clock, hw.stores, hw.enable, hw.limits)
+    let firmware = controller::build(clock, hw.stores, hw.enable, hw.limits)
         .unwrap_or_else(|_| fault::reset());
-    let stored = controller.settings();
+    let stored = firmware.controller().settings();
     link::configure(stored.keep_alive_ms());
     let credentials = settings::credentials(stored.ssid(), stored.password());
     let ap_ssid = wifi::ap_ssid(hw.access_point.mac_address());
@@ -91,7 +91,7 @@ async fn main(spawner: Spawner) -> ! {
         net::stacks(hw.station, hw.access_point, hw.seed).unwrap_or_else(|| fault::reset());
 
     spawner.spawn(
-        controller_task(controller, hw.link, clock, hw.watchdog, credentials.clone())
+        controller_task(firmware, hw.link, clock, hw.watchdog, credentials.clone())
             .unwrap_or_else(|_| fault::reset()),
     );
     spawner.spawn(wifi_task(hw.wifi, credentials, ap_ssid).unwrap_or_else(|_| fault::reset()));
@@ -108,13 +108,13 @@ async fn main(spawner: Spawner) -> ! {
 
 #[embassy_executor::task]
 async fn controller_task(
-    controller: BoardController,
+    firmware: BoardFirmware,
     link: WifiLink,
     clock: StepClock,
     watchdog: Watchdog,
     credentials: Option<Credentials>,
 ) -> ! {
-    controller::run(controller, link, clock, watchdog, credentials).await
+    controller::run(firmware, link, clock, watchdog, credentials).await
 }
 
 #[embassy_executor::task]

@@ -4,7 +4,7 @@
 //! | firmware part | on the STM32F4 |
 //! |---|---|
 //! | step interrupt | [`StepSide::on_alarm`]: `StepGenerator::on_alarm` over the `StepDir` drivers on the STEP/DIR pins and the `LimitInput`s on the limit inputs ([`crate::hardware`]) |
-//! | thread side | [`Firmware::poll`]: `Controller::poll` over the UART ([`HostLink`]) |
+//! | thread side | [`Firmware::poll`]: `forja_app::firmware::Firmware::poll` over the UART ([`HostLink`]); `forja_app::firmware::assemble` builds the kernel and the controller from the parts |
 //! | peripherals | `DriverPeripherals` with the shared enable line as each axis's motor power; no heater, fan or spindle output on these pin maps |
 //! | storage | the record store ([`crate::storage`]) shared by the settings (`FlashRecordStorage` records) and the uploaded program (`RecordProgramStore`) |
 //!
@@ -20,14 +20,13 @@
 //! full rate. The stored program takes at most [`PROGRAM_LINES`] lines (see
 //! [`crate::storage`]).
 
-use forja_app::controller::{
-    Controller, ControllerConfig, PollOutcome, RecordProgramStore, Settings,
-};
+use forja_app::controller::{ControllerConfig, RecordProgramStore};
+use forja_app::firmware::{self, Parts as FirmwareParts};
 use forja_app::peripherals::{
     DriverPeripherals, MotorEnables, NoHeater, NoLimit, NoPwm, NoSpindle, Parts,
 };
 use forja_hal_abstraction::time::Instant;
-use forja_motion::{Kernel, StepGenerator, StepQueue, SwitchAlert};
+use forja_motion::{StepGenerator, StepQueue, SwitchAlert};
 
 use crate::board::{self, AXES, DRIVERS, LIMITS};
 use crate::hardware::{MotorEnable, SetupError, Stepper};
@@ -59,8 +58,8 @@ pub type BoardPeripherals = DriverPeripherals<
     0,
 >;
 
-/// The board's controller.
-pub type BoardController = Controller<
+/// The board's firmware, as the application layer assembles it.
+pub type BoardFirmware = firmware::Firmware<
     'static,
     AXES,
     PLANNER_BLOCKS,
@@ -93,11 +92,10 @@ impl StepSide {
     }
 }
 
-/// The thread side: the controller on the host link.
+/// The thread side: the firmware on the host link.
 pub struct Firmware {
-    controller: BoardController,
+    firmware: BoardFirmware,
     link: HostLink,
-    wake_at: Option<Instant>,
 }
 
 /// What [`build`] takes: the board's parts for the kernel and the controller.
@@ -124,16 +122,7 @@ pub struct MachineParts {
 /// with the stored settings) does not suit the step clock; [`SetupError::Storage`] when the
 /// stored program cannot be read.
 pub fn build(parts: MachineParts) -> Result<(StepSide, Firmware), SetupError> {
-    let (mut settings_store, program_store) = storage::share(parts.store);
-    let (settings, _) = Settings::load(board::machine(), &mut settings_store);
-    let (kernel, generator): (Kernel<'static, AXES, PLANNER_BLOCKS, QUEUE_EVENTS>, _) =
-        forja_motion::split(
-            parts.queue,
-            settings.machine().clone(),
-            parts.tick_hz,
-            DRIVERS.timing,
-        )
-        .map_err(|_| SetupError::Machine)?;
+    let (settings, program_store) = storage::share(parts.store);
     let program =
         RecordProgramStore::open(program_store, PROGRAM_LINES).map_err(|_| SetupError::Storage)?;
     let peripherals = DriverPeripherals::new(Parts {
@@ -145,9 +134,16 @@ pub fn build(parts: MachineParts) -> Result<(StepSide, Firmware), SetupError> {
         limits: [None; AXES],
         tolerance_mc: 2_000,
     });
-    let config = ControllerConfig::new("cnc", DRIVERS.timing);
-    let controller = Controller::new(kernel, program, peripherals, config)
-        .with_settings(settings, settings_store);
+    let (generator, firmware, _) = firmware::assemble(FirmwareParts {
+        machine: board::machine(),
+        settings,
+        queue: parts.queue,
+        tick_hz: parts.tick_hz,
+        config: ControllerConfig::new("cnc", DRIVERS.timing),
+        program,
+        peripherals,
+    })
+    .map_err(|_| SetupError::Machine)?;
     Ok((
         StepSide {
             generator,
@@ -155,9 +151,8 @@ pub fn build(parts: MachineParts) -> Result<(StepSide, Firmware), SetupError> {
             switches: parts.switches,
         },
         Firmware {
-            controller,
+            firmware,
             link: parts.link,
-            wake_at: None,
         },
     ))
 }
@@ -167,7 +162,7 @@ impl Firmware {
     ///
     /// Context: init or the controller task.
     pub fn boot(&mut self) {
-        self.controller.boot(&mut self.link);
+        self.firmware.boot(&mut self.link);
     }
 
     /// Poll the controller at `now` when there is something to do: bytes on the link, a limit
@@ -177,14 +172,9 @@ impl Firmware {
     /// Context: the controller task, woken by the UART, the limit inputs and the 1 kHz
     /// service tick. Never blocks, except to queue replies on a full transmit queue.
     pub fn poll(&mut self, now: Instant) -> Option<Instant> {
-        let due = self.wake_at.is_none_or(|at| now.is_at_or_after(at));
-        let switched = limits::take_fired() != 0;
-        if !due && !switched && !self.link.has_input() {
-            return None;
-        }
-        let PollOutcome { arm_alarm, wake_at } = self.controller.poll(now, &mut self.link);
-        self.wake_at = wake_at;
-        self.link.publish(&self.controller.stats());
-        arm_alarm
+        let news = limits::take_fired() != 0 || self.link.has_input();
+        let arm = self.firmware.poll(now, &mut self.link, news);
+        self.link.publish(&self.firmware.controller().stats());
+        arm
     }
 }
