@@ -4,11 +4,10 @@
 #[path = "../../motion/tests/common/mod.rs"]
 mod common;
 
-use common::{machine, sim};
+use common::{KernelSim, machine, sim};
 use forja_app::job::{Job, JobState};
 use forja_hal_abstraction::program::{ProgramStore, RamStore, StoreError};
 use forja_hal_abstraction::time::Instant;
-use forja_motion::sim::Simulation;
 use forja_motion::{Effect, StepQueue};
 
 const HZ: u32 = 1_000_000;
@@ -22,7 +21,7 @@ fn load<const L: usize>(store: &mut RamStore<L>, lines: &[String]) {
 
 /// Run the job to its end; returns the virtual ticks it took and the effects it produced.
 fn run_job<const L: usize>(
-    s: &mut Simulation<'_, 3, 32, 256>,
+    s: &mut KernelSim<'_, 3, 32, 256>,
     job: &mut Job,
     store: &mut RamStore<L>,
     max_ticks: u64,
@@ -38,7 +37,7 @@ fn run_job<const L: usize>(
             continue;
         }
         s.poll();
-        s.advance(s.poll_period);
+        s.advance(s.poll_period());
     }
     (s.now() - t0, effects)
 }
@@ -75,7 +74,7 @@ fn estimated_time_agrees_with_execution_within_two_percent() {
     }] {
         let mut q = StepQueue::<3, 256>::new();
         let mut s = sim(&mut q, machine(), HZ);
-        s.rec.borrow_mut().record = false;
+        s.wiring.machine.set_tracing(false);
         let mut store = RamStore::<1000>::new();
         load(&mut store, &program);
         let mut job = Job::new();
@@ -130,11 +129,11 @@ fn start_pause_resume_stop_rewind() {
         if job.state() == JobState::Paused {
             break;
         }
-        s.advance(s.poll_period);
+        s.advance(s.poll_period());
     }
     assert_eq!(effects, [false, true], "fan, then the pause");
     assert_eq!(job.state(), JobState::Paused);
-    assert_eq!(s.rec.borrow().position[..2], [4000, 4000]);
+    assert_eq!(s.positions()[..2], [4000, 4000]);
     let p = job.progress(&s.kernel, &store);
     assert_eq!((p.total_lines, p.current_line), (6, 3));
     // Resume with Start, then pause (feed hold) during the next move.
@@ -143,27 +142,27 @@ fn start_pause_resume_stop_rewind() {
     for _ in 0..500 {
         let t = Instant::from_ticks(s.now() as u32);
         job.poll(&mut s.kernel, &mut store, t).expect("ok");
-        s.advance(s.poll_period);
+        s.advance(s.poll_period());
     }
     job.pause(&mut s.kernel).expect("pause");
     assert!(s.run_until_idle(10 * u64::from(HZ)) || job.state() == JobState::Paused);
-    let held = s.rec.borrow().position;
+    let held = s.positions();
     assert!(held[0] > 0 && held[0] < 4000, "{held:?}");
     let t = Instant::from_ticks(s.now() as u32);
     job.start(&mut s.kernel, &mut store, t).expect("resume");
     for _ in 0..200 {
         let t = Instant::from_ticks(s.now() as u32);
         job.poll(&mut s.kernel, &mut store, t).expect("ok");
-        s.advance(s.poll_period);
+        s.advance(s.poll_period());
     }
     // Stop: motion ends, position kept, job idle; rewind goes back to line 1.
     job.stop(&mut s.kernel);
     assert!(s.run_until_idle(10 * u64::from(HZ)));
     assert_eq!(job.state(), JobState::Idle);
-    assert_eq!(s.kernel.machine_steps(), s.rec.borrow().position);
+    assert_eq!(s.kernel.machine_steps(), s.positions());
     job.rewind().expect("rewind");
     assert_eq!(job.next_line(), 1);
-    assert!(s.rec.borrow().violations.is_empty());
+    assert!(s.record().violations.is_empty());
 }
 
 #[test]

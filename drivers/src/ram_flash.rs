@@ -12,7 +12,10 @@
 //!   some of its bits programmed), an interrupted erase leaves the page half erased, and every
 //!   later operation fails until [`RamNorFlash::restore_power`].
 //!
-//! It is `no_std` and allocation-free, so the host simulator can use it as the board's flash.
+//! It is `no_std` and allocation-free. Its bytes are its own array by default, or memory it is
+//! lent ([`FlashMemory`]): a `&'static mut` array (the STM32 board's QEMU build keeps its store
+//! in a RAM region so), or a board's own buffer (the host simulator's, on the heap). One model
+//! serves the tests of the storage layer and every board that keeps a flash in RAM.
 
 use core::fmt;
 
@@ -61,11 +64,46 @@ impl NorFlashError for RamFlashError {
     }
 }
 
+/// The memory a [`RamNorFlash`] keeps its `SIZE` bytes in: its own array, or memory it is lent
+/// for its life.
+pub trait FlashMemory<const SIZE: usize> {
+    /// The bytes.
+    fn bytes(&self) -> &[u8; SIZE];
+    /// The bytes, to change.
+    fn bytes_mut(&mut self) -> &mut [u8; SIZE];
+}
+
+impl<const SIZE: usize> FlashMemory<SIZE> for [u8; SIZE] {
+    fn bytes(&self) -> &[u8; SIZE] {
+        self
+    }
+
+    fn bytes_mut(&mut self) -> &mut [u8; SIZE] {
+        self
+    }
+}
+
+impl<const SIZE: usize> FlashMemory<SIZE> for &mut [u8; SIZE] {
+    fn bytes(&self) -> &[u8; SIZE] {
+        self
+    }
+
+    fn bytes_mut(&mut self) -> &mut [u8; SIZE] {
+        self
+    }
+}
+
 /// `SIZE` bytes of NOR flash in pages of `PAGE` bytes, read and written in words of `WORD`
-/// bytes. `SIZE` must be a multiple of `PAGE`, and `PAGE` of `WORD`.
+/// bytes, kept in `M` (by default its own array). `SIZE` must be a multiple of `PAGE`, and
+/// `PAGE` of `WORD`.
 #[derive(Clone)]
-pub struct RamNorFlash<const SIZE: usize, const WORD: usize = 4, const PAGE: usize = 4096> {
-    mem: [u8; SIZE],
+pub struct RamNorFlash<
+    const SIZE: usize,
+    const WORD: usize = 4,
+    const PAGE: usize = 4096,
+    M = [u8; SIZE],
+> {
+    mem: M,
     /// Units of work left before the power goes; `None`: no cut planned.
     budget: Option<usize>,
     powered: bool,
@@ -75,8 +113,8 @@ pub struct RamNorFlash<const SIZE: usize, const WORD: usize = 4, const PAGE: usi
     bytes_read: usize,
 }
 
-impl<const SIZE: usize, const WORD: usize, const PAGE: usize> fmt::Debug
-    for RamNorFlash<SIZE, WORD, PAGE>
+impl<const SIZE: usize, const WORD: usize, const PAGE: usize, M> fmt::Debug
+    for RamNorFlash<SIZE, WORD, PAGE, M>
 {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("RamNorFlash")
@@ -98,10 +136,20 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> Default
 }
 
 impl<const SIZE: usize, const WORD: usize, const PAGE: usize> RamNorFlash<SIZE, WORD, PAGE> {
-    /// A fully erased device.
+    /// A fully erased device in its own array.
     pub const fn new() -> Self {
+        Self::with_memory([0xFF; SIZE])
+    }
+}
+
+impl<const SIZE: usize, const WORD: usize, const PAGE: usize, M: FlashMemory<SIZE>>
+    RamNorFlash<SIZE, WORD, PAGE, M>
+{
+    /// A device over `mem`, holding what `mem` holds (erased where it is `0xFF`): a flash
+    /// that kept its contents.
+    pub const fn with_memory(mem: M) -> Self {
         Self {
-            mem: [0xFF; SIZE],
+            mem,
             budget: None,
             powered: true,
             work_done: 0,
@@ -109,6 +157,11 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> RamNorFlash<SIZE, 
             reads: 0,
             bytes_read: 0,
         }
+    }
+
+    /// The memory back, as the device left it.
+    pub fn into_memory(self) -> M {
+        self.mem
     }
 
     /// Let the next `units` units of work complete (one per byte programmed, one per page
@@ -150,7 +203,7 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> RamNorFlash<SIZE, 
 
     /// The raw contents.
     pub fn as_bytes(&self) -> &[u8; SIZE] {
-        &self.mem
+        self.mem.bytes()
     }
 
     /// Take one unit of work from the budget; `false` when the power goes now.
@@ -187,14 +240,14 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> RamNorFlash<SIZE, 
     }
 }
 
-impl<const SIZE: usize, const WORD: usize, const PAGE: usize> ErrorType
-    for RamNorFlash<SIZE, WORD, PAGE>
+impl<const SIZE: usize, const WORD: usize, const PAGE: usize, M: FlashMemory<SIZE>> ErrorType
+    for RamNorFlash<SIZE, WORD, PAGE, M>
 {
     type Error = RamFlashError;
 }
 
-impl<const SIZE: usize, const WORD: usize, const PAGE: usize> ReadNorFlash
-    for RamNorFlash<SIZE, WORD, PAGE>
+impl<const SIZE: usize, const WORD: usize, const PAGE: usize, M: FlashMemory<SIZE>> ReadNorFlash
+    for RamNorFlash<SIZE, WORD, PAGE, M>
 {
     const READ_SIZE: usize = WORD;
 
@@ -202,6 +255,7 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> ReadNorFlash
         let start = self.check(offset, bytes.len(), WORD)?;
         let src = self
             .mem
+            .bytes()
             .get(start..start + bytes.len())
             .ok_or(RamFlashError::OutOfBounds)?;
         bytes.copy_from_slice(src);
@@ -215,8 +269,8 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> ReadNorFlash
     }
 }
 
-impl<const SIZE: usize, const WORD: usize, const PAGE: usize> NorFlash
-    for RamNorFlash<SIZE, WORD, PAGE>
+impl<const SIZE: usize, const WORD: usize, const PAGE: usize, M: FlashMemory<SIZE>> NorFlash
+    for RamNorFlash<SIZE, WORD, PAGE, M>
 {
     const WRITE_SIZE: usize = WORD;
     const ERASE_SIZE: usize = PAGE;
@@ -230,6 +284,7 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> NorFlash
             let powered = self.spend();
             let bytes = self
                 .mem
+                .bytes_mut()
                 .get_mut(page..page + PAGE)
                 .ok_or(RamFlashError::OutOfBounds)?;
             if !powered {
@@ -247,6 +302,7 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> NorFlash
         let start = self.check(offset, bytes.len(), WORD)?;
         let target = self
             .mem
+            .bytes()
             .get(start..start + bytes.len())
             .ok_or(RamFlashError::OutOfBounds)?;
         if target.iter().any(|&b| b != 0xFF) {
@@ -254,7 +310,7 @@ impl<const SIZE: usize, const WORD: usize, const PAGE: usize> NorFlash
         }
         for (i, &b) in bytes.iter().enumerate() {
             let powered = self.spend();
-            let Some(cell) = self.mem.get_mut(start + i) else {
+            let Some(cell) = self.mem.bytes_mut().get_mut(start + i) else {
                 return Err(RamFlashError::OutOfBounds);
             };
             if !powered {
@@ -304,6 +360,23 @@ mod tests {
             format!("{}", RamFlashError::MediumFailed),
             "flash medium failed"
         );
+    }
+
+    #[test]
+    fn lent_memory_keeps_its_contents_and_the_rules() {
+        let mut mem = [0xFF; 1024];
+        mem[..4].copy_from_slice(&[1, 2, 3, 4]);
+        let mut f = RamNorFlash::<1024, 4, 256, &mut [u8; 1024]>::with_memory(&mut mem);
+        let mut buf = [0u8; 4];
+        f.read(0, &mut buf).unwrap();
+        assert_eq!(buf, [1, 2, 3, 4], "what the memory held");
+        assert_eq!(f.write(0, &[0; 4]), Err(RamFlashError::WordWrittenTwice));
+        f.write(256, &[5, 6, 7, 8]).unwrap();
+        f.erase(0, 256).unwrap();
+        assert_eq!(f.as_bytes()[..4], [0xFF; 4]);
+        f.into_memory();
+        assert_eq!(mem[256..260], [5, 6, 7, 8], "written to the memory lent");
+        assert_eq!(mem[..4], [0xFF; 4]);
     }
 
     #[test]

@@ -1,7 +1,7 @@
 //! What the client needs of a machine file: each axis's letter, steps per mm and start
 //! position.
 //!
-//! The machine file is the simulator's TOML format (`boards/sim/machines/*.toml`); only the
+//! The machine file is the simulator's TOML format (`boards/sim-hal/machines/*.toml`); only the
 //! `[[axis]]` tables' `letter`, `steps_per_mm` and `start_mm` are read, every other field is
 //! ignored, so that the file can grow without the client following.
 

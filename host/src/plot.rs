@@ -4,7 +4,7 @@
 //! [`Toolpath::from_program`] follows the program as the kernel reads it (`G0`–`G3` with
 //! `I`/`J`/`K` or `R` arcs in the `G17`/`G18`/`G19` plane, `G20`/`G21`, `G90`/`G91`, `G92`,
 //! `G28`), in machine coordinates from the machine's start position. [`Executed::from_trace`]
-//! replays a simulator step trace (`boards/sim/src/trace.rs`) step by step. [`render`] draws
+//! replays a simulator step trace (`boards/sim-hal/src/trace.rs`) step by step. [`render`] draws
 //! both in the XY plane with a millimetre grid; the text is drawn with a built-in 8×8 bitmap
 //! font, so no system font is needed.
 

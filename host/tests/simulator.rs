@@ -259,7 +259,7 @@ fn plot_overlays_the_step_trace() {
     sim.stop();
     let machine = concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/../boards/sim/machines/default.toml"
+        "/../boards/sim-hal/machines/default.toml"
     );
     for ext in ["png", "svg"] {
         let image = dir.join(format!("plot.{ext}"));

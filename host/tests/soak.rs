@@ -51,10 +51,10 @@ use forja_host::streamer::{Config, Event, Phase, Stats, Streamer, Window};
 use forja_protocol::gcode::{Check, Line, MAX_LINE_LEN, write_checked};
 use forja_protocol::stream::{Decoder, Event as StreamEvent};
 use forja_sim::board::{BoardConfig, SimBoard};
-use forja_sim::link::{
+use forja_sim_hal::link::{
     FaultConfig, FaultInjector, FaultStats, FaultyBytes, MemoryHost, MemoryLink,
 };
-use forja_sim::{Flow, MachineConfig, SimMachine, Simulation, SimulationConfig, StepTrace};
+use forja_sim_hal::{Flow, MachineConfig, SimMachine, Simulation, SimulationConfig, StepTrace};
 
 /// Lines of moves in the job.
 const MOVES: usize = 20_000;

@@ -47,12 +47,11 @@
 //! | [`error`] | the error enums and the table of their wire codes |
 //! | [`estimate`] | [`Estimate`]: how long a program takes, by a dry run of the interpreter and planner |
 //! | [`replay`] | [`Replay`]: the modal state a program leaves after some of its lines (a resumed job) |
-//! | `sim` (feature `std`) | a deterministic host simulation of the interrupt side |
 #![no_std]
 #![forbid(unsafe_code)]
 #![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::panic))]
 
-#[cfg(any(test, feature = "std"))]
+#[cfg(test)]
 extern crate std;
 
 mod arc;
@@ -67,8 +66,6 @@ mod prep;
 mod profile;
 mod queue;
 pub mod replay;
-#[cfg(any(test, feature = "std"))]
-pub mod sim;
 mod stepgen;
 
 pub use config::{AxisConfig, AxisKind, HomeDirection, HomingConfig, MachineConfig, SoftLimits};

@@ -5,7 +5,6 @@ mod common;
 
 use common::{check_axis, machine, sim};
 use forja_motion::effect::{Effect, StopKind};
-use forja_motion::sim::EdgeWatch;
 use forja_motion::{Alarm, CommandError, MachineState, Reply, StepQueue};
 use forja_protocol::gcode::{Decimal, Line};
 
@@ -25,7 +24,7 @@ fn arcs_end_exactly_at_their_end_point() {
     s.send("G2 X80 Y40.456 I-5 J5 Z3.21").expect("full helix");
     s.send("G3 X70.001 Y52 R-9").expect("long way round");
     assert!(s.run_until_idle(60 * u64::from(HZ)));
-    let r = s.rec.borrow();
+    let r = s.record();
     assert_eq!(
         r.position,
         [steps(70.001), steps(52.0), (3.21f64 * 400.0).round() as i32]
@@ -39,7 +38,7 @@ fn feed_hold_stops_on_the_path_and_resume_loses_no_step() {
     let mut s = sim(&mut q, machine(), HZ);
     s.send("G1 X150 Y75 F6000").expect("ok");
     s.advance(u64::from(HZ) / 2);
-    let before = s.rec.borrow().position;
+    let before = s.positions();
     assert!(before[0] > 0 && before[0] < steps(150.0));
     s.kernel.hold();
     let mut stopped_at = None;
@@ -51,15 +50,15 @@ fn feed_hold_stops_on_the_path_and_resume_loses_no_step() {
         }
     }
     assert!(stopped_at.is_some(), "hold came to rest");
-    let held = s.rec.borrow().position;
+    let held = s.positions();
     // Still on the path: X:Y = 2:1 within a step.
     assert!((held[0] - 2 * held[1]).abs() <= 2, "{held:?}");
     assert!(held[0] < steps(150.0));
     s.advance(u64::from(HZ));
-    assert_eq!(s.rec.borrow().position, held, "no motion while held");
+    assert_eq!(s.positions(), held, "no motion while held");
     s.kernel.resume();
     assert!(s.run_until_idle(30 * u64::from(HZ)));
-    let r = s.rec.borrow();
+    let r = s.record();
     assert_eq!(r.position, [steps(150.0), steps(75.0), 0]);
     assert!(r.violations.is_empty(), "{:?}", r.violations);
     // The deceleration and the restart respect the axis limits.
@@ -92,7 +91,7 @@ fn homing_finds_the_switch_backs_off_and_sets_the_position() {
     assert_eq!(s.kernel.homed_axes(), 0b011);
     // Home is min_mm = 0 at the switch; the pull-off leaves the axis 1 mm (80 steps) above it.
     assert_eq!(s.kernel.machine_steps()[..2], [80, 80]);
-    let r = s.rec.borrow();
+    let r = s.record();
     assert_eq!(r.position[..2], [-1234 + 80, -3000 + 80]);
     assert!(r.violations.is_empty(), "{:?}", r.violations);
     // The X sequence: seek down, back off up, locate down slowly, pull off up.
@@ -111,7 +110,6 @@ fn homing_finds_the_switch_backs_off_and_sets_the_position() {
     }
     let dirs: Vec<i32> = runs.iter().map(|(d, _)| *d).collect();
     assert_eq!(dirs, [-1, 1, -1, 1], "{runs:?}");
-    drop(r);
     // After homing, positions are machine positions.
     s.send("G1 X10 F3000").expect("ok");
     assert!(s.run_until_idle(10 * u64::from(HZ)));
@@ -131,7 +129,7 @@ fn homing_without_a_switch_in_reach_raises_an_alarm() {
         MachineState::Alarm(Alarm::HomingSwitchNotFound { axis: 0 })
     );
     // Travel 200 mm plus twice the pull-off was searched.
-    assert_eq!(s.rec.borrow().position[0], -steps(202.0));
+    assert_eq!(s.positions()[0], -steps(202.0));
     assert_eq!(s.send("G1 X1"), Err(CommandError::Locked));
     s.kernel.reset();
     s.poll();
@@ -152,7 +150,7 @@ fn a_tripped_hard_limit_stops_motion_within_one_step_period() {
         s.kernel.state(),
         MachineState::Alarm(Alarm::HardLimit { axis: 0 })
     );
-    let r = s.rec.borrow();
+    let r = s.record();
     // The switch closed on the step to -500; the next step was refused.
     assert_eq!(r.position[0], -500);
     let xs = &r.steps[0];
@@ -171,7 +169,6 @@ fn a_tripped_hard_limit_stops_motion_within_one_step_period() {
         }
     }
     assert!(r.violations.is_empty(), "{:?}", r.violations);
-    drop(r);
     assert_eq!(s.send("G1 X0"), Err(CommandError::Locked));
     s.kernel.reset();
     assert_eq!(s.kernel.homed_axes(), 0);
@@ -190,13 +187,13 @@ fn homing_samples_the_switch_at_every_step_without_reported_edges() {
         forja_hal_abstraction::stepper::StepTiming::CONSERVATIVE,
     )
     .unwrap();
-    s.edges = EdgeWatch::new(other_isr.switch_alert());
+    s.wiring.alert = other_isr.switch_alert();
     s.add_switch(0, -1234, true);
     s.send("G28 X0").expect("ok");
     assert!(s.run_until_idle(120 * u64::from(HZ)));
     assert_eq!(s.kernel.state(), MachineState::Idle);
     assert_eq!(s.kernel.homed_axes(), 0b001);
-    assert_eq!(s.rec.borrow().position[0], -1234 + 80);
+    assert_eq!(s.positions()[0], -1234 + 80);
 }
 
 #[test]
@@ -212,14 +209,14 @@ fn a_move_towards_a_switch_already_triggered_is_stopped_before_its_first_step() 
         s.kernel.state(),
         MachineState::Alarm(Alarm::HardLimit { axis: 0 })
     );
-    assert_eq!(s.rec.borrow().position[0], 0);
-    assert!(s.rec.borrow().steps[0].is_empty());
+    assert_eq!(s.positions()[0], 0);
+    assert!(s.record().steps[0].is_empty());
     // Away from it is allowed after a reset (hard limits stop motion towards a switch only).
     s.kernel.reset();
     s.send("G1 X5 F3000").expect("ok");
     assert!(s.run_until_idle(10 * u64::from(HZ)));
     assert_eq!(s.kernel.state(), MachineState::Idle);
-    assert_eq!(s.rec.borrow().position[0], 400);
+    assert_eq!(s.positions()[0], 400);
 }
 
 #[test]
@@ -279,7 +276,7 @@ fn effects_come_back_in_stream_order() {
     }
     assert!(waited > 100);
     assert!(s.kernel.is_idle());
-    assert_eq!(s.rec.borrow().position[0], steps(20.0));
+    assert_eq!(s.positions()[0], steps(20.0));
     let line = Line::parse(b"M114").expect("parse");
     match s.kernel.execute(&line) {
         Ok(Reply::Position(p)) => {
@@ -305,7 +302,7 @@ fn program_stop_emergency_stop_and_pause() {
     let mut s = sim(&mut q, machine(), HZ);
     s.send("G1 X10 F3000").expect("ok");
     s.send("M0").expect("after the move");
-    assert_eq!(s.rec.borrow().position[0], steps(10.0));
+    assert_eq!(s.positions()[0], steps(10.0));
     assert_eq!(s.kernel.state(), MachineState::Halted);
     assert_eq!(s.send("G1 X0"), Err(CommandError::Halted));
     s.kernel.reset();
@@ -322,16 +319,16 @@ fn program_stop_emergency_stop_and_pause() {
         s.kernel.execute(&line),
         Ok(Reply::Effect(Effect::Stopped(StopKind::Emergency)))
     );
-    let at = s.rec.borrow().position[0];
+    let at = s.positions()[0];
     s.advance(u64::from(HZ) / 10);
-    assert_eq!(s.rec.borrow().position[0], at, "motion cut at once");
+    assert_eq!(s.positions()[0], at, "motion cut at once");
     assert!(at < steps(50.0));
     assert_eq!(s.kernel.state(), MachineState::Alarm(Alarm::EmergencyStop));
     assert_eq!(s.send("G28"), Err(CommandError::Locked));
     s.kernel.reset();
     s.poll();
     assert_eq!(s.kernel.state(), MachineState::Idle);
-    assert!(s.rec.borrow().violations.is_empty());
+    assert!(s.record().violations.is_empty());
 }
 
 #[test]
@@ -343,7 +340,7 @@ fn stop_keeps_the_position_and_flushes_the_plan() {
     s.advance(u64::from(HZ));
     s.kernel.stop();
     assert!(s.run_until_idle(10 * u64::from(HZ)));
-    let here = s.rec.borrow().position;
+    let here = s.positions();
     assert!(
         here[0] > 0 && here[0] < steps(100.0) && here[1] == 0,
         "{here:?}"
@@ -353,7 +350,7 @@ fn stop_keeps_the_position_and_flushes_the_plan() {
     s.send("G91").expect("ok");
     s.send("G1 X1").expect("ok");
     assert!(s.run_until_idle(10 * u64::from(HZ)));
-    assert_eq!(s.rec.borrow().position[0], here[0] + 80);
+    assert_eq!(s.positions()[0], here[0] + 80);
 }
 
 #[test]
@@ -370,7 +367,7 @@ fn jog_moves_step_size_times_count() {
         Err(CommandError::UnknownAxis { letter: b'Q' })
     );
     assert!(s.run_until_idle(10 * u64::from(HZ)));
-    assert_eq!(s.rec.borrow().position, [1000, 0, -200]);
+    assert_eq!(s.positions(), [1000, 0, -200]);
 }
 
 #[test]
@@ -381,7 +378,7 @@ fn dwell_waits_between_moves() {
     s.send("G4 P500").expect("ok");
     s.send("G1 X2").expect("ok");
     assert!(s.run_until_idle(10 * u64::from(HZ)));
-    let r = s.rec.borrow();
+    let r = s.record();
     let xs = &r.steps[0];
     let gap = xs[80].tick - xs[79].tick;
     assert!((500_000..520_000).contains(&gap), "{gap}");
@@ -396,7 +393,7 @@ fn dwell_at_rest_takes_its_time_then_the_move_runs() {
     s.send("G1 X10 F3000").expect("ok");
     assert!(s.run_until_idle(20 * u64::from(HZ)));
     assert_eq!(s.kernel.state(), MachineState::Idle, "no alarm");
-    let r = s.rec.borrow();
+    let r = s.record();
     assert_eq!(r.position, [steps(10.0), 0, 0]);
     let first = r.steps[0][0].tick - start;
     // The first step comes after the whole dwell, then the usual ramp of the first half step.
@@ -420,12 +417,12 @@ fn a_dwell_alone_at_rest_ends_idle_after_its_time() {
 fn long_moves_survive_clock_wrap_at_168_mhz() {
     let mut q = StepQueue::<3, 256>::new();
     let mut s = sim(&mut q, machine(), 168_000_000);
-    s.rec.borrow_mut().record = false;
+    s.wiring.machine.set_tracing(false);
     // 180 mm at 6 mm/s: 30 s, more than the 25.6 s wrap of a 32-bit 168 MHz counter.
     s.send("G1 X180 Y90 F360").expect("ok");
     assert!(s.run_until_idle(60 * 168_000_000));
     assert!(s.now() > 1u64 << 32);
-    let r = s.rec.borrow();
+    let r = s.record();
     assert_eq!(r.position, [steps(180.0), steps(90.0), 0]);
     assert!(r.violations.is_empty(), "{:?}", r.violations);
 }
@@ -440,7 +437,7 @@ fn steps_per_unit_change_keeps_the_machine_where_it_is() {
     // 800 steps are now 5 mm; X10 is 1600 steps.
     s.send("G1 X10").expect("ok");
     assert!(s.run_until_idle(10 * u64::from(HZ)));
-    assert_eq!(s.rec.borrow().position[0], 1600);
+    assert_eq!(s.positions()[0], 1600);
 }
 
 #[test]
@@ -448,20 +445,20 @@ fn late_interrupts_keep_pulse_widths_and_positions() {
     let mut q = StepQueue::<3, 256>::new();
     let mut s = sim(&mut q, machine(), HZ);
     // Up to 3 µs late at 1 MHz, with 2 µs pulses.
-    s.max_latency = 3;
+    s.wiring.config_mut().max_latency_ticks = 3;
     s.send("G1 X30 Y20 Z1 F6000").expect("ok");
     s.send("G1 X0 Y25 Z0").expect("ok");
     s.send("G2 X10 Y35 I10 J0").expect("ok");
     assert!(s.run_until_idle(30 * u64::from(HZ)));
-    let r = s.rec.borrow();
+    let r = s.record();
     assert_eq!(r.position, [steps(10.0), steps(35.0), 0]);
     assert!(r.violations.is_empty(), "{:?}", r.violations);
 }
 
 #[test]
 fn reversals_at_corners_honour_the_direction_set_up_time() {
+    use common::KernelSim;
     use forja_hal_abstraction::stepper::StepTiming;
-    use forja_motion::sim::Simulation;
     // A slow driver behind opto-couplers: 5 µs pulses, 400 µs direction set-up (longer than
     // the gap between the last step before a corner and the first after it).
     let timing = StepTiming {
@@ -473,7 +470,7 @@ fn reversals_at_corners_honour_the_direction_set_up_time() {
     let mut q = StepQueue::<3, 256>::new();
     let (kernel, isr) =
         forja_motion::split::<3, 32, 256>(&mut q, config, HZ, timing).expect("valid");
-    let mut s = Simulation::new(kernel, isr, timing);
+    let mut s = KernelSim::new(kernel, isr, timing);
     // A zig-zag: X reverses at every 90° corner, at the corner speed.
     s.send("G1 F6000").expect("ok");
     for k in 1..=20 {
@@ -481,7 +478,7 @@ fn reversals_at_corners_honour_the_direction_set_up_time() {
         s.send(&format!("G1 X{x} Y{}", 5 * k)).expect("ok");
     }
     assert!(s.run_until_idle(30 * u64::from(HZ)));
-    let r = s.rec.borrow();
+    let r = s.record();
     assert_eq!(r.position, [0, steps(100.0), 0]);
     assert!(r.violations.is_empty(), "{:?}", r.violations);
 }

@@ -67,7 +67,7 @@ fn run(moves: &[Move], tick_hz: u32, jd: f32) -> (f64, f64) {
         at = target;
     }
     assert!(s.run_until_idle(u64::from(tick_hz) * 3600));
-    let r = s.rec.borrow();
+    let r = s.record();
     assert_eq!(r.position, at, "end position in steps");
     assert!(r.violations.is_empty(), "{:?}", r.violations);
     let (mut worst_rate, mut worst_accel) = (0f64, 0f64);
@@ -150,7 +150,7 @@ fn drift(n: usize) {
         .collect();
     let mut q = StepQueue::<3, 256>::new();
     let mut s = sim(&mut q, config, 1_000_000);
-    s.rec.borrow_mut().record = false;
+    s.wiring.machine.set_tracing(false);
     s.send("G1 F6000").expect("ok");
     let mut rng = Lcg(0x5eed);
     let mut nm = [0i64; 3];
@@ -185,10 +185,10 @@ fn drift(n: usize) {
             assert!(s.run_until_idle(3600 * 1_000_000));
             let want: [i32; 3] =
                 core::array::from_fn(|i| (nm[i] as f64 * spm[i] / 1e6).round() as i32);
-            assert_eq!(s.rec.borrow().position, want, "after {} moves", k + 1);
+            assert_eq!(s.positions(), want, "after {} moves", k + 1);
         }
     }
-    assert!(s.rec.borrow().violations.is_empty());
+    assert!(s.record().violations.is_empty());
 }
 
 /// No drift over 500 moves (every build).
@@ -208,7 +208,7 @@ fn no_drift_after_100_000_moves() {
 /// Bresenham grid near the maximum rate, and a velocity step that no acceleration allows.
 #[test]
 fn the_measure_catches_grid_jitter_and_velocity_steps() {
-    use forja_motion::sim::StepRecord;
+    use common::StepRecord;
     let hz = 1_000_000.0;
     // 95 % of 100 mm/s at 80 steps/mm on a 30 µs grid: intervals of 120 and 150 µs.
     let mut steps = Vec::new();

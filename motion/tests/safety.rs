@@ -4,8 +4,7 @@
 
 mod common;
 
-use common::sim;
-use forja_motion::sim::Simulation;
+use common::{KernelSim, sim};
 use forja_motion::{
     AxisConfig, AxisKind, CommandError, HomeDirection, HomingConfig, MachineConfig, MachineState,
     Reply, StepQueue,
@@ -41,11 +40,11 @@ fn router() -> MachineConfig<4> {
     ])
 }
 
-type Sim<'q> = Simulation<'q, 4, 32, 256>;
+type Sim<'q> = KernelSim<'q, 4, 32, 256>;
 
 /// The steps the motors really made.
 fn motor(s: &Sim<'_>) -> [i32; 4] {
-    s.rec.borrow().position
+    s.positions()
 }
 
 /// Advance until the hold has come to rest (at most 5 s of virtual time).
@@ -108,7 +107,7 @@ fn stop_during_a_hold_resyncs_to_the_steps_and_drops_the_plan() {
     assert!(s.run_until_idle(30 * u64::from(HZ)));
     assert_eq!(motor(&s), [mm(10.0), mm(10.0), 0, 0]);
     assert_reports_match_motors(&s);
-    let r = s.rec.borrow();
+    let r = s.record();
     assert!(r.violations.is_empty(), "{:?}", r.violations);
 }
 

@@ -33,8 +33,8 @@ use forja_motion::MachineState;
 use forja_protocol::frame::{Action, ClientMessage, ControllerMessage};
 use forja_protocol::gcode::{Decimal, MAX_LINE_LEN, write_numbered};
 use forja_sim::board::{BoardConfig, BoardStatus, SimBoard};
-use forja_sim::link::{MemoryHost, MemoryLink};
-use forja_sim::{MachineConfig, SimMachine};
+use forja_sim_hal::link::{MemoryHost, MemoryLink};
+use forja_sim_hal::{MachineConfig, SimMachine};
 
 use crate::{Replies, Rig, frame};
 

@@ -2,7 +2,7 @@
 //!
 //! The firmware runs in the test's own process: a [`forja_sim::board::SimBoard`] (the
 //! controller and the motion kernel on the simulated machine) under a
-//! [`forja_sim::Simulation`], served on real links — a pseudo-terminal, a TCP socket — or an
+//! [`forja_sim_hal::Simulation`], served on real links — a pseudo-terminal, a TCP socket — or an
 //! in-memory one, while the test plays the host through the helpers here. The tests are in
 //! `tests/`:
 //!
@@ -30,8 +30,8 @@ use std::time::{Duration, Instant};
 
 use forja_protocol::frame::{ClientMessage, ControllerMessage, FRAME_LEN};
 use forja_sim::board::{BoardConfig, SimBoard};
-use forja_sim::link::MemoryHost;
-use forja_sim::{Flow, MachineConfig, SimMachine, Simulation, SimulationConfig};
+use forja_sim_hal::link::MemoryHost;
+use forja_sim_hal::{Flow, MachineConfig, SimMachine, Simulation, SimulationConfig};
 
 /// The host's end of a link.
 pub trait HostEnd {

@@ -6,7 +6,7 @@
 use forja_protocol::frame::{Action, ClientMessage, ControllerMessage, FRAME_LEN};
 use forja_protocol::gcode::checksum;
 use forja_sim::board::BoardConfig;
-use forja_sim::link::MemoryLink;
+use forja_sim_hal::link::MemoryLink;
 use forja_tests::{Replies, Rig, frame};
 
 /// A numbered line as a host writes it, with its `\n`.

@@ -16,7 +16,7 @@ use std::time::Duration;
 use forja_host::streamer::{Config, Stats, Window};
 use forja_sim::board::BoardConfig;
 use forja_sim::host::StreamHost;
-use forja_sim::link::{FaultConfig, FaultInjector, MemoryLink};
+use forja_sim_hal::link::{FaultConfig, FaultInjector, MemoryLink};
 use forja_tests::{HostEnd, Rig};
 
 fn job(n: usize) -> Vec<String> {

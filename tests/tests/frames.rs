@@ -10,7 +10,7 @@ use forja_motion::MachineState;
 use forja_protocol::frame::{Action, ClientMessage, ControllerMessage};
 use forja_protocol::gcode::Decimal;
 use forja_sim::board::BoardConfig;
-use forja_sim::link::{PtyLink, TcpLink};
+use forja_sim_hal::link::{PtyLink, TcpLink};
 use forja_tests::{HostEnd, Replies, Rig, TcpHost, frame, same_mm};
 
 /// Send `msg` and let the firmware answer.

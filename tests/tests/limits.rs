@@ -9,14 +9,14 @@
 //!   reported whatever moves).
 
 use forja_sim::board::BoardConfig;
-use forja_sim::config::SwitchSide;
-use forja_sim::link::MemoryLink;
+use forja_sim_hal::config::SwitchSide;
+use forja_sim_hal::link::MemoryLink;
 use forja_tests::{Replies, Rig};
 
 /// The default router: X at 150 mm, its normally-closed homing switch at X = 0 (80 steps/mm).
 /// Unhomed, the firmware counts X from where it stands: X0 in G-code is 150 mm on the
 /// machine.
-fn rig() -> (Rig, forja_sim::link::MemoryHost, Replies) {
+fn rig() -> (Rig, forja_sim_hal::link::MemoryHost, Replies) {
     let mut rig = Rig::new("default", BoardConfig::default());
     let (link, mut host) = MemoryLink::pair();
     rig.board.add_port(link, true);

@@ -9,7 +9,7 @@ use forja_host::streamer::{Config, Window};
 use forja_protocol::reply::Reply;
 use forja_sim::board::BoardConfig;
 use forja_sim::host::StreamHost;
-use forja_sim::link::{PtyLink, TcpLink};
+use forja_sim_hal::link::{PtyLink, TcpLink};
 use forja_tests::{HostEnd, PtyHost, Rig, same_mm, wall_ms};
 
 /// The job: home, heat, a zig-zag of `moves` extruding moves, reports, cool down.
@@ -162,7 +162,7 @@ fn a_printer_job_over_the_pseudo_terminal() {
 mod damaged {
     use forja_protocol::gcode::{Check, checksum, write_checked};
     use forja_sim::board::BoardConfig;
-    use forja_sim::link::{MemoryHost, MemoryLink};
+    use forja_sim_hal::link::{MemoryHost, MemoryLink};
     use forja_tests::{Replies, Rig};
 
     /// A numbered line with its XOR checksum, without terminator.

@@ -5,7 +5,7 @@
 use forja_app::job::JobState;
 use forja_protocol::frame::{Action, ClientMessage, ControllerMessage};
 use forja_sim::board::BoardConfig;
-use forja_sim::link::TcpLink;
+use forja_sim_hal::link::TcpLink;
 use forja_tests::{HostEnd, Replies, Rig, TcpHost, frame};
 
 /// No host on the link, while the firmware notices the last one has gone.

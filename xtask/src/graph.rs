@@ -7,6 +7,12 @@
 //! check, whether it is a direct dependency or reached through another Forja crate. Only what
 //! ships counts (normal and build dependencies): a test may use anything.
 //!
+//! Every crate under `boards/` counts as a board, a board's HAL (`boards/sim-hal`, the
+//! simulator's virtual hardware) included: the kernel depends on none (its tests run it on the
+//! simulator's hardware, through a dev-dependency). A board's HAL knows no firmware: neither
+//! the kernel nor the application, nor a board that wires it; the firmware runs on it, not in
+//! it.
+//!
 //! The firmware boards are outside the workspace (they pin their own targets), so their
 //! manifests are read as well.
 
@@ -28,6 +34,7 @@ const APP: &str = "forja-app";
 const DRIVERS: &str = "forja-drivers";
 const CLIENT: &str = "forja-host";
 const SIMULATOR: &str = "forja-sim";
+const SIMULATOR_HAL: &str = "forja-sim-hal";
 
 /// A Forja package: its name, whether it is a board, and the Forja crates it depends on
 /// (normal and build dependencies).
@@ -97,6 +104,11 @@ fn reach(name: &str, packages: &BTreeMap<String, Package>) -> BTreeSet<String> {
     seen
 }
 
+/// Whether `name` is a board's HAL: a crate under `boards/` named `…-hal`.
+fn is_board_hal(name: &str, packages: &BTreeMap<String, Package>) -> bool {
+    name.ends_with("-hal") && packages.get(name).is_some_and(|p| p.board)
+}
+
 /// The crates `name` must not reach, with the reason.
 fn forbidden(name: &str, packages: &BTreeMap<String, Package>) -> Vec<(String, &'static str)> {
     let boards = packages
@@ -125,9 +137,18 @@ fn forbidden(name: &str, packages: &BTreeMap<String, Package>) -> Vec<(String, &
             v
         }
         CLIENT => named(
-            &[KERNEL, APP, SIMULATOR],
+            &[KERNEL, APP, SIMULATOR, SIMULATOR_HAL],
             "the client speaks the protocol, it does not embed the firmware",
         ),
+        hal if is_board_hal(hal, packages) => {
+            let mut v = named(&[KERNEL, APP], "a board's HAL knows no firmware");
+            v.extend(
+                boards
+                    .filter(|b| b != hal)
+                    .map(|b| (b, "a board's HAL knows no board that wires it")),
+            );
+            v
+        }
         _ => Vec::new(),
     }
 }
@@ -139,7 +160,16 @@ pub fn check() -> Result<(), String> {
     for m in FIRMWARE_MANIFESTS {
         packages_of(&root().join(m), &mut packages)?;
     }
-    for must in [HAL, PROTOCOL, KERNEL, APP, DRIVERS, CLIENT, SIMULATOR] {
+    for must in [
+        HAL,
+        PROTOCOL,
+        KERNEL,
+        APP,
+        DRIVERS,
+        CLIENT,
+        SIMULATOR,
+        SIMULATOR_HAL,
+    ] {
         if !packages.contains_key(must) {
             return Err(format!("no package {must} in the workspace"));
         }

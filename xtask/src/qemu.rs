@@ -612,9 +612,9 @@ pub struct EndToEnd {
 /// The same job and program, run through the simulator's firmware over its in-memory link
 /// (`forja_sim::run::run_job`), on the simulator's default machine: the final position of each
 /// axis, from where the machine started.
-pub fn simulate() -> Result<(Position, forja_sim::MachineConfig), Error> {
+pub fn simulate() -> Result<(Position, forja_sim_hal::MachineConfig), Error> {
     use forja_sim::run::{JobOptions, run_job};
-    let config = forja_sim::MachineConfig::default_router();
+    let config = forja_sim_hal::MachineConfig::default_router();
     let text: String = JOB
         .iter()
         .chain(PROGRAM)

@@ -2,16 +2,13 @@
 //! fake peripherals and a virtual clock. Every rule of the reply policy has a test here.
 
 use std::boxed::Box;
-use std::cell::RefCell;
 use std::collections::VecDeque;
 use std::format;
-use std::rc::Rc;
 use std::string::{String, ToString};
 use std::vec::Vec;
 
 use forja_hal_abstraction::limit::LimitSwitch;
 use forja_hal_abstraction::stepper::StepTiming;
-use forja_hal_abstraction::time::Instant;
 use forja_protocol::frame::{Action, ClientMessage, ControllerMessage, FRAME_LEN};
 use forja_protocol::gcode::{Decimal, checksum, write_numbered};
 
@@ -19,12 +16,16 @@ use super::settings::tests::VecStorage;
 use super::*;
 use crate::job::JobState;
 use forja_hal_abstraction::program::{ProgramStore, RamStore};
-use forja_motion::StepGenerator;
 use forja_motion::StepQueue;
 use forja_motion::config::{AxisConfig, HomeDirection, HomingConfig, MachineConfig};
 use forja_motion::effect::{Heater, Spindle};
-use forja_motion::sim::{EdgeWatch, Recorder, SimStepper, SimSwitch, Simulation};
 use forja_motion::{MachineState, split};
+use forja_sim_hal::SimLimitSwitch;
+
+#[path = "../../../motion/tests/common/bench.rs"]
+#[allow(dead_code)]
+mod bench;
+use bench::Wiring;
 
 mod numbering;
 mod programs;
@@ -78,7 +79,7 @@ struct Fake {
     spindle: Option<Spindle>,
     motors: bool,
     motor_calls: u32,
-    switches: Vec<SimSwitch<3>>,
+    switches: Vec<SimLimitSwitch>,
     fault: Option<PeripheralError>,
     latched: Option<PeripheralError>,
     last_ms: Option<u32>,
@@ -86,7 +87,7 @@ struct Fake {
 }
 
 impl Fake {
-    fn new(switches: Vec<SimSwitch<3>>) -> Self {
+    fn new(switches: Vec<SimLimitSwitch>) -> Self {
         let ambient = Reading {
             current_mc: 20_000,
             target_mc: 0,
@@ -191,13 +192,8 @@ type Ctl<P> = Controller<'static, 3, 32, 256, P, Fake, VecStorage>;
 /// its program in `P`.
 struct Bench<P: ProgramStore = RamStore<8>> {
     ctl: Ctl<P>,
-    isr: StepGenerator<'static, 3, 256>,
-    steppers: [SimStepper<3>; 3],
-    switches: Vec<SimSwitch<3>>,
-    edges: EdgeWatch<'static>,
-    rec: Rc<RefCell<Recorder<3>>>,
-    alarm: Option<u64>,
-    next_poll: u64,
+    /// The step interrupt on the simulated machine.
+    wiring: Wiring<'static, 3, 256>,
     link: MemLink,
     /// Everything the controller wrote, as text.
     out: String,
@@ -242,24 +238,23 @@ impl<P: ProgramStore> Bench<P> {
         let queue: &'static mut StepQueue<3, 256> = Box::leak(Box::new(StepQueue::new()));
         let timing = StepTiming::CONSERVATIVE;
         let (kernel, isr) = split::<3, 32, 256>(queue, config.clone(), TICK_HZ, timing).unwrap();
-        let mut sim = Simulation::new(kernel, isr, timing);
-        sim.add_switch(0, -800, true);
-        sim.add_switch(1, -800, true);
-        sim.rec.borrow_mut().position = physical;
-        let fake = Fake::new(sim.switches.clone());
+        let mut wiring = Wiring::new(isr, &config, TICK_HZ, timing);
+        wiring.add_switch(0, -800, true);
+        wiring.add_switch(1, -800, true);
+        for (axis, steps) in physical.into_iter().enumerate() {
+            wiring
+                .machine
+                .set_position_steps(axis, i64::from(steps))
+                .unwrap();
+        }
+        let fake = Fake::new(wiring.switches().to_vec());
         let mut cfg = ControllerConfig::new("test-bench", timing);
         cfg.extruders = 1;
         let (settings, _) = Settings::load(config, &mut storage);
-        let ctl = Controller::new(sim.kernel, program, fake, cfg).with_settings(settings, storage);
+        let ctl = Controller::new(kernel, program, fake, cfg).with_settings(settings, storage);
         let mut b = Self {
             ctl,
-            isr: sim.isr,
-            steppers: sim.steppers,
-            switches: sim.switches,
-            edges: sim.edges,
-            rec: sim.rec,
-            alarm: None,
-            next_poll: 0,
+            wiring,
             link: MemLink::default(),
             out: String::new(),
         };
@@ -269,58 +264,17 @@ impl<P: ProgramStore> Bench<P> {
 
     /// Power off: the program store, the settings storage, and where the motors are.
     fn power_off(self) -> (P, VecStorage, [i32; 3]) {
-        let physical = self.rec.borrow().position;
+        let physical = self.wiring.positions();
         let (_, program, _, storage) = self.ctl.release();
         (program, storage, physical)
     }
 
-    fn now(&self) -> u64 {
-        self.rec.borrow().now
-    }
-
-    fn instant(&self) -> Instant {
-        Instant::from_ticks(self.now() as u32)
-    }
-
-    fn abs(&self, at: Instant) -> u64 {
-        let now = self.now();
-        now + at
-            .signed_ticks_since(Instant::from_ticks(now as u32))
-            .max(0) as u64
-    }
-
-    fn set_now(&mut self, t: u64) {
-        let mut r = self.rec.borrow_mut();
-        r.now = r.now.max(t);
-    }
-
     /// Run virtual time forward `ms` milliseconds.
     fn run_ms(&mut self, ms: u64) {
-        let until = self.now() + ms * 1000;
-        loop {
-            let t_alarm = self.alarm.unwrap_or(u64::MAX);
-            let t = t_alarm.min(self.next_poll);
-            if t > until {
-                self.set_now(until);
-                break;
-            }
-            self.set_now(t);
-            if t_alarm <= self.next_poll {
-                self.alarm = None;
-                let at = self
-                    .isr
-                    .on_alarm(self.instant(), &mut self.steppers, &mut self.switches);
-                self.edges.look(&mut self.switches);
-                self.alarm = at.map(|i| self.abs(i));
-            } else {
-                self.next_poll = t + 1000;
-                let out = self.ctl.poll(self.instant(), &mut self.link);
-                if let Some(at) = out.arm_alarm {
-                    let a = self.abs(at);
-                    self.alarm = Some(self.alarm.map_or(a, |x| x.min(a)));
-                }
-            }
-        }
+        let until = self.wiring.now() + ms * 1000;
+        let (ctl, link) = (&mut self.ctl, &mut self.link);
+        self.wiring
+            .advance_to(until, |now| ctl.poll(now, link).arm_alarm);
         self.collect();
     }
 
@@ -403,7 +357,7 @@ impl<P: ProgramStore> Bench<P> {
     }
 
     fn violations(&self) -> usize {
-        self.rec.borrow().violations.len()
+        self.wiring.machine.violations().len()
     }
 }
 

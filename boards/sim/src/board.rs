@@ -3,10 +3,10 @@
 //!
 //! | firmware part | on the simulator |
 //! |---|---|
-//! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`crate::SimStepDirPins`], and `forja_drivers::limit::LimitInput`s on [`crate::SimSwitchPin`]s (the homing switch of each homed axis) |
+//! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`SimStepDirPins`](forja_sim_hal::SimStepDirPins), and `forja_drivers::limit::LimitInput`s on [`SimSwitchPin`]s (the homing switch of each homed axis); the switches' pin-change interrupt ([`SwitchEdges`]) reports their edges to it |
 //! | thread side | [`Firmware::poll`]: the links, one `LinkSession` per port (admission of TCP clients, frames 54/55, the idle time-out), one controlling host across the ports, `Controller::poll` with at most [`READ_BUDGET`] bytes of input |
 //! | peripherals | `forja_app::peripherals::DriverPeripherals`: PID `HeaterChannel`s over the simulated heaters, fans and the spindle on the PWM outputs, the drivers' enable lines, the switches read again for `M119` |
-//! | storage | two `FlashRecordStorage`s on NOR flashes ([`Flash`], [`HeapFlash`]): the settings, and the uploaded program (`RecordProgramStore`); kept in a file with `--state` ([`crate::state`]) |
+//! | storage | two `FlashRecordStorage`s on simulated NOR flashes ([`Flash`], [`SimFlash`]): the settings, and the uploaded program (`RecordProgramStore`); kept in a file with `--state` ([`crate::state`]) |
 //!
 //! The kernel's [`forja_motion::MachineConfig`] is made from the machine file
 //! ([`kernel_config`]), then the settings stored in the flash are applied over it, as a
@@ -42,7 +42,7 @@
 //!    never keeps the thread side from the kernel, and the link holds the rest back.
 //!
 //! Nothing of a turn waits for a host: writes never block (a TCP client that stops reading is
-//! dropped, a terminal's output discarded, see [`crate::link`]), so virtual time, motion and
+//! dropped, a terminal's output discarded, see [`forja_sim_hal::link`]), so virtual time, motion and
 //! the stop flag go on whatever hosts do.
 //!
 //! # Machine files
@@ -58,7 +58,6 @@ use core::any::Any;
 use core::fmt;
 use std::io;
 
-use embedded_storage::nor_flash::{ErrorType as FlashErrorType, NorFlash, ReadNorFlash};
 use forja_app::controller::{
     BUSY_REFUSAL_LEN, Controller, ControllerConfig, Key, Realtime, RecordProgramStore, Settings,
     Stats as ControllerStats, busy_refusal, realtime,
@@ -69,7 +68,6 @@ use forja_drivers::heater::{HeaterChannel, HeaterConfig, PidGains};
 use forja_drivers::limit::{LimitConfig, LimitInput, Polarity};
 use forja_drivers::pin::NoPin;
 use forja_drivers::pwm::{Fan, FanConfig, Spindle, SpindleConfig};
-use forja_drivers::ram_flash::RamFlashError;
 use forja_drivers::session::{LinkSession, SessionAction};
 use forja_drivers::stepper::{StepDir, StepDirConfig};
 use forja_drivers::storage::FlashRecordStorage;
@@ -83,14 +81,13 @@ use forja_motion::{
 };
 use forja_protocol::stream::{Decoder, Event};
 
-use crate::config::{AxisKind, MachineConfig, SwitchPolarity, SwitchSide};
-use crate::limit::SimSwitchPin;
-use crate::link::{HostLink, RX_CAPACITY};
-use crate::machine::{SimAlarm, SimMachine};
-use crate::pwm::SimPwm;
-use crate::simulation::{Firmware, Flow, RunError, RunReport, Simulation};
-use crate::stepper::SimDriverPin;
-use crate::thermal::{SimHeater, SimTemperatureSensor};
+use forja_sim_hal::config::{AxisKind, MachineConfig, SwitchPolarity, SwitchSide};
+use forja_sim_hal::flash::{PAGE, SimFlash};
+use forja_sim_hal::link::{HostLink, RX_CAPACITY};
+use forja_sim_hal::{
+    Firmware, Flow, RunError, RunReport, SimAlarm, SimDriverPin, SimHeater, SimMachine, SimPwm,
+    SimSwitchPin, SimTemperatureSensor, Simulation, SwitchEdges,
+};
 
 /// Planner blocks of the kernel.
 pub const PLANNER_BLOCKS: usize = 32;
@@ -106,7 +103,7 @@ pub const PROGRAM_FLASH_LEN: usize = 1024 * 1024;
 pub const SETTINGS_FLASH_LEN: usize = 16 * 1024;
 
 /// Erase page of both flashes.
-pub const FLASH_PAGE: usize = 4096;
+pub const FLASH_PAGE: usize = PAGE;
 
 /// The spindle's speed at full duty, rpm.
 pub const SPINDLE_MAX_RPM: u32 = 24_000;
@@ -129,108 +126,10 @@ pub fn default_busy_message() -> Vec<u8> {
     out.get(..len).unwrap_or_default().to_vec()
 }
 
-/// A NOR flash on the heap, for the board's storage (a megabyte does not belong on a stack).
-///
-/// It keeps the rules of `forja_drivers::ram_flash::RamNorFlash`: erase sets whole pages to
-/// `0xFF`; reads, writes and erases are aligned to their sizes and within the device; a word
-/// is written at most once per erase. With a state file (`--state`, [`crate::state`]), each
-/// completed erase and write is in the file before it returns.
-pub struct HeapFlash<const SIZE: usize> {
-    mem: Vec<u8>,
-    file: Option<crate::state::FlashFile>,
-}
-
-/// Read and write unit of [`HeapFlash`], bytes.
-pub const FLASH_WORD: usize = 4;
-
-impl<const SIZE: usize> HeapFlash<SIZE> {
-    /// A fully erased flash.
-    pub fn erased() -> Self {
-        Self::with_contents(Vec::new(), None)
-    }
-
-    /// A flash holding `mem` (cut or padded with erased bytes to `SIZE`), written through to
-    /// `file` when there is one.
-    pub fn with_contents(mut mem: Vec<u8>, file: Option<crate::state::FlashFile>) -> Self {
-        mem.resize(SIZE, 0xFF);
-        Self { mem, file }
-    }
-
-    /// Write the bytes `start..start + len` of a completed operation through to the file.
-    fn write_through(&mut self, start: usize, len: usize) -> Result<(), RamFlashError> {
-        match &mut self.file {
-            Some(file) => file.write(start, &self.mem[start..start + len]),
-            None => Ok(()),
-        }
-    }
-
-    fn check(&self, offset: u32, len: usize, align: usize) -> Result<usize, RamFlashError> {
-        if let Some(file) = &self.file {
-            file.usable()?;
-        }
-        let start = offset as usize;
-        if !start.is_multiple_of(align) || !len.is_multiple_of(align) {
-            return Err(RamFlashError::NotAligned);
-        }
-        match start.checked_add(len) {
-            Some(end) if end <= SIZE => Ok(start),
-            _ => Err(RamFlashError::OutOfBounds),
-        }
-    }
-}
-
-impl<const SIZE: usize> fmt::Debug for HeapFlash<SIZE> {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.debug_tuple("HeapFlash").field(&SIZE).finish()
-    }
-}
-
-impl<const SIZE: usize> FlashErrorType for HeapFlash<SIZE> {
-    type Error = RamFlashError;
-}
-
-impl<const SIZE: usize> ReadNorFlash for HeapFlash<SIZE> {
-    const READ_SIZE: usize = FLASH_WORD;
-
-    fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
-        let start = self.check(offset, bytes.len(), FLASH_WORD)?;
-        bytes.copy_from_slice(&self.mem[start..start + bytes.len()]);
-        Ok(())
-    }
-
-    fn capacity(&self) -> usize {
-        SIZE
-    }
-}
-
-impl<const SIZE: usize> NorFlash for HeapFlash<SIZE> {
-    const WRITE_SIZE: usize = FLASH_WORD;
-    const ERASE_SIZE: usize = FLASH_PAGE;
-
-    fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
-        let len = (to as usize)
-            .checked_sub(from as usize)
-            .ok_or(RamFlashError::OutOfBounds)?;
-        let start = self.check(from, len, FLASH_PAGE)?;
-        self.mem[start..start + len].fill(0xFF);
-        self.write_through(start, len)
-    }
-
-    fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
-        let start = self.check(offset, bytes.len(), FLASH_WORD)?;
-        let target = &mut self.mem[start..start + bytes.len()];
-        if target.iter().any(|&b| b != 0xFF) {
-            return Err(RamFlashError::WordWrittenTwice);
-        }
-        target.copy_from_slice(bytes);
-        self.write_through(start, bytes.len())
-    }
-}
-
 /// The program's flash.
-pub type ProgramFlash = HeapFlash<PROGRAM_FLASH_LEN>;
+pub type ProgramFlash = SimFlash<PROGRAM_FLASH_LEN>;
 /// The settings' flash.
-pub type SettingsFlash = HeapFlash<SETTINGS_FLASH_LEN>;
+pub type SettingsFlash = SimFlash<SETTINGS_FLASH_LEN>;
 
 /// The board's two flashes: what survives a restart.
 #[derive(Debug)]
@@ -626,8 +525,7 @@ struct Wired<const N: usize> {
     switches: Vec<Switch>,
     /// The switch inputs' pin-change interrupt: reports edges to the step interrupt.
     switch_alert: SwitchAlert<'static>,
-    /// Switch states at the last look ([`SimMachine::switch_states`]).
-    switch_states: u64,
+    switch_edges: SwitchEdges,
     alarm: SimAlarm,
     machine: SimMachine,
     booted: bool,
@@ -646,9 +544,7 @@ impl<const N: usize> Wired<N> {
     /// an edge when any switch changed since the last look (after each step, and each poll
     /// for switches a test forces).
     fn look_at_switches(&mut self) {
-        let states = self.machine.switch_states();
-        if states != self.switch_states {
-            self.switch_states = states;
+        if self.switch_edges.take() {
             self.switch_alert.notify();
         }
     }
@@ -733,7 +629,7 @@ impl<const N: usize> Wired<N> {
         Ok(Self {
             controller,
             switch_alert: isr.switch_alert(),
-            switch_states: machine.switch_states(),
+            switch_edges: machine.switch_edges(),
             isr,
             steppers,
             switches,
@@ -1093,7 +989,7 @@ impl SimBoard {
     /// (TCP, like the ESP32's WiFi).
     ///
     /// Every port has its [`LinkSession`] (keep-alives every `keep_alive_ms` of the stored
-    /// settings): a connection-oriented link ([`crate::link::TcpLink`]) admits and refuses
+    /// settings): a connection-oriented link ([`forja_sim_hal::link::TcpLink`]) admits and refuses
     /// clients through it ([`HostLink::admit`]), with or without frames. The port has no idle
     /// time-out until [`SimBoard::set_idle_timeout`].
     pub fn add_port(&mut self, link: impl Port, session: bool) -> PortId {
@@ -1266,26 +1162,5 @@ mod tests {
         )
         .unwrap();
         assert_eq!(board.status().active_port, None);
-    }
-
-    #[test]
-    fn the_heap_flash_keeps_nor_rules() {
-        let mut f = SettingsFlash::erased();
-        assert_eq!(f.write(2, &[0; 4]), Err(RamFlashError::NotAligned));
-        f.write(4, &[1, 2, 3, 4]).unwrap();
-        assert_eq!(
-            f.write(4, &[1, 2, 3, 4]),
-            Err(RamFlashError::WordWrittenTwice)
-        );
-        let mut b = [0; 4];
-        f.read(4, &mut b).unwrap();
-        assert_eq!(b, [1, 2, 3, 4]);
-        f.erase(0, FLASH_PAGE as u32).unwrap();
-        f.read(4, &mut b).unwrap();
-        assert_eq!(b, [0xFF; 4]);
-        assert_eq!(
-            f.erase(0, SETTINGS_FLASH_LEN as u32 + FLASH_PAGE as u32),
-            Err(RamFlashError::OutOfBounds)
-        );
     }
 }

@@ -1,144 +1,29 @@
 //! # Forja's host simulator board
 //!
 //! The simulator is a Forja board like the STM32F4 and ESP32 ones, whose hardware is a model
-//! running on the host. The motion kernel is wired to it exactly as a firmware board wires it:
-//! through the `forja-hal-abstraction` traits, over a clock and an alarm, with the same
-//! protocol code on the links. It is the default board when no hardware is attached, and the
-//! test bed of everything else.
+//! running on the host: `forja-sim-hal`, to this board what `stm32f4xx-hal` is to the STM32
+//! one (virtual steppers, switches, heaters, PWM outputs, clock and alarm, flash, host links,
+//! the machine file and the simulation loop). This crate is the wiring: the motion kernel and
+//! the controller on that hardware exactly as a firmware board wires them, through the
+//! `forja-hal-abstraction` traits, over a clock and an alarm, with the same protocol code on
+//! the links. It is the default board when no hardware is attached, and the test bed of
+//! everything else.
 //!
-//! ## The hardware
+//! | module | what |
+//! |---|---|
+//! | [`board`] | [`board::SimBoard`]: the firmware on a `forja_sim_hal::SimMachine`, wired as a firmware board wires it: the kernel's step interrupt on `Firmware::on_alarm` with the `forja-drivers` step/dir driver and limit inputs on the simulated pins, and `forja_app::controller` on `Firmware::poll`, serving the links |
+//! | [`state`] | the board's two flashes laid out in one state file (`--state`), so that settings and the uploaded program survive a restart |
+//! | [`run`] | [`run::run_job`] streams a job to the board as `forja send` does; [`run::listen`] serves hosts on TCP and a pseudo-terminal |
+//! | [`host`] | [`host::StreamHost`]: the client's own streamer, driven from the simulation loop |
+//! | [`job`] | [`Job`]: a G-code file to stream, and the bundled sample |
 //!
-//! One [`SimMachine`] holds the state of a machine described by a TOML machine file
-//! ([`config`]); it gives out device handles that implement the hardware traits:
-//!
-//! | handle | implements | models |
-//! |---|---|---|
-//! | [`SimClock`] | `Clock` | the virtual clock, `tick_hz` ticks a second (1 MHz by default) |
-//! | [`SimAlarm`] | `Alarm` | the one-shot step alarm; the simulation loop fires it |
-//! | [`SimStepper`] | `Stepper`, `StepperEnable` | a step/dir driver chip that checks its pulse timing and moves its axis |
-//! | [`SimStepDirPins`] | `embedded_hal::digital::OutputPin` ×3 | the same driver's STEP/DIR/ENABLE inputs, for the generic step/dir driver |
-//! | [`SimLimitSwitch`] | `LimitSwitch` | an end-stop that trips at a machine position |
-//! | [`SimSwitchPin`] | `embedded_hal::digital::InputPin` | the same end-stop's input line, with its polarity |
-//! | [`SimHeater`] | `Heater`, `SetDutyCycle` | a heater of a first-order thermal model ([`thermal`]) |
-//! | [`SimTemperatureSensor`] | `TemperatureSensor` | that model's temperature, or a sensor fault |
-//! | [`SimPwm`] | `SetDutyCycle` | a fan or spindle output that records its duty |
-//!
-//! Devices are named by index in machine-file order (axis 0 is the first `[[axis]]`);
-//! [`SimMachine::axis_index`], [`SimMachine::heater_index`] and [`SimMachine::output_index`]
-//! look them up by name. The same handle answers the test's questions: positions in steps,
-//! steps lost to a disabled driver, the travel range seen, timing violations, temperatures,
-//! duty histories, and the step trace ([`trace`]).
-//!
-//! ## The contract
-//!
-//! - **Time is virtual.** Nothing moves unless the simulation loop (or a test) advances the
-//!   clock: [`SimMachine::advance_to`]. `Clock::now` is the low 32 bits of a 64-bit tick count
-//!   that never wraps inside the simulator.
-//! - **Execution contexts are kept apart as on hardware.** [`Simulation`] fires the alarm and
-//!   calls the firmware's interrupt side ([`Firmware::on_alarm`]), and calls its thread side
-//!   ([`Firmware::poll`]) every millisecond of virtual time, interrupt first when both are due.
-//!   Neither takes virtual time, so a step pulse's falling edge must be scheduled: a pulse
-//!   begun and ended in one interrupt is a timing violation, as it would be on a real driver.
-//! - **Devices never fail** except where a test asks them to (a sensor fault). Their error
-//!   types are `Infallible` otherwise.
-//! - **Single-threaded.** Handles share the machine through `Rc<RefCell<…>>` and borrow it for
-//!   the length of one call.
-//!
-//! ## Links
-//!
-//! [`link`] has the host links, each an `embedded-io` byte stream with a connection state
-//! ([`link::HostLink`]): [`link::TcpLink`] (like the ESP32's WiFi, one controlling client at a
-//! time as `forja_drivers::session::LinkSession` decides, default port
-//! [`config::DEFAULT_TCP_PORT`]), [`link::PtyLink`] (a pseudo-terminal that
-//! serial host software opens like a UART), [`link::MemoryLink`] (in-process), and
-//! [`link::FaultInjector`], which corrupts and drops bytes from the host at seeded rates.
-//!
-//! ## The firmware
-//!
-//! [`board::SimBoard`] is the Forja firmware on a [`SimMachine`], wired as a firmware board
-//! wires it: the kernel's step interrupt on [`Firmware::on_alarm`] with the `forja-drivers`
-//! step/dir driver and limit inputs on the simulated pins, and `forja_app::controller` on
-//! [`Firmware::poll`], serving the links. [`run::run_job`] streams a job to it as `forja send`
-//! does, with the client's own streamer ([`host::StreamHost`]); [`run::listen`] serves hosts on
-//! TCP and a pseudo-terminal.
-//!
-//! The loop itself is not tied to the firmware: anything that implements [`Firmware`] runs on
-//! the simulated hardware, as this stand-in for the kernel does:
-//!
-//! ```
-//! use forja_hal_abstraction::clock::{Alarm, Clock};
-//! use forja_hal_abstraction::stepper::{Direction, Stepper, StepperEnable};
-//! use forja_hal_abstraction::time::{Duration, Instant};
-//! use forja_sim::{Firmware, Flow, MachineConfig, SimMachine, SimStepper, Simulation,
-//!                 SimulationConfig};
-//!
-//! /// A stand-in for the kernel: `left` steps at 1 kHz with 5 µs pulses.
-//! struct Pulses {
-//!     stepper: SimStepper,
-//!     left: u32,
-//!     high: bool,
-//! }
-//!
-//! impl Firmware for Pulses {
-//!     fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
-//!         self.high = !self.high;
-//!         if self.high {
-//!             self.stepper.step_begin().unwrap();
-//!             Some(now.wrapping_add(Duration::from_ticks(5)))
-//!         } else {
-//!             self.stepper.step_end().unwrap();
-//!             self.left -= 1;
-//!             (self.left > 0).then(|| now.wrapping_add(Duration::from_ticks(995)))
-//!         }
-//!     }
-//!
-//!     fn poll(&mut self, _now: Instant) -> Flow {
-//!         if self.left == 0 { Flow::Stop } else { Flow::Continue }
-//!     }
-//! }
-//!
-//! let machine = SimMachine::new(&MachineConfig::default_router());
-//! let x = machine.axis_index('X').unwrap();
-//! let mut stepper = machine.stepper(x).unwrap();
-//! stepper.set_enabled(true).unwrap();
-//! stepper.set_direction(Direction::Positive).unwrap();
-//! // First step 10 µs from now: the driver needs 1 µs of DIR set-up.
-//! let first = machine.clock().now().wrapping_add(Duration::from_ticks(10));
-//! machine.alarm().set_alarm(first).unwrap();
-//!
-//! let mut firmware = Pulses { stepper, left: 80, high: false };
-//! let mut sim = Simulation::new(machine.clone(), SimulationConfig::new(machine.tick_hz()));
-//! let report = sim.run(&mut firmware).unwrap();
-//! assert_eq!(machine.position_mm(x), Some(151.0)); // from 150 mm, 80 steps of 1/80 mm
-//! assert_eq!(machine.violation_count(), 0);
-//! assert_eq!(report.alarms, 160);
-//! ```
+//! The `forja-sim` binary (`cargo xtask sim`) is the command line over [`run`].
 #![deny(unsafe_code)]
 
 pub mod board;
-pub mod config;
 pub mod host;
 pub mod job;
-pub mod limit;
-pub mod link;
-pub mod machine;
-pub mod pwm;
 pub mod run;
-pub mod simulation;
 pub mod state;
-pub mod stepper;
-pub mod thermal;
-pub mod trace;
 
-pub use config::{MachineConfig, MachineFileError};
 pub use job::{Job, JobError};
-pub use limit::{SimLimitSwitch, SimSwitchPin};
-pub use machine::{NoSuchDevice, SimAlarm, SimClock, SimMachine};
-pub use pwm::{DutyChange, SimPwm};
-pub use simulation::{
-    Firmware, Flow, FnFirmware, Pacing, RunError, RunReport, Simulation, SimulationConfig,
-    StopReason,
-};
-pub use stepper::{SimDriverPin, SimStepDirPins, SimStepper, TimingViolation, ViolationKind};
-pub use thermal::{SensorFault, SimHeater, SimTemperatureSensor};
-pub use trace::{StepTrace, TraceEvent, TraceEventKind};

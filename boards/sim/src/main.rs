@@ -14,10 +14,11 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
 use clap::Parser;
-use forja_sim::config::{AxisKind, SwitchPolarity, SwitchSide};
-use forja_sim::link::FaultConfig;
+use forja_sim::Job;
 use forja_sim::run::{JobOptions, ListenOptions};
-use forja_sim::{Job, MachineConfig, Pacing};
+use forja_sim_hal::config::{AxisKind, SwitchPolarity, SwitchSide};
+use forja_sim_hal::link::FaultConfig;
+use forja_sim_hal::{MachineConfig, Pacing};
 
 /// The line sent to a TCP client that connects while another one is in control.
 const BUSY_MESSAGE: &[u8] = b"error: busy: another host is in control of this machine\n";
@@ -237,7 +238,10 @@ fn idle_timeout_ms(seconds: f64) -> Result<u32, String> {
 fn load_machine(arg: &str) -> Result<MachineConfig, String> {
     if let Some(name) = arg.strip_prefix("builtin:") {
         let text = MachineConfig::bundled_toml(name).ok_or_else(|| {
-            let names: Vec<&str> = forja_sim::config::BUNDLED.iter().map(|(n, _)| *n).collect();
+            let names: Vec<&str> = forja_sim_hal::config::BUNDLED
+                .iter()
+                .map(|(n, _)| *n)
+                .collect();
             format!(
                 "no bundled machine \"{name}\" (bundled: {})",
                 names.join(", ")

@@ -16,13 +16,14 @@ use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use forja_host::program::Program;
 use forja_host::streamer::{Config, Stats};
 
+use forja_sim_hal::link::{FaultConfig, FaultInjector, HostLink, MemoryLink, PtyLink, TcpLink};
+use forja_sim_hal::{
+    Flow, MachineConfig, Pacing, SimClock, SimMachine, Simulation, SimulationConfig, StopReason,
+};
+
 use crate::board::{PortId, SimBoard};
-use crate::config::MachineConfig;
 use crate::host::StreamHost;
 use crate::job::Job;
-use crate::link::{FaultConfig, FaultInjector, HostLink, MemoryLink, PtyLink, TcpLink};
-use crate::machine::{SimClock, SimMachine};
-use crate::simulation::{Flow, Pacing, Simulation, SimulationConfig, StopReason};
 
 /// How [`run_job`] runs.
 #[derive(Debug, Clone, PartialEq)]

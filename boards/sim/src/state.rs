@@ -16,31 +16,12 @@
 //!
 //! # The flash model
 //!
-//! Each flash keeps the rules of a NOR flash (see [`crate::board::HeapFlash`] and
-//! `forja_drivers::ram_flash`): an erase sets whole 4 KiB pages to `0xFF`, a write of 4-byte
-//! words may only clear bits of erased words. Every completed erase or write is written to
-//! the file (one positioned write of exactly the bytes it changed, no buffer in between)
-//! before it returns: the file is the flash after the last completed operation.
-//!
-//! A simulator killed in the middle of an operation (SIGKILL, a crash) leaves the file as a
-//! flash is left by a power cut in the middle of one. The operation is one `pwrite` of its
-//! bytes in ascending order, which Linux stops, if at all, only between the 4 KiB pages of the
-//! file cache it copies; the flashes start at page boundaries of the file, so a word never
-//! straddles two of them. The file then holds a prefix of the operation, in whole words, and
-//! the old contents after it: some words written and the rest still erased, or some pages of
-//! an erase done and the rest as before. Bits are only ever cleared by a write and set by an
-//! erase, so nothing a real part could not hold is ever there. (A real part may also leave a
-//! word half-programmed, some of its bits cleared; `forja_drivers::ram_flash::RamNorFlash`
-//! models that finer case for the storage layer's own tests.) A kill between operations
-//! leaves the file at that boundary exactly.
-//!
-//! The limit: the file is written, not synced (`fsync`). A kill of the simulator leaves the
-//! written data in the operating system's cache, which the next simulator reads; a power cut
-//! of the computer itself may lose operations the file system had not yet stored.
-//!
-//! A write to the file that fails (a full disk) makes that flash fail every later operation
-//! with `RamFlashError::MediumFailed`, as a flash that lost its power does: the storage layer
-//! reports a flash error instead of carrying on with a file that no longer follows the flash.
+//! Each flash is a [`forja_sim_hal::flash::SimFlash`]: the NOR rules of
+//! `forja_drivers::ram_flash::RamNorFlash`, every completed erase or write written through to
+//! its window of the file before it returns ([`FlashFile`]). The flashes start at page
+//! boundaries of the file, so a simulator killed in the middle of an operation leaves the file
+//! as a power cut leaves a flash; the limits (no `fsync`, a failed write fails the flash) are
+//! in the documentation of `forja_sim_hal::flash`.
 
 use core::fmt;
 use std::fs::{File, OpenOptions};
@@ -49,15 +30,14 @@ use std::os::unix::fs::FileExt as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use forja_drivers::ram_flash::RamFlashError;
+use forja_sim_hal::flash::FlashFile;
+use forja_sim_hal::{MachineConfig, SimMachine};
 use nix::fcntl::{Flock, FlockArg};
 
 use crate::board::{
     BoardConfig, FLASH_PAGE, Flash, PROGRAM_FLASH_LEN, ProgramFlash, SETTINGS_FLASH_LEN,
     SettingsFlash, SimBoard, Stored,
 };
-use crate::config::MachineConfig;
-use crate::machine::SimMachine;
 
 /// The first bytes of a state file.
 pub const MAGIC: &[u8] = b"forja-sim flash state\n";
@@ -134,39 +114,6 @@ impl fmt::Display for StateError {
 
 impl std::error::Error for StateError {}
 
-/// One flash's window of a state file: where its completed operations are written.
-#[derive(Debug)]
-pub struct FlashFile {
-    file: Arc<Flock<File>>,
-    /// Offset of the flash's byte 0 in the file.
-    base: u64,
-    /// A write to the file failed: the file no longer follows the flash.
-    failed: bool,
-}
-
-impl FlashFile {
-    /// Whether the flash may be used: `MediumFailed` once a write to the file failed.
-    pub fn usable(&self) -> Result<(), RamFlashError> {
-        if self.failed {
-            Err(RamFlashError::MediumFailed)
-        } else {
-            Ok(())
-        }
-    }
-
-    /// Write `bytes`, the flash's contents from byte `offset` after an operation, to the file
-    /// (one positioned write, retried only for what a short write left).
-    pub fn write(&mut self, offset: usize, bytes: &[u8]) -> Result<(), RamFlashError> {
-        self.usable()?;
-        let at = self.base + offset as u64;
-        if self.file.write_all_at(bytes, at).is_err() {
-            self.failed = true;
-            return Err(RamFlashError::MediumFailed);
-        }
-        Ok(())
-    }
-}
-
 fn io_error(path: &Path) -> impl Fn(io::Error) -> StateError + '_ {
     move |error| StateError::Io {
         path: path.to_path_buf(),
@@ -214,11 +161,8 @@ fn read_checked(file: &File, path: &Path) -> Result<Vec<u8>, StateError> {
 /// The two flashes of `bytes` (a whole state file), with their write-through windows.
 fn flashes(bytes: &[u8], file: Option<Arc<Flock<File>>>) -> Flash {
     let window = |base: usize| {
-        file.as_ref().map(|f| FlashFile {
-            file: Arc::clone(f),
-            base: base as u64,
-            failed: false,
-        })
+        file.as_ref()
+            .map(|f| FlashFile::new(Arc::clone(f), base as u64))
     };
     let part = |at: usize, len: usize| bytes.get(at..at + len).unwrap_or(&[]).to_vec();
     Flash {
@@ -329,6 +273,7 @@ pub fn describe(machine: &MachineConfig, path: &Path) -> Result<String, String> 
 #[cfg(test)]
 mod tests {
     use embedded_storage::nor_flash::{NorFlash as _, ReadNorFlash as _};
+    use forja_drivers::ram_flash::RamFlashError;
 
     use super::*;
 
@@ -390,11 +335,7 @@ mod tests {
         let file = Flock::lock(File::open(&path).unwrap(), FlockArg::LockExclusiveNonblock)
             .map_err(|(_, e)| e)
             .unwrap();
-        let window = FlashFile {
-            file: Arc::new(file),
-            base: SETTINGS_AT as u64,
-            failed: false,
-        };
+        let window = FlashFile::new(Arc::new(file), SETTINGS_AT as u64);
         let mut flash = SettingsFlash::with_contents(Vec::new(), Some(window));
         assert_eq!(flash.write(0, &[0; 4]), Err(RamFlashError::MediumFailed));
         assert_eq!(flash.read(0, &mut [0; 4]), Err(RamFlashError::MediumFailed));

@@ -45,7 +45,7 @@ fn check_describes_the_default_machine_and_the_sample_job() {
 #[test]
 fn a_bad_machine_file_is_reported_with_its_line_and_field() {
     let path = temp_path("bad.toml");
-    let text = forja_sim::MachineConfig::bundled_toml("default")
+    let text = forja_sim_hal::MachineConfig::bundled_toml("default")
         .unwrap()
         .replacen("accel_mm_s2 = 500.0", "accel_mm_s2 = 0", 2);
     std::fs::write(&path, &text).unwrap();

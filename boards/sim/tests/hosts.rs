@@ -11,8 +11,8 @@ use std::os::unix::fs::OpenOptionsExt;
 use std::time::{Duration, Instant};
 
 use forja_sim::board::{BoardConfig, PortId, SimBoard};
-use forja_sim::link::{HostLink, MemoryLink, PtyLink, TcpLink};
-use forja_sim::{Flow, MachineConfig, SimMachine, Simulation, SimulationConfig};
+use forja_sim_hal::link::{HostLink, MemoryLink, PtyLink, TcpLink};
+use forja_sim_hal::{Flow, MachineConfig, SimMachine, Simulation, SimulationConfig};
 
 /// Hang guard of every wait.
 const WALL: Duration = Duration::from_secs(20);

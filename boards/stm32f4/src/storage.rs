@@ -137,6 +137,7 @@ impl embedded_storage::nor_flash::NorFlashError for FlashError {
 }
 
 /// Check an access of `len` bytes at `offset` against the region and the alignment `align`.
+#[cfg(not(feature = "qemu"))]
 fn check(offset: u32, len: usize, align: usize) -> Result<core::ops::Range<usize>, FlashError> {
     let start = offset as usize;
     let end = start.checked_add(len).ok_or(FlashError::OutOfBounds)?;
@@ -299,19 +300,20 @@ mod ram {
     use core::mem::MaybeUninit;
 
     use embedded_storage::nor_flash::{ErrorType, NorFlash, ReadNorFlash};
+    use forja_drivers::ram_flash::{RamFlashError, RamNorFlash};
 
-    use super::{FlashError, PAGE, STORE_LEN, check};
+    use super::{PAGE, STORE_LEN};
     use crate::hardware::SetupError;
 
     /// The RAM behind the store: main RAM, not initialised at reset.
     #[unsafe(link_section = ".uninit.forja_store")]
     static mut STORE: MaybeUninit<[u8; STORE_LEN]> = MaybeUninit::uninit();
 
-    /// Two 16 KiB "sectors" of RAM that behave like NOR flash: erase sets bytes
-    /// to 0xFF, programming can only clear bits.
-    pub struct RamFlash {
-        mem: &'static mut [u8; STORE_LEN],
-    }
+    /// Two 16 KiB "sectors" of RAM that behave like NOR flash: the drivers' in-RAM model
+    /// (`forja_drivers::ram_flash::RamNorFlash`) over the RAM region, with the sector flash's
+    /// geometry: 32-bit words, erased to 0xFF a 16 KiB page at a time, each written once per
+    /// erase.
+    pub struct RamFlash(RamNorFlash<STORE_LEN, 4, PAGE, &'static mut [u8; STORE_LEN]>);
 
     impl RamFlash {
         /// The store, erased.
@@ -330,25 +332,23 @@ mod ram {
                 store.as_mut_ptr().write_bytes(0xFF, 1);
                 store.assume_init_mut()
             };
-            Ok(Self { mem })
+            Ok(Self(RamNorFlash::with_memory(mem)))
         }
     }
 
     impl ErrorType for RamFlash {
-        type Error = FlashError;
+        type Error = RamFlashError;
     }
 
     impl ReadNorFlash for RamFlash {
-        const READ_SIZE: usize = 1;
+        const READ_SIZE: usize = 4;
 
         fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
-            let range = check(offset, bytes.len(), 1)?;
-            bytes.copy_from_slice(&self.mem[range]);
-            Ok(())
+            self.0.read(offset, bytes)
         }
 
         fn capacity(&self) -> usize {
-            STORE_LEN
+            self.0.capacity()
         }
     }
 
@@ -357,17 +357,11 @@ mod ram {
         const ERASE_SIZE: usize = PAGE;
 
         fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
-            let range = check(from, to.saturating_sub(from) as usize, PAGE)?;
-            self.mem[range].fill(0xFF);
-            Ok(())
+            self.0.erase(from, to)
         }
 
         fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
-            let range = check(offset, bytes.len(), 4)?;
-            for (cell, byte) in self.mem[range].iter_mut().zip(bytes) {
-                *cell &= *byte;
-            }
-            Ok(())
+            self.0.write(offset, bytes)
         }
     }
 }

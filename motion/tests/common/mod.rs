@@ -1,9 +1,13 @@
-//! Shared set-up of the integration tests.
+//! Shared set-up of the integration tests: the kernel on the simulated machine ([`bench`]), a
+//! test machine, and the measures of its motion.
 #![allow(dead_code)]
 
+pub mod bench;
+
 use forja_hal_abstraction::stepper::StepTiming;
-use forja_motion::sim::Simulation;
 use forja_motion::{AxisConfig, HomeDirection, HomingConfig, MachineConfig, StepQueue, split};
+
+pub use bench::{KernelSim, StepRecord};
 
 /// Three axes with homing on X and Y (switches 0 and 1), travel 0..200 mm.
 pub fn machine() -> MachineConfig<3> {
@@ -24,18 +28,16 @@ pub fn machine() -> MachineConfig<3> {
     c
 }
 
-/// Build a simulation on `queue`.
+/// The kernel of `config` on the simulated machine, split on `queue`.
 pub fn sim<'q, const N: usize>(
     queue: &'q mut StepQueue<N, 256>,
     config: MachineConfig<N>,
     tick_hz: u32,
-) -> Simulation<'q, N, 32, 256> {
+) -> KernelSim<'q, N, 32, 256> {
     let timing = StepTiming::CONSERVATIVE;
     let (kernel, isr) = split::<N, 32, 256>(queue, config, tick_hz, timing).expect("valid config");
-    Simulation::new(kernel, isr, timing)
+    KernelSim::new(kernel, isr, timing)
 }
-
-use forja_motion::sim::StepRecord;
 
 /// The worst figures found by [`check_axis`], as ratios to the axis limits.
 #[derive(Debug, Clone, Copy, Default)]

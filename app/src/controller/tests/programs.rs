@@ -56,7 +56,7 @@ impl<P: ProgramStore> Bench<P> {
 
     /// Where the motors are, steps from where the machine was first switched on.
     fn physical(&self) -> [i32; 3] {
-        self.rec.borrow().position
+        self.wiring.positions()
     }
 }
 

@@ -91,7 +91,7 @@ const fn homing(direction: HomeDirection, switch: u8, order: u8, rates: [f32; 3]
 
 /// The machine every pin map drives until settings (frame 00) change it: a 300 × 300 mm
 /// gantry router with 100 mm of Z and a rotary A, the numbers of the simulator's default
-/// machine (`boards/sim/machines/default.toml`), so that a job gives the same positions on
+/// machine (`boards/sim-hal/machines/default.toml`), so that a job gives the same positions on
 /// both.
 ///
 /// | axis | steps/mm | max rate, mm/min | accel, mm/s² | travel, mm | homes |

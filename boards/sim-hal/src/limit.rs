@@ -12,7 +12,12 @@
 //!   high when triggered), for the limit input driver of `forja-drivers`.
 //!
 //! A test can override a switch ([`SimMachine::force_switch`]) to simulate a stuck switch or a
-//! cut wire.
+//! cut wire, or move it ([`SimMachine::set_switch_position_steps`]).
+//!
+//! [`SwitchEdges`] is the pin-change interrupt of the switch inputs, as a board has an EXTI
+//! line or a GPIO interrupt on each: the board looks at it after each step interrupt and each
+//! poll (a switch changes when a step pushes the axis over it, or when a test forces it) and
+//! reports an edge to the step interrupt.
 
 use core::convert::Infallible;
 use core::fmt;
@@ -109,6 +114,28 @@ impl SimMachine {
             .fold(0, |m, i| m | 1 << i)
     }
 
+    /// Move the switch on `side` of `axis` to `steps` (a machine position, in steps): it trips
+    /// there from now on.
+    pub fn set_switch_position_steps(
+        &self,
+        axis: usize,
+        side: SwitchSide,
+        steps: i64,
+    ) -> Result<(), NoSuchDevice> {
+        let index = self.switch_handle(axis, side)?;
+        self.state.borrow_mut().switches[index].trigger_steps = steps;
+        Ok(())
+    }
+
+    /// The pin-change interrupt of every switch input, with the switches' states now as the
+    /// last seen.
+    pub fn switch_edges(&self) -> SwitchEdges {
+        SwitchEdges {
+            machine: self.clone(),
+            seen: self.switch_states(),
+        }
+    }
+
     /// Force the switch on `side` of `axis` to read triggered (`Some(true)`) or released
     /// (`Some(false)`) whatever the position; `None` returns it to following the position.
     pub fn force_switch(
@@ -120,6 +147,33 @@ impl SimMachine {
         let index = self.switch_handle(axis, side)?;
         self.state.borrow_mut().switches[index].forced = forced;
         Ok(())
+    }
+}
+
+/// The pin-change interrupt of a machine's switch inputs ([`SimMachine::switch_edges`]).
+#[derive(Clone)]
+pub struct SwitchEdges {
+    machine: SimMachine,
+    /// [`SimMachine::switch_states`] at the last look.
+    seen: u64,
+}
+
+impl SwitchEdges {
+    /// Whether any switch changed since the last look: the interrupt is pending. Looking
+    /// clears it.
+    ///
+    /// Context: either (a board calls it after each step interrupt and each poll).
+    pub fn take(&mut self) -> bool {
+        let now = self.machine.switch_states();
+        core::mem::replace(&mut self.seen, now) != now
+    }
+}
+
+impl fmt::Debug for SwitchEdges {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("SwitchEdges")
+            .field("seen", &self.seen)
+            .finish()
     }
 }
 
@@ -247,6 +301,29 @@ mod tests {
         assert!(pin.is_high().unwrap(), "normally open: high while released");
         p.set_position_steps(0, 0).unwrap();
         assert!(pin.is_low().unwrap(), "normally open: low when triggered");
+    }
+
+    #[test]
+    fn a_moved_switch_trips_at_its_new_place_and_raises_an_edge() {
+        let m = SimMachine::new(&MachineConfig::default_router());
+        let mut sw = m.limit_switch(0, SwitchSide::Min).unwrap();
+        let mut edges = m.switch_edges();
+        m.set_position_steps(0, 0).unwrap();
+        assert!(sw.is_triggered().unwrap());
+        assert!(edges.take(), "the X min switch closed");
+        assert!(!edges.take(), "looking clears the edge");
+        m.set_switch_position_steps(0, SwitchSide::Min, -5).unwrap();
+        assert!(!sw.is_triggered().unwrap());
+        assert!(edges.take(), "and opened");
+        step_n(&m, 0, Direction::Negative, 5);
+        assert!(sw.is_triggered().unwrap());
+        assert_eq!(
+            m.set_switch_position_steps(3, SwitchSide::Min, 0),
+            Err(NoSuchDevice::Switch {
+                axis: 3,
+                side: SwitchSide::Min
+            })
+        );
     }
 
     #[test]

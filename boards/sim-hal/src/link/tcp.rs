@@ -38,8 +38,8 @@ pub const REFUSE_DRAIN: usize = 16 * 1024;
 /// Nothing here waits for a client: a controlling client that lets [`super::TX_CAPACITY`]
 /// bytes of replies back up (it stopped reading) is dropped ([`TcpLink::overflows`]); a
 /// refused client gets its busy message only if its socket takes it at once; each
-/// [`HostLink::admit`](super::HostLink::admit) accepts at most [`ACCEPTS_PER_ADMIT`] clients
-/// (the others wait in the backlog for the next call) and reads at most [`REFUSE_DRAIN`]
+/// [`HostLink::admit`](super::HostLink::admit) accepts at most `ACCEPTS_PER_ADMIT` clients
+/// (the others wait in the backlog for the next call) and reads at most `REFUSE_DRAIN`
 /// bytes from each refused one. Implements [`super::HostLink`].
 #[derive(Debug)]
 pub struct TcpLink {

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use embedded_io::{ReadReady, Write};
 use forja_drivers::session::{LinkSession, SessionAction};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
-use forja_sim::link::{FaultConfig, FaultInjector, FaultyBytes, HostLink, TcpLink};
+use forja_sim_hal::link::{FaultConfig, FaultInjector, FaultyBytes, HostLink, TcpLink};
 
 const TIMEOUT: Duration = Duration::from_secs(5);
 

@@ -24,6 +24,11 @@
 //! [`crate::SimMachine::violations`]). The step still happens: a real chip may or may not miss
 //! it, and the violation is the finding. Times are compared in whole ticks: a minimum of
 //! `ns` needs `ceil(ns × tick_hz / 10⁹)` ticks.
+//!
+//! Two rules of order are checked as well: DIR must not change while STEP is high (drivers
+//! that step on both edges, such as the TMC22xx with `dedge`, read DIR at the falling edge
+//! too), and through [`SimStepper`] a `step_begin` must be followed by a `step_end` before the
+//! next `step_begin` (on the pins, driving a line to the level it has is no edge and no fault).
 
 use core::convert::Infallible;
 use core::fmt;
@@ -47,6 +52,18 @@ pub enum ViolationKind {
     PulseHigh,
     /// STEP was low for less than `min_pulse_ns` between two pulses.
     PulseLow,
+    /// DIR changed while STEP was high.
+    DirDuringPulse,
+    /// [`SimStepper`] was told to begin a pulse while STEP was high, or to end one while it
+    /// was low.
+    UnpairedEdge,
+}
+
+impl ViolationKind {
+    /// Whether the rule is a minimum time (with ticks to compare), not a rule of order.
+    pub fn is_timed(self) -> bool {
+        matches!(self, Self::DirSetup | Self::PulseHigh | Self::PulseLow)
+    }
 }
 
 impl fmt::Display for ViolationKind {
@@ -55,6 +72,8 @@ impl fmt::Display for ViolationKind {
             Self::DirSetup => "DIR set-up time",
             Self::PulseHigh => "STEP high time",
             Self::PulseLow => "STEP low time",
+            Self::DirDuringPulse => "DIR change during a STEP pulse",
+            Self::UnpairedEdge => "STEP edge without its pair",
         })
     }
 }
@@ -68,9 +87,9 @@ pub struct TimingViolation {
     pub axis: usize,
     /// The rule broken.
     pub kind: ViolationKind,
-    /// Ticks between the edges concerned.
+    /// Ticks between the edges concerned (0 for a rule of order).
     pub actual_ticks: u64,
-    /// Ticks the rule needs.
+    /// Ticks the rule needs (0 for a rule of order).
     pub required_ticks: u64,
 }
 
@@ -78,9 +97,17 @@ impl fmt::Display for TimingViolation {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "tick {}: axis {}: {} of {} ticks, needs {}",
-            self.time_ticks, self.axis, self.kind, self.actual_ticks, self.required_ticks
-        )
+            "tick {}: axis {}: {}",
+            self.time_ticks, self.axis, self.kind
+        )?;
+        if self.kind.is_timed() {
+            write!(
+                f,
+                " of {} ticks, needs {}",
+                self.actual_ticks, self.required_ticks
+            )?;
+        }
+        Ok(())
     }
 }
 
@@ -205,8 +232,31 @@ impl State {
         if a.direction != direction {
             a.direction = direction;
             a.dir_changed_at = Some(now);
+            let during_pulse = a.step_high;
             self.trace_event(axis, TraceEventKind::Dir(direction));
+            if during_pulse {
+                self.record_order_violation(axis, ViolationKind::DirDuringPulse);
+            }
         }
+    }
+
+    /// Drive the STEP line of `axis` to `high` for a [`SimStepper`], which must pair its
+    /// edges: a line already at `high` is an [`ViolationKind::UnpairedEdge`].
+    fn drive_step_paired(&mut self, axis: usize, high: bool) {
+        if self.axes.get(axis).is_some_and(|a| a.step_high == high) {
+            self.record_order_violation(axis, ViolationKind::UnpairedEdge);
+        }
+        self.drive_step(axis, high);
+    }
+
+    fn record_order_violation(&mut self, axis: usize, kind: ViolationKind) {
+        self.record_violation(TimingViolation {
+            time_ticks: self.now,
+            axis,
+            kind,
+            actual_ticks: 0,
+            required_ticks: 0,
+        });
     }
 
     /// Drive the ENABLE line of `axis` to enable (`true`) or release the motor.
@@ -261,6 +311,11 @@ impl SimStepper {
     pub fn axis(&self) -> usize {
         self.axis
     }
+
+    /// Drive this driver's lines: `f` on the machine's state and the axis.
+    fn drive(&self, f: impl FnOnce(&mut State, usize)) {
+        f(&mut self.machine.state.borrow_mut(), self.axis);
+    }
 }
 
 impl fmt::Debug for SimStepper {
@@ -277,20 +332,17 @@ impl ErrorType for SimStepper {
 
 impl Stepper for SimStepper {
     fn set_direction(&mut self, direction: Direction) -> Result<(), Infallible> {
-        self.machine
-            .state
-            .borrow_mut()
-            .drive_dir(self.axis, direction);
+        self.drive(|s, axis| s.drive_dir(axis, direction));
         Ok(())
     }
 
     fn step_begin(&mut self) -> Result<(), Infallible> {
-        self.machine.state.borrow_mut().drive_step(self.axis, true);
+        self.drive(|s, axis| s.drive_step_paired(axis, true));
         Ok(())
     }
 
     fn step_end(&mut self) -> Result<(), Infallible> {
-        self.machine.state.borrow_mut().drive_step(self.axis, false);
+        self.drive(|s, axis| s.drive_step_paired(axis, false));
         Ok(())
     }
 
@@ -301,10 +353,7 @@ impl Stepper for SimStepper {
 
 impl StepperEnable for SimStepper {
     fn set_enabled(&mut self, enabled: bool) -> Result<(), Infallible> {
-        self.machine
-            .state
-            .borrow_mut()
-            .drive_enable(self.axis, enabled);
+        self.drive(|s, axis| s.drive_enable(axis, enabled));
         Ok(())
     }
 }
@@ -399,6 +448,11 @@ mod tests {
         m
     }
 
+    /// The rules broken so far, in time order.
+    fn violation_kinds(m: &SimMachine) -> Vec<ViolationKind> {
+        m.violations().iter().map(|v| v.kind).collect()
+    }
+
     /// A well-timed step: DIR already set, high for `high` ticks, then low.
     fn pulse(m: &SimMachine, s: &mut SimStepper, high: u64, low: u64) {
         s.step_begin().unwrap();
@@ -476,9 +530,8 @@ mod tests {
         x.step_end().unwrap();
 
         let v = m.violations();
-        let kinds: Vec<_> = v.iter().map(|v| v.kind).collect();
         assert_eq!(
-            kinds,
+            violation_kinds(&m),
             [
                 ViolationKind::DirSetup,
                 ViolationKind::PulseHigh,
@@ -508,6 +561,44 @@ mod tests {
         x.step_begin().unwrap();
         x.step_end().unwrap();
         assert_eq!(m.violation_count(), 4);
+    }
+
+    #[test]
+    fn rules_of_order_are_caught() {
+        let m = machine();
+        let mut x = m.stepper(0).unwrap();
+        x.set_enabled(true).unwrap();
+        m.advance_by(10);
+        x.step_begin().unwrap();
+        m.advance_by(2);
+        // DIR changes under a high STEP.
+        x.set_direction(Direction::Positive).unwrap();
+        // A second begin without an end.
+        x.step_begin().unwrap();
+        m.advance_by(2);
+        x.step_end().unwrap();
+        m.advance_by(2);
+        // An end without a begin.
+        x.step_end().unwrap();
+        assert_eq!(
+            violation_kinds(&m),
+            [
+                ViolationKind::DirDuringPulse,
+                ViolationKind::UnpairedEdge,
+                ViolationKind::UnpairedEdge
+            ]
+        );
+        let v = m.violations();
+        assert_eq!(
+            v[0].to_string(),
+            "tick 12: axis 0: DIR change during a STEP pulse"
+        );
+        assert_eq!((v[1].time_ticks, v[2].time_ticks), (12, 16));
+        assert_eq!(m.step_count(0), Some(1), "a second begin is no second step");
+        // On the pins, a line driven to its level is no edge and no fault.
+        let mut pins = m.step_dir_pins(1).unwrap();
+        pins.step.set_low().unwrap();
+        assert_eq!(m.violation_count(), 3);
     }
 
     #[test]

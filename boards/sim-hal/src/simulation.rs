@@ -15,7 +15,15 @@
 //! 4. The thermal models follow virtual time exactly ([`crate::thermal`]).
 //!
 //! It stops when the firmware says so, at the time limit, or when a stop flag is raised
-//! (Ctrl-C). [`Pacing::AsFastAsPossible`] runs virtual time as fast as the host computes;
+//! (Ctrl-C). [`Simulation::run`] starts with a poll at the current virtual time;
+//! [`Simulation::run_until`] runs up to a given tick and keeps the poll schedule of the run
+//! before it, so that a test can advance the firmware in slices, looking at it in between, on
+//! the schedule of one long run.
+//!
+//! A busy board serves its step interrupt a little late: with
+//! [`SimulationConfig::max_latency_ticks`] set, each alarm is served up to that many ticks
+//! after its instant (a pseudo-random, reproducible delay), and the interrupt sees the time it
+//! runs at. [`Pacing::AsFastAsPossible`] runs virtual time as fast as the host computes;
 //! [`Pacing::Realtime`] holds virtual time to the wall clock (sleeping whenever it is more than
 //! [`PACING_SLACK`] ahead), for links to real host software; [`Pacing::Scaled`] holds it to a
 //! multiple of the wall clock, so that long jobs run quickly and still in step with a host.
@@ -125,17 +133,21 @@ pub struct SimulationConfig {
     pub poll_period_ticks: u64,
     /// Alarms allowed at a single tick before the run fails with [`RunError::AlarmStorm`].
     pub max_alarms_per_tick: u32,
+    /// Largest delay of the step interrupt after its alarm's instant, in ticks: each alarm is
+    /// served up to this late (pseudo-random, the same in every run). 0: on time.
+    pub max_latency_ticks: u64,
 }
 
 impl SimulationConfig {
     /// As fast as possible, no time limit, a thread poll every millisecond, at most 10 000
-    /// alarms per tick.
+    /// alarms per tick, interrupts on time.
     pub fn new(tick_hz: u32) -> Self {
         Self {
             pacing: Pacing::AsFastAsPossible,
             time_limit_ticks: None,
             poll_period_ticks: u64::from(tick_hz / 1000).max(1),
             max_alarms_per_tick: 10_000,
+            max_latency_ticks: 0,
         }
     }
 }
@@ -202,12 +214,19 @@ impl fmt::Display for RunError {
 
 impl std::error::Error for RunError {}
 
+/// First state of the generator of interrupt latencies.
+const LATENCY_SEED: u64 = 0x2545_f491_4f6c_dd1d;
+
 /// The simulation loop of one machine.
 #[derive(Debug)]
 pub struct Simulation {
     machine: SimMachine,
     config: SimulationConfig,
     stop: Option<Arc<AtomicBool>>,
+    /// When the thread side is due next, as the last run left it.
+    next_poll: Option<u64>,
+    /// The generator of interrupt latencies (xorshift).
+    latency: u64,
 }
 
 impl Simulation {
@@ -217,6 +236,8 @@ impl Simulation {
             machine,
             config,
             stop: None,
+            next_poll: None,
+            latency: LATENCY_SEED,
         }
     }
 
@@ -246,16 +267,59 @@ impl Simulation {
     ///
     /// Errors: [`RunError::AlarmStorm`].
     pub fn run<F: Firmware + ?Sized>(&mut self, firmware: &mut F) -> Result<RunReport, RunError> {
-        let m = &self.machine;
+        let now = self.machine.now_ticks();
+        self.run_from(firmware, now, None)
+    }
+
+    /// Run `firmware` until virtual time `until_ticks` (or the time limit, if sooner), unless
+    /// it stops or the stop flag is raised first. Events due at `until_ticks` run; the run then
+    /// ends there ([`StopReason::TimeLimit`]). The polls go on where the previous run left
+    /// them (the first at the current virtual time, when none ran), so that runs in slices
+    /// poll as one long run does.
+    ///
+    /// Errors: [`RunError::AlarmStorm`].
+    pub fn run_until<F: Firmware + ?Sized>(
+        &mut self,
+        firmware: &mut F,
+        until_ticks: u64,
+    ) -> Result<RunReport, RunError> {
+        let first_poll = self.next_poll.unwrap_or_else(|| self.machine.now_ticks());
+        self.run_from(firmware, first_poll, Some(until_ticks))
+    }
+
+    /// The delay of the next interrupt, ticks.
+    fn latency(&mut self) -> u64 {
+        let max = self.config.max_latency_ticks;
+        if max == 0 {
+            return 0;
+        }
+        self.latency ^= self.latency << 13;
+        self.latency ^= self.latency >> 7;
+        self.latency ^= self.latency << 17;
+        self.latency % (max + 1)
+    }
+
+    /// The loop: the first poll at `first_poll`, ending at `until` or the time limit.
+    fn run_from<F: Firmware + ?Sized>(
+        &mut self,
+        firmware: &mut F,
+        first_poll: u64,
+        until: Option<u64>,
+    ) -> Result<RunReport, RunError> {
+        let m = self.machine.clone();
         let wall_start = std::time::Instant::now();
         let start_ticks = m.now_ticks();
-        let deadline = self
+        let limit = self
             .config
             .time_limit_ticks
             .map(|l| start_ticks.saturating_add(l));
+        let deadline = match (limit, until) {
+            (Some(l), Some(u)) => Some(l.min(u)),
+            (l, u) => l.or(u),
+        };
         let period = self.config.poll_period_ticks.max(1);
         let tick_hz = f64::from(m.tick_hz());
-        let mut next_poll = start_ticks;
+        let mut next_poll = first_poll;
         let mut report = RunReport {
             stop: StopReason::Firmware,
             start_ticks,
@@ -272,13 +336,13 @@ impl Simulation {
             report
         };
 
-        loop {
+        let result = loop {
             if self
                 .stop
                 .as_ref()
                 .is_some_and(|f| f.load(Ordering::Relaxed))
             {
-                return Ok(finish(report, StopReason::Interrupted));
+                break Ok(finish(report, StopReason::Interrupted));
             }
             let alarm = m.alarm_at_ticks().filter(|&a| a <= next_poll);
             let t = alarm.unwrap_or(next_poll).max(m.now_ticks());
@@ -286,7 +350,7 @@ impl Simulation {
                 && t > d
             {
                 m.advance_to(d);
-                return Ok(finish(report, StopReason::TimeLimit));
+                break Ok(finish(report, StopReason::TimeLimit));
             }
             if let Some(speed) = self.config.pacing.speed() {
                 let target = wall_start
@@ -299,13 +363,12 @@ impl Simulation {
                 }
             }
             m.advance_to(t);
-            let now = Instant::from_ticks(t as u32);
             if alarm.is_some() {
                 m.take_alarm();
                 if storm.0 == t {
                     storm.1 += 1;
                     if storm.1 > self.config.max_alarms_per_tick {
-                        return Err(RunError::AlarmStorm {
+                        break Err(RunError::AlarmStorm {
                             at_ticks: t,
                             alarms: storm.1,
                         });
@@ -314,17 +377,21 @@ impl Simulation {
                     storm = (t, 1);
                 }
                 report.alarms += 1;
-                if let Some(next) = firmware.on_alarm(now) {
+                let late = self.latency();
+                m.advance_by(late);
+                if let Some(next) = firmware.on_alarm(Instant::from_ticks(m.now_ticks() as u32)) {
                     m.set_alarm_ticks(m.instant_to_ticks(next));
                 }
             } else {
                 report.polls += 1;
                 next_poll = t + period;
-                if firmware.poll(now) == Flow::Stop {
-                    return Ok(finish(report, StopReason::Firmware));
+                if firmware.poll(Instant::from_ticks(t as u32)) == Flow::Stop {
+                    break Ok(finish(report, StopReason::Firmware));
                 }
             }
-        }
+        };
+        self.next_poll = Some(next_poll);
+        result
     }
 
     /// [`Simulation::run`] with two closures: the interrupt and the thread side.
@@ -438,6 +505,77 @@ mod tests {
         sim.config_mut().time_limit_ticks = Some(1000);
         let report = sim.run_with(|_| None, |_| Flow::Continue).unwrap();
         assert_eq!((report.start_ticks, report.end_ticks), (10_500, 11_500));
+    }
+
+    #[test]
+    fn runs_in_slices_keep_the_poll_schedule() {
+        let m = machine();
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        let mut polls = Vec::new();
+        for until in [1_500, 1_600, 3_000] {
+            let mut firmware = FnFirmware {
+                on_alarm: |_| None,
+                poll: |now: Instant| {
+                    polls.push(now.ticks());
+                    Flow::Continue
+                },
+            };
+            let report = sim.run_until(&mut firmware, until).unwrap();
+            assert_eq!(report.stop, StopReason::TimeLimit);
+            assert_eq!(report.end_ticks, until);
+        }
+        // One poll a millisecond, as in one run to 3000; the poll due at the end runs.
+        assert_eq!(polls, [0, 1000, 2000, 3000]);
+        // A run with a time limit ends at the sooner of the two.
+        sim.config_mut().time_limit_ticks = Some(100);
+        let report = sim
+            .run_until(
+                &mut FnFirmware {
+                    on_alarm: |_| None,
+                    poll: |_| Flow::Continue,
+                },
+                10_000,
+            )
+            .unwrap();
+        assert_eq!(report.end_ticks, 3_100);
+    }
+
+    /// The instants the alarm fires at, re-armed 10 ticks after each, 50 times from tick 100,
+    /// with interrupts up to `max_latency` ticks late.
+    fn served_at(max_latency: u64) -> Vec<u32> {
+        let m = machine();
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        sim.config_mut().max_latency_ticks = max_latency;
+        m.set_alarm_ticks(100);
+        let mut fired = Vec::new();
+        sim.run_until(
+            &mut FnFirmware {
+                on_alarm: |now: Instant| {
+                    fired.push(now.ticks());
+                    (fired.len() < 50).then(|| now.wrapping_add(Duration::from_ticks(10)))
+                },
+                poll: |_| Flow::Continue,
+            },
+            10_000,
+        )
+        .unwrap();
+        fired
+    }
+
+    #[test]
+    fn late_interrupts_run_at_their_late_time_the_same_in_every_run() {
+        assert_eq!(
+            served_at(0),
+            (0..50).map(|k| 100 + 10 * k).collect::<Vec<_>>()
+        );
+        let late = served_at(5);
+        assert_eq!(late.len(), 50);
+        let delays: Vec<u32> = core::iter::once(late[0] - 100)
+            .chain(late.windows(2).map(|w| w[1] - w[0] - 10))
+            .collect();
+        assert!(delays.iter().all(|&d| d <= 5), "{delays:?}");
+        assert!(delays.iter().filter(|&&d| d > 0).count() > 25, "{delays:?}");
+        assert_eq!(served_at(5), late, "reproducible");
     }
 
     #[test]
