@@ -161,6 +161,11 @@ where
         &self.controller
     }
 
+    /// The controller alone, the firmware given up (a simulator that keeps what it stored).
+    pub fn into_controller(self) -> Controller<'q, N, B, Q, P, X, S> {
+        self.controller
+    }
+
     /// The controller, for what a board changes in it.
     pub fn controller_mut(&mut self) -> &mut Controller<'q, N, B, Q, P, X, S> {
         &mut self.controller

@@ -59,9 +59,10 @@ use core::fmt;
 use std::io;
 
 use forja_app::controller::{
-    BUSY_REFUSAL_LEN, Controller, ControllerConfig, Key, Realtime, RecordProgramStore, Settings,
+    BUSY_REFUSAL_LEN, ControllerConfig, Key, Realtime, RecordProgramStore,
     Stats as ControllerStats, busy_refusal, realtime,
 };
+use forja_app::firmware::{self, Parts as FirmwareParts};
 use forja_app::job::{JobState, Progress};
 use forja_app::peripherals::{DriverPeripherals, MotorEnables, Parts};
 use forja_drivers::heater::{HeaterChannel, HeaterConfig, PidGains};
@@ -76,7 +77,7 @@ use forja_hal_abstraction::link::LinkState;
 use forja_hal_abstraction::stepper::StepTiming;
 use forja_hal_abstraction::time::Instant;
 use forja_motion::{
-    AxisConfig, AxisKind as KernelAxisKind, HomeDirection, HomingConfig, Kernel,
+    AxisConfig, AxisKind as KernelAxisKind, HomeDirection, HomingConfig,
     MachineConfig as KernelConfig, MachineState, StepGenerator, StepQueue, SwitchAlert,
 };
 use forja_protocol::stream::{Decoder, Event};
@@ -446,7 +447,7 @@ type SimPeripherals<const N: usize> = DriverPeripherals<
 >;
 type ProgramStore = RecordProgramStore<FlashRecordStorage<ProgramFlash>>;
 type SettingsStore = FlashRecordStorage<SettingsFlash>;
-type SimController<const N: usize> = Controller<
+type SimFirmware<const N: usize> = firmware::Firmware<
     'static,
     N,
     PLANNER_BLOCKS,
@@ -519,7 +520,7 @@ impl<const N: usize> Drop for QueueBox<N> {
 }
 
 struct Wired<const N: usize> {
-    controller: SimController<N>,
+    firmware: SimFirmware<N>,
     isr: StepGenerator<'static, N, QUEUE_EVENTS>,
     steppers: [StepDir<SimDriverPin, SimDriverPin>; N],
     switches: Vec<Switch>,
@@ -553,14 +554,9 @@ impl<const N: usize> Wired<N> {
         let file = machine.config();
         let base = kernel_config::<N>(file)?;
         let timing = slowest_timing(file);
-        let mut settings_store =
-            FlashRecordStorage::new(flash.settings, 0..SETTINGS_FLASH_LEN as u32)
-                .map_err(storage_error)?;
-        let (settings, loaded) = Settings::load(base, &mut settings_store);
+        let settings_store = FlashRecordStorage::new(flash.settings, 0..SETTINGS_FLASH_LEN as u32)
+            .map_err(storage_error)?;
         let (queue_box, queue) = QueueBox::<N>::new();
-        let (kernel, isr): (Kernel<'static, N, PLANNER_BLOCKS, QUEUE_EVENTS>, _) =
-            forja_motion::split(queue, settings.machine().clone(), machine.tick_hz(), timing)
-                .map_err(BoardError::Config)?;
 
         let pins = |axis: usize| {
             machine
@@ -624,10 +620,18 @@ impl<const N: usize> Wired<N> {
             RecordProgramStore::open(program_storage, program_lines).map_err(storage_error)?;
         let mut config = ControllerConfig::new(machine_type(file), timing);
         config.extruders = u8::from(file.axes.iter().any(|a| a.kind == AxisKind::Extruder));
-        let controller = Controller::new(kernel, program, peripherals, config)
-            .with_settings(settings, settings_store);
+        let (isr, firmware, loaded) = firmware::assemble(FirmwareParts {
+            machine: base,
+            settings: settings_store,
+            queue,
+            tick_hz: machine.tick_hz(),
+            config,
+            program,
+            peripherals,
+        })
+        .map_err(BoardError::Config)?;
         Ok(Self {
-            controller,
+            firmware,
             switch_alert: isr.switch_alert(),
             switch_edges: machine.switch_edges(),
             isr,
@@ -652,8 +656,8 @@ impl<const N: usize> Wired<N> {
             if let Some(p) = ports.get_mut(i) {
                 if !p.present() {
                     // Its host left: what it sent runs on, unless someone else wants control.
-                    let draining =
-                        p.link.read_ready().unwrap_or(false) || self.controller.is_holding();
+                    let draining = p.link.read_ready().unwrap_or(false)
+                        || self.firmware.controller().is_holding();
                     if others_want || !draining {
                         self.end_session(p, arb);
                     }
@@ -716,8 +720,8 @@ impl<const N: usize> Wired<N> {
         if stop {
             // The fault goes to the controlling host, whose waiting lines are answered.
             match arb.active.and_then(|i| ports.get_mut(i)) {
-                Some(p) => self.controller.emergency_stop(&mut p.link),
-                None => self.controller.emergency_stop(&mut Silent),
+                Some(p) => self.firmware.controller_mut().emergency_stop(&mut p.link),
+                None => self.firmware.controller_mut().emergency_stop(&mut Silent),
             }
         }
     }
@@ -736,12 +740,12 @@ impl<const N: usize> Wired<N> {
         arb.owner = Some(i);
         p.stats.sessions += 1;
         if p.frames {
-            self.controller.on_connect(&mut p.link);
+            self.firmware.controller_mut().on_connect(&mut p.link);
         } else {
-            self.controller.reset_link();
+            self.firmware.controller_mut().reset_link();
             if !self.booted {
                 self.booted = true;
-                self.controller.boot(&mut p.link);
+                self.firmware.controller_mut().boot(&mut p.link);
             }
         }
     }
@@ -756,7 +760,7 @@ impl<const N: usize> Wired<N> {
             }
         }
         p.session.on_disconnect();
-        self.controller.reset_link();
+        self.firmware.controller_mut().reset_link();
         arb.active = None;
         arb.owner = None;
     }
@@ -835,7 +839,7 @@ impl<const N: usize> Wiring for Wired<N> {
             Some(p) => {
                 if p.frames {
                     while let Some(SessionAction::SendKeepAlive(n)) = p.session.poll(now_ms) {
-                        self.controller.keep_alive(n, &mut p.link);
+                        self.firmware.controller_mut().keep_alive(n, &mut p.link);
                     }
                 }
                 let mut link = Budgeted {
@@ -843,13 +847,13 @@ impl<const N: usize> Wiring for Wired<N> {
                     left: READ_BUDGET,
                     read: 0,
                 };
-                let outcome = self.controller.poll(now, &mut link);
-                if link.read > 0 || self.controller.is_holding() {
+                let outcome = self.firmware.controller_mut().poll(now, &mut link);
+                if link.read > 0 || self.firmware.controller().is_holding() {
                     p.session.on_input(now_ms);
                 }
                 outcome
             }
-            None => self.controller.poll(now, &mut Silent),
+            None => self.firmware.controller_mut().poll(now, &mut Silent),
         };
         if let Some(at) = outcome.arm_alarm {
             let _ = self.alarm.set_alarm(at);
@@ -857,37 +861,37 @@ impl<const N: usize> Wiring for Wired<N> {
     }
 
     fn status(&self) -> BoardStatus {
-        let k = self.controller.kernel();
+        let k = self.firmware.controller().kernel();
         BoardStatus {
             state: k.state(),
             idle: k.is_idle() && k.state() != MachineState::Homing,
-            job: self.controller.job().state(),
-            progress: self.controller.progress(),
-            stats: self.controller.stats(),
-            holding: self.controller.is_holding(),
+            job: self.firmware.controller().job().state(),
+            progress: self.firmware.controller().progress(),
+            stats: self.firmware.controller().stats(),
+            holding: self.firmware.controller().is_holding(),
             machine_mm: k.position().machine_mm.to_vec(),
             homed: k.homed_axes(),
             program_lines: forja_hal_abstraction::program::ProgramStore::len(
-                self.controller.program(),
+                self.firmware.controller().program(),
             ),
             active_port: None,
         }
     }
 
     fn keep_alive_ms(&self) -> u32 {
-        self.controller.settings().keep_alive_ms()
+        self.firmware.controller().settings().keep_alive_ms()
     }
 
     fn program_line(&mut self, index: u16) -> Option<String> {
         let mut buf = [0u8; forja_hal_abstraction::program::MAX_LINE_LEN];
-        let store = self.controller.program_mut();
+        let store = self.firmware.controller_mut().program_mut();
         let len =
             forja_hal_abstraction::program::ProgramStore::read(store, index, &mut buf).ok()?;
         Some(String::from_utf8_lossy(buf.get(..len)?).into_owned())
     }
 
     fn stored(&mut self) -> Stored {
-        let settings = self.controller.settings();
+        let settings = self.firmware.controller().settings();
         let settings = Key::all::<N>()
             .map(|key| {
                 let mut line = String::new();
@@ -897,7 +901,7 @@ impl<const N: usize> Wiring for Wired<N> {
                 line
             })
             .collect();
-        let store = self.controller.program();
+        let store = self.firmware.controller().program();
         let len = forja_hal_abstraction::program::ProgramStore::len(store);
         let program_total = forja_hal_abstraction::program::ProgramStore::total(store);
         Stored {
@@ -909,7 +913,7 @@ impl<const N: usize> Wiring for Wired<N> {
     }
 
     fn into_flash(self: Box<Self>) -> Flash {
-        let (_, program, _, settings) = self.controller.release();
+        let (_, program, _, settings) = self.firmware.into_controller().release();
         Flash {
             program: program.into_inner().into_flash(),
             settings: settings.into_flash(),
