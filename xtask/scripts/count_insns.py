@@ -1,12 +1,15 @@
-"""Count the instructions a Cortex-M4 image executes in its marker functions.
+"""Count the instructions a Cortex-M image executes in its marker functions.
 
-Usage: count_insns.py IMAGE.elf [--exact]
+Usage: count_insns.py IMAGE.elf [--exact] [--core=m4|m0plus]
 
-Runs the ELF image in the Unicorn emulator (Cortex-M4 with FPU, Thumb-2) from its reset
-vector until it reaches the symbol `bench_done`, and counts the instructions executed inside
-each marker function: from the function's first instruction up to and including its return,
-every callee included. Instructions whose condition fails (in an IT block) count as executed,
-as on the core. The image is `boards/stm32f4/examples/kernel_bench.rs`; its markers are:
+Runs the ELF image in the Unicorn emulator from its reset vector (the vector table is found by
+cortex-m-rt's `__RESET_VECTOR` symbol) until it reaches the symbol `bench_done`, and counts
+the instructions executed inside each marker function: from the function's first instruction
+up to and including its return, every callee included. Instructions whose condition fails (in an IT block) count as executed,
+as on the core. The core is a Cortex-M4 with FPU (Thumb-2) in an STM32F4's memories, or with
+`--core=m0plus` a Cortex-M0 (ARMv6-M, the instruction set of the RP2040's Cortex-M0+) in the
+RP2040's. The image is `boards/stm32f4/examples/kernel_bench.rs` (built for the RP2040 through
+`boards/rp2040/examples/kernel_bench.rs`); its markers are:
 
 - `bench_isr`, `bench_prep`, `bench_line`: the measured calls;
 - `bench_phase(phase)`: the following measured calls belong to `phase`;
@@ -41,6 +44,7 @@ from unicorn.arm_const import (
     UC_ARM_REG_R1,
     UC_ARM_REG_R2,
     UC_ARM_REG_SP,
+    UC_CPU_ARM_CORTEX_M0,
     UC_CPU_ARM_CORTEX_M4,
 )
 
@@ -59,6 +63,20 @@ MEMORY = (
     (0x2000_0000, 192 << 10),  # SRAM
     (0xE000_E000, 4 << 10),  # System Control Space
 )
+
+# The RP2040's: the QSPI flash as execute-in-place maps it, the SRAM banks (striped and the
+# two 4 KiB ones), the System Control Space.
+MEMORY_RP2040 = (
+    (0x1000_0000, 2 << 20),  # flash (XIP)
+    (0x2000_0000, 264 << 10),  # SRAM
+    (0xE000_E000, 4 << 10),  # System Control Space
+)
+
+# --core: Unicorn's CPU model and the memories.
+CORES = {
+    "m4": (UC_CPU_ARM_CORTEX_M4, MEMORY),
+    "m0plus": (UC_CPU_ARM_CORTEX_M0, MEMORY_RP2040),
+}
 
 
 def fail(message):
@@ -200,26 +218,32 @@ class Counter:
 def main(argv):
     args = [a for a in argv[1:] if not a.startswith("--")]
     exact = "--exact" in argv[1:]
-    if len(args) != 1:
-        fail("usage: count_insns.py IMAGE.elf [--exact]")
+    cores = [a.removeprefix("--core=") for a in argv[1:] if a.startswith("--core=")]
+    core = cores[-1] if cores else "m4"
+    if len(args) != 1 or core not in CORES:
+        fail("usage: count_insns.py IMAGE.elf [--exact] [--core=m4|m0plus]")
+    cpu, memory = CORES[core]
     with open(args[0], "rb") as f:
         segments, symbols = read_elf(f.read())
+    if "__RESET_VECTOR" not in symbols:
+        fail("symbol missing from the image: __RESET_VECTOR")
+    table = symbols["__RESET_VECTOR"] - 4
 
     uc = Uc(UC_ARCH_ARM, UC_MODE_THUMB | UC_MODE_MCLASS)
-    uc.ctl_set_cpu_model(UC_CPU_ARM_CORTEX_M4)
-    for base, size in MEMORY:
+    uc.ctl_set_cpu_model(cpu)
+    for base, size in memory:
         uc.mem_map(base, size)
     for address, data in segments:
         uc.mem_write(address, data)
-    # The vector table at the start of flash: initial stack pointer, reset vector.
-    sp, reset = struct.unpack("<II", uc.mem_read(MEMORY[0][0], 8))
+    # The vector table: initial stack pointer, reset vector.
+    sp, reset = struct.unpack("<II", uc.mem_read(table, 8))
     uc.reg_write(UC_ARM_REG_SP, sp)
 
     counter = Counter(uc, symbols)
     # The core's exception handlers (NMI, HardFault, MemManage, BusFault, UsageFault, …): the
     # image has no interrupt sources here, so reaching one is a fault (an FPU instruction the
     # emulated core refused, a bad access) and ends the count.
-    vectors = struct.unpack("<14I", uc.mem_read(MEMORY[0][0] + 8, 56))
+    vectors = struct.unpack("<14I", uc.mem_read(table + 8, 56))
     counter.faults = {v & ~1 for v in vectors if v & 1}
     if exact:
         uc.hook_add(UC_HOOK_CODE, counter.on_instruction)

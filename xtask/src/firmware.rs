@@ -186,6 +186,31 @@ pub const BOARDS: &[Firmware] = &[
         },
         partition_table: Some("partitions.csv"),
     },
+    Firmware {
+        name: "rp2040",
+        dir: "boards/rp2040",
+        bin: "forja-rp2040",
+        variants: &[Variant {
+            feature: "skr-pico",
+            describe: "BigTreeTech SKR Pico V1.0 (RP2040), four TMC2209 drivers",
+            target: "thumbv6m-none-eabi",
+            toolchain: Toolchain::Pinned,
+            flasher: Some(Flasher::ProbeRs("RP2040")),
+            qemu: false,
+            by_default: true,
+        }],
+        // The SKR Pico's 2 MiB flash less the 48 KiB of settings and program stores at its top
+        // (boards/rp2040/memory.x); the RP2040's 264 KiB of SRAM.
+        budget: Budget {
+            chip: "RP2040, 2 MiB flash",
+            flash: (2048 - 48) * 1024,
+            ram: 264 * 1024,
+            map: MemoryMap::CortexM {
+                flash_origin: 0x1000_0000,
+            },
+        },
+        partition_table: None,
+    },
 ];
 
 /// The board named `name`.
@@ -669,7 +694,9 @@ pub fn check_sizes() -> Result<(), String> {
          stack reservation; other = CCM RAM.\n\
          esp32: flash = the loaded segments, in the 3 MiB app partition; RAM = .trap + \
          .rwtext + .data + .bss + .noinit (code and statics in SRAM), the stack is the RAM \
-         left; other = the boot loader's RAM reclaimed for the heap."
+         left; other = the boot loader's RAM reclaimed for the heap.\n\
+         rp2040: as stm32f4, but the image starts at the flash's first byte (the 256-byte boot \
+         loader) and its budget is the flash below the 48 KiB of stores at the top."
     );
     if over.is_empty() {
         Ok(())

@@ -59,9 +59,9 @@ enum Task {
         sanitizer: String,
     },
     /// Run the criterion benchmarks of the portable crates on the host, then count the motion
-    /// kernel's instructions as Cortex-M4 machine code (an STM32F4 bench image in the Unicorn
-    /// emulator, installed into target/bench-venv) and check them against the kernel's
-    /// budgets (fails when one is exceeded).
+    /// kernel's instructions as machine code in the Unicorn emulator (installed into
+    /// target/bench-venv): on the Cortex-M4 (an STM32F4 bench image), checked against the
+    /// kernel's budgets (fails when one is exceeded), and on the RP2040's Cortex-M0+, reported.
     Bench {
         /// Only the host benchmarks.
         #[arg(long, conflicts_with = "target_only")]
@@ -77,7 +77,7 @@ enum Task {
     /// target/firmware/<board>-<variant>.elf; an ESP32 image also as a merged
     /// <board>-<variant>.bin to write at flash offset 0 (installs espflash when it is missing).
     Build {
-        /// The board: stm32f4 or esp32.
+        /// The board: stm32f4, esp32 or rp2040.
         board: String,
         /// Only this variant (Cargo feature), e.g. blackpill, qemu, esp32c3 or esp32c6.
         #[arg(long)]
@@ -86,7 +86,7 @@ enum Task {
     /// Build a board's hardware image and write it: with probe-rs through a debug probe
     /// (STM32), or with espflash over USB (ESP32); installs the tool when it is missing.
     Flash {
-        /// The board: stm32f4 or esp32.
+        /// The board: stm32f4, esp32 or rp2040.
         board: String,
         /// The variant (default: the board's first hardware one).
         #[arg(long)]
