@@ -23,12 +23,16 @@
 //! Context: init for [`assemble`]; thread for [`Firmware`]. Nothing here blocks but what the
 //! storage and the link's writes do.
 
+use core::fmt;
 use embedded_io::{Read, ReadReady, Write};
+
 use forja_drivers::session::SessionAction;
+use forja_hal_abstraction::limit::LimitSwitch;
 use forja_hal_abstraction::program::ProgramStore;
+use forja_hal_abstraction::stepper::Stepper;
 use forja_hal_abstraction::storage::RecordStorage;
 use forja_hal_abstraction::time::Instant;
-use forja_motion::{ConfigError, MachineConfig, StepGenerator, StepQueue};
+use forja_motion::{ConfigError, MachineConfig, StepGenerator, StepQueue, SwitchAlert};
 
 use crate::controller::{
     Controller, ControllerConfig, LoadReport, Peripherals, PollOutcome, Settings,
@@ -169,5 +173,79 @@ where
     /// The controller, for what a board changes in it.
     pub fn controller_mut(&mut self) -> &mut Controller<'q, N, B, Q, P, X, S> {
         &mut self.controller
+    }
+}
+
+/// The step interrupt's part of a board: the kernel's step generator with the board's STEP/DIR
+/// drivers and limit switches.
+pub struct StepSide<'q, const N: usize, const Q: usize, S, L, const K: usize> {
+    generator: StepGenerator<'q, N, Q>,
+    steppers: [S; N],
+    switches: [L; K],
+}
+
+impl<'q, const N: usize, const Q: usize, S: Stepper, L: LimitSwitch, const K: usize>
+    StepSide<'q, N, Q, S, L, K>
+{
+    /// The generator [`assemble`] returned, over the board's drivers and switches.
+    pub fn new(generator: StepGenerator<'q, N, Q>, steppers: [S; N], switches: [L; K]) -> Self {
+        Self {
+            generator,
+            steppers,
+            switches,
+        }
+    }
+
+    /// Run the step generator at `now`; arm the step alarm at what it returns.
+    ///
+    /// Context: the step interrupt. Never blocks.
+    #[inline]
+    pub fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
+        self.generator
+            .on_alarm(now, &mut self.steppers, &mut self.switches)
+    }
+
+    /// The handle the switch inputs' pin-change interrupt reports edges through.
+    pub fn switch_alert(&self) -> SwitchAlert<'q> {
+        self.generator.switch_alert()
+    }
+}
+
+/// Why a board could not start (it then resets, or reports it where it can).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SetupError {
+    /// The crystal oscillator or a PLL did not start.
+    Clocks,
+    /// The step timer cannot count at the pin map's rate, or its alarm failed its self-test.
+    StepTimer,
+    /// The host link cannot be set up (a UART's baud rate, the WiFi or the network stack).
+    Link,
+    /// The link's queues were already taken.
+    LinkQueues,
+    /// The store's region disagrees with the linker script or the partition table.
+    StorageLayout,
+    /// No region for the store was found.
+    NoStore,
+    /// The store rejected its region, or the stored program could not be read.
+    Storage,
+    /// A motor driver pin could not be driven.
+    Stepper,
+    /// The machine (the board's, with the stored settings) does not suit the step clock.
+    Machine,
+}
+
+impl fmt::Display for SetupError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::Clocks => "crystal or PLL did not start",
+            Self::StepTimer => "step timer rate not reachable, or its alarm failed",
+            Self::Link => "host link could not be set up",
+            Self::LinkQueues => "host link queues already in use",
+            Self::StorageLayout => "store region disagrees with the memory layout",
+            Self::NoStore => "no store region",
+            Self::Storage => "store region rejected",
+            Self::Stepper => "motor driver pin failed",
+            Self::Machine => "machine configuration unsuited to the step clock",
+        })
     }
 }

@@ -12,7 +12,7 @@
 //! |---|---|---|---|
 //! | [`stepper`] | [`StepDir`](stepper::StepDir) | `Stepper` (interrupt), `StepperEnable` (thread) | step edges in the step interrupt: one pin write each |
 //! | [`limit`] | [`LimitInput`](limit::LimitInput) | `LimitSwitch` | either: polled by the step interrupt, one pin read |
-//! | [`uart`] | [`UartBuffers`](uart::UartBuffers) | `embedded_io::{Read, ReadReady, Write, WriteReady}` | RX/TX interrupts push and pop; the protocol task reads and writes |
+//! | [`uart`] | [`UartBuffers`](uart::UartBuffers), [`UartLink`](uart::UartLink) | `embedded_io::{Read, ReadReady, Write, WriteReady}` | RX/TX interrupts push and pop; the protocol task reads and writes |
 //! | [`session`] | [`LinkSession`](session::LinkSession) | `LinkStatus` | thread: the network task |
 //! | [`thermistor`] | [`Thermistor`](thermistor::Thermistor) | `TemperatureSensor` | thread: may block for one ADC conversion |
 //! | [`max31855`] | [`Max31855`](max31855::Max31855) | `TemperatureSensor` | thread: one SPI transfer |

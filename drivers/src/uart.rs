@@ -384,6 +384,70 @@ impl<const N: usize> UartTxIrq<'_, N> {
     }
 }
 
+/// A UART host link as a controller takes it: the thread ends of the two queues joined into one
+/// `embedded-io` `Read + ReadReady + Write`, counting the bytes received.
+///
+/// Context: the thread that runs the controller.
+pub struct UartLink<'a, const RX: usize, const TX: usize> {
+    reader: UartReader<'a, RX>,
+    writer: UartWriter<'a, TX>,
+    received: u32,
+}
+
+impl<'a, const RX: usize, const TX: usize> UartLink<'a, RX, TX> {
+    /// Join the two ends.
+    pub fn new(reader: UartReader<'a, RX>, writer: UartWriter<'a, TX>) -> Self {
+        Self {
+            reader,
+            writer,
+            received: 0,
+        }
+    }
+
+    /// Whether received bytes wait in the queue.
+    pub fn has_input(&mut self) -> bool {
+        embedded_io::ReadReady::read_ready(&mut self.reader).unwrap_or(false)
+    }
+
+    /// Bytes read so far (wrapping).
+    pub fn received(&self) -> u32 {
+        self.received
+    }
+
+    /// Bytes the receive queue had no room for (see [`UartReader::overruns`]).
+    pub fn overruns(&self) -> u32 {
+        self.reader.overruns()
+    }
+}
+
+impl<const RX: usize, const TX: usize> embedded_io::ErrorType for UartLink<'_, RX, TX> {
+    type Error = Infallible;
+}
+
+impl<const RX: usize, const TX: usize> embedded_io::Read for UartLink<'_, RX, TX> {
+    fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        let n = self.reader.read(buf)?;
+        self.received = self.received.wrapping_add(n as u32);
+        Ok(n)
+    }
+}
+
+impl<const RX: usize, const TX: usize> embedded_io::ReadReady for UartLink<'_, RX, TX> {
+    fn read_ready(&mut self) -> Result<bool, Self::Error> {
+        self.reader.read_ready()
+    }
+}
+
+impl<const RX: usize, const TX: usize> embedded_io::Write for UartLink<'_, RX, TX> {
+    fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+        self.writer.write(buf)
+    }
+
+    fn flush(&mut self) -> Result<(), Self::Error> {
+        self.writer.flush()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -429,6 +493,26 @@ mod tests {
         assert_eq!(&buf[..2], b"5\n");
         assert_eq!(reader.read(&mut []).unwrap(), 0);
         assert_eq!(reader.overruns(), 0);
+    }
+
+    #[test]
+    fn the_link_joins_both_ends_and_counts_what_it_read() {
+        let p = leak::<8, 16>().split().unwrap();
+        let (mut rx, mut tx) = (p.rx_irq, p.tx_irq);
+        let mut link = UartLink::new(p.reader, p.writer);
+        assert!(!link.has_input());
+        assert_eq!(rx.push_slice(b"M114\n"), 5);
+        assert!(link.has_input());
+        let mut buf = [0; 8];
+        assert_eq!(link.read(&mut buf).unwrap(), 5);
+        assert_eq!(&buf[..5], b"M114\n");
+        assert_eq!(link.received(), 5);
+        assert_eq!(link.write(b"ok\n").unwrap(), 3);
+        assert_eq!(tx.drain_with(|b| b.len()), 3);
+        // The ring may leave one byte unused when the data wraps around its end.
+        let taken = rx.push_slice(&[0; 10]);
+        assert!((7..=8).contains(&taken), "{taken}");
+        assert_eq!(link.overruns() as usize, 10 - taken);
     }
 
     #[test]

@@ -65,7 +65,7 @@ static QUEUE: StaticCell<StepQueue<AXES, QUEUE_EVENTS>> = StaticCell::new();
 /// the step interrupt, and build the controller over it.
 ///
 /// Context: init, after `step::install` and the step alarm's self-test; call once.
-/// Errors: [`SetupError::Kernel`] when the stored settings make a machine the kernel refuses
+/// Errors: [`SetupError::Machine`] when the stored settings make a machine the kernel refuses
 /// at this clock rate, [`SetupError::Storage`] when this was called before.
 pub fn build(
     clock: StepClock,
@@ -94,7 +94,7 @@ pub fn build(
         program: stores.program,
         peripherals,
     })
-    .map_err(|_| SetupError::Kernel)?;
+    .map_err(|_| SetupError::Machine)?;
     step::attach(generator);
     Ok(firmware)
 }

@@ -2,8 +2,6 @@
 //! driver and the watchdog, from the pin map of [`crate::board`]. `main` calls [`init`] and
 //! hands the parts to its tasks.
 
-use core::fmt;
-
 use esp_hal::clock::CpuClock;
 use esp_hal::gpio::{Input, Io, Output};
 use esp_hal::interrupt::InterruptHandler;
@@ -45,42 +43,7 @@ pub const WATCHDOG_TIMEOUT_MS: u64 = 2_000;
 const HEAP_RECLAIMED: usize = 64 * 1024;
 const HEAP_MAIN: usize = 48 * 1024;
 
-/// Why the board could not start. The firmware resets (see [`crate::fault`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[non_exhaustive]
-pub enum SetupError {
-    /// A motor driver pin could not be driven.
-    Stepper,
-    /// The step alarm did not fire in the boot check.
-    StepAlarm,
-    /// The partition table could not be read.
-    PartitionTable,
-    /// The partition table has no `forja` data partition (flashed with another table).
-    NoStore,
-    /// The store rejected its partition, or was opened twice.
-    Storage,
-    /// The stored settings make a machine the kernel refuses.
-    Kernel,
-    /// The WiFi driver did not start.
-    Wifi,
-    /// The network stacks or the link were already set up.
-    Network,
-}
-
-impl fmt::Display for SetupError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Self::Stepper => "motor driver pin failed",
-            Self::StepAlarm => "step alarm did not fire",
-            Self::PartitionTable => "partition table unreadable",
-            Self::NoStore => "no `forja` data partition",
-            Self::Storage => "store partition rejected",
-            Self::Kernel => "machine configuration refused by the kernel",
-            Self::Wifi => "WiFi driver did not start",
-            Self::Network => "network already set up",
-        })
-    }
-}
+pub use forja_app::firmware::SetupError;
 
 /// The watchdog, fed by the controller task.
 pub type Watchdog = Wdt<TIMG0<'static>>;
@@ -157,7 +120,7 @@ pub fn init(
     let stores = storage::open(p.FLASH)?;
 
     let wifi =
-        WifiController::new(p.WIFI, ControllerConfig::default()).map_err(|_| SetupError::Wifi)?;
+        WifiController::new(p.WIFI, ControllerConfig::default()).map_err(|_| SetupError::Link)?;
     let station = Interface::station();
     let access_point = Interface::access_point();
 
@@ -186,7 +149,7 @@ pub fn init(
         station,
         access_point,
         seed,
-        link: WifiLink::take().ok_or(SetupError::Network)?,
+        link: WifiLink::take().ok_or(SetupError::Link)?,
         watchdog,
     })
 }

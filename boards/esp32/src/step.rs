@@ -163,19 +163,19 @@ pub fn on_interrupt() {
 /// alarm already past must fire at once. Each is given 5 ms.
 ///
 /// Context: init, after [`install`], with the step interrupt bound.
-/// Errors: [`SetupError::StepAlarm`] when an alarm did not fire.
+/// Errors: [`SetupError::StepTimer`] when an alarm did not fire.
 pub async fn self_test(clock: StepClock) -> Result<(), SetupError> {
     let ahead = ticks_for_us(clock, 100);
     for offset in [ahead, 0u32.wrapping_sub(ahead)] {
         let before = FORJA_STEP_COUNTERS.alarms.load(Ordering::Relaxed);
         let at = Instant::from_ticks(clock.now().ticks().wrapping_add(offset));
         if with(|context| context.timer.set_alarm(at).is_ok()) != Some(true) {
-            return Err(SetupError::StepAlarm);
+            return Err(SetupError::StepTimer);
         }
         Timer::after(Duration::from_millis(5)).await;
         let after = FORJA_STEP_COUNTERS.alarms.load(Ordering::Relaxed);
         if after.wrapping_sub(before) != 1 {
-            return Err(SetupError::StepAlarm);
+            return Err(SetupError::StepTimer);
         }
     }
     Ok(())

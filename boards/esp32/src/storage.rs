@@ -125,7 +125,7 @@ pub struct Stores {
 ///
 /// Context: init; call once. Reads the partition table (3 KiB on the stack), then every
 /// stored program line once (at most 9 999 reads of 64 bytes). Errors:
-/// [`SetupError::PartitionTable`] when the table cannot be read, [`SetupError::NoStore`] when
+/// [`SetupError::StorageLayout`] when the table cannot be read, [`SetupError::NoStore`] when
 /// it has no `forja` data partition, [`SetupError::Storage`] when the partition is not a
 /// whole number of sectors with at least two for the settings and one for the program, when
 /// the flash cannot be read, or when the flash was already taken.
@@ -134,7 +134,7 @@ pub fn open(flash: FLASH<'static>) -> Result<Stores, SetupError> {
     let mut table = [0u8; PARTITION_TABLE_MAX_LEN];
     let region: Range<u32> = {
         let table = partitions::read_partition_table(&mut flash, &mut table)
-            .map_err(|_| SetupError::PartitionTable)?;
+            .map_err(|_| SetupError::StorageLayout)?;
         let entry = table
             .iter()
             .find(|p| {

@@ -2,8 +2,6 @@
 //! the watchdog, from the pin map of [`crate::board`]. The `#[app]` module calls [`init`] and
 //! hands the parts to its tasks.
 
-use core::fmt;
-
 use forja_drivers::pin::NoPin;
 use forja_drivers::stepper::StepDir;
 use rp2040_hal::clocks::{Clock as _, init_clocks_and_plls};
@@ -16,7 +14,7 @@ use crate::limits;
 use crate::machine::MachineParts;
 use crate::storage;
 use crate::timer::TimerAlarm;
-use crate::uart::{self, HostLink, HostUart};
+use crate::uart::{self, HostUart};
 
 /// One motor driver as the step interrupt drives it: STEP and DIR.
 pub type Stepper = StepDir<Output, Output>;
@@ -28,39 +26,7 @@ pub type MotorEnable = StepDir<NoPin, NoPin, Output>;
 /// longest stall made on purpose, a sector erase (at most 400 ms, see [`crate::storage`]).
 pub const WATCHDOG_MS: u32 = 1_000;
 
-/// Why the board could not start. The firmware resets (see [`crate::fault`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[non_exhaustive]
-pub enum SetupError {
-    /// The crystal oscillator or a PLL did not start.
-    Clocks,
-    /// The host UART cannot run at [`HOST_BAUD`].
-    UartConfig,
-    /// The UART queues were already split.
-    UartQueues,
-    /// `memory.x` puts the stores elsewhere than `src/storage.rs`.
-    StorageLayout,
-    /// A store rejected its region, or the stored program could not be read.
-    Storage,
-    /// A motor driver pin could not be driven.
-    Stepper,
-    /// The machine configuration does not suit the step clock.
-    Machine,
-}
-
-impl fmt::Display for SetupError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Self::Clocks => "crystal or PLL did not start",
-            Self::UartConfig => "host UART baud rate not reachable",
-            Self::UartQueues => "host UART queues already in use",
-            Self::StorageLayout => "store region disagrees with memory.x",
-            Self::Storage => "store region rejected",
-            Self::Stepper => "motor driver pin failed",
-            Self::Machine => "machine configuration unsuited to the step clock",
-        })
-    }
-}
+pub use forja_app::firmware::SetupError;
 
 /// Everything [`init`] sets up.
 pub struct Hardware {
@@ -103,8 +69,8 @@ pub fn init(mut dp: pac::Peripherals) -> Result<Hardware, SetupError> {
     let config = UartConfig::new(HOST_BAUD.Hz(), DataBits::Eight, None, StopBits::One);
     let serial = UartPeripheral::new(dp.UART0, pins.uart, &mut dp.RESETS)
         .enable(config, clocks.peripheral_clock.freq())
-        .map_err(|_| SetupError::UartConfig)?;
-    let parts = uart::QUEUES.split().ok_or(SetupError::UartQueues)?;
+        .map_err(|_| SetupError::Link)?;
+    let parts = uart::QUEUES.split().ok_or(SetupError::LinkQueues)?;
 
     let [s0, s1, s2, s3] = pins.step;
     let [d0, d1, d2, d3] = pins.dir;
@@ -130,7 +96,7 @@ pub fn init(mut dp: pac::Peripherals) -> Result<Hardware, SetupError> {
             switches: limits::switches(pins.limits),
             settings,
             program,
-            link: HostLink::new(parts.reader, parts.writer),
+            link: uart::link(parts.reader, parts.writer),
         },
         watchdog,
     })

@@ -22,7 +22,7 @@ use forja_app::peripherals::{
     DriverPeripherals, MotorEnables, NoHeater, NoLimit, NoPwm, NoSpindle, Parts,
 };
 use forja_hal_abstraction::time::Instant;
-use forja_motion::{StepGenerator, StepQueue, SwitchAlert};
+use forja_motion::StepQueue;
 
 use crate::board::{self, AXES, DRIVERS, LIMITS};
 use crate::hardware::{MotorEnable, SetupError, Stepper};
@@ -67,27 +67,7 @@ pub type BoardFirmware = firmware::Firmware<
 >;
 
 /// The step interrupt's part: the step generator, the drivers and the switches.
-pub struct StepSide {
-    generator: StepGenerator<'static, AXES, QUEUE_EVENTS>,
-    steppers: [Stepper; AXES],
-    switches: [Limit; LIMITS],
-}
-
-impl StepSide {
-    /// Run the step generator at `now`; arm the step alarm at what it returns.
-    ///
-    /// Context: the step interrupt. Never blocks.
-    #[inline]
-    pub fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
-        self.generator
-            .on_alarm(now, &mut self.steppers, &mut self.switches)
-    }
-
-    /// The handle the switch interrupt reports edges through.
-    pub fn switch_alert(&self) -> SwitchAlert<'static> {
-        self.generator.switch_alert()
-    }
-}
+pub type StepSide = firmware::StepSide<'static, AXES, QUEUE_EVENTS, Stepper, Limit, LIMITS>;
 
 /// The thread side: the firmware on the host link.
 pub struct Firmware {
@@ -144,11 +124,7 @@ pub fn build(
         peripherals,
     })
     .map_err(|_| SetupError::Machine)?;
-    let step = StepSide {
-        generator,
-        steppers: parts.steppers,
-        switches: parts.switches,
-    };
+    let step = StepSide::new(generator, parts.steppers, parts.switches);
     let firmware = Firmware {
         firmware,
         link: parts.link,

@@ -8,7 +8,7 @@
 //! handler changes the UART's interrupt enables.
 
 use cortex_m::peripheral::NVIC;
-use forja_drivers::uart::{UartBuffers, UartReader, UartRxIrq, UartTxIrq, UartWriter};
+use forja_drivers::uart::{UartBuffers, UartLink, UartReader, UartRxIrq, UartTxIrq, UartWriter};
 use rp2040_hal::pac::{Interrupt, UART0};
 use rp2040_hal::uart::{Enabled, UartPeripheral};
 
@@ -90,52 +90,11 @@ impl HostUart {
     }
 }
 
-/// The host link as the controller takes it: the thread ends of the two queues as one
-/// `Read + ReadReady + Write`.
-pub struct HostLink {
-    reader: UartReader<'static, RX_LEN>,
-    writer: UartWriter<'static, TX_LEN>,
-}
+/// The host link as the controller takes it: the drivers' `UartLink` over the thread ends of
+/// the two queues; the writer kicks the UART interrupt after queueing ([`link`]).
+pub type HostLink = UartLink<'static, RX_LEN, TX_LEN>;
 
-impl HostLink {
-    /// Join the two ends; the writer kicks the UART interrupt after queueing.
-    pub fn new(reader: UartReader<'static, RX_LEN>, writer: UartWriter<'static, TX_LEN>) -> Self {
-        Self {
-            reader,
-            writer: writer.with_kick(kick),
-        }
-    }
-
-    /// Whether received bytes wait.
-    ///
-    /// Context: the controller task.
-    pub fn has_input(&mut self) -> bool {
-        embedded_io::ReadReady::read_ready(&mut self.reader).unwrap_or(false)
-    }
-}
-
-impl embedded_io::ErrorType for HostLink {
-    type Error = core::convert::Infallible;
-}
-
-impl embedded_io::Read for HostLink {
-    fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
-        self.reader.read(buf)
-    }
-}
-
-impl embedded_io::ReadReady for HostLink {
-    fn read_ready(&mut self) -> Result<bool, Self::Error> {
-        self.reader.read_ready()
-    }
-}
-
-impl embedded_io::Write for HostLink {
-    fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
-        self.writer.write(buf)
-    }
-
-    fn flush(&mut self) -> Result<(), Self::Error> {
-        self.writer.flush()
-    }
+/// Join the two thread ends into the host link.
+pub fn link(reader: UartReader<'static, RX_LEN>, writer: UartWriter<'static, TX_LEN>) -> HostLink {
+    UartLink::new(reader, writer.with_kick(kick))
 }

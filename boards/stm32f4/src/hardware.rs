@@ -2,8 +2,6 @@
 //! the watchdog, from the pin map of [`crate::board`]. The `#[app]` module calls [`init`] and
 //! hands the parts to its tasks.
 
-use core::fmt;
-
 use forja_drivers::pin::NoPin;
 use forja_drivers::stepper::StepDir;
 use forja_drivers::uart::{UartReader, UartWriter};
@@ -26,39 +24,7 @@ pub type Stepper = StepDir<ErasedPin<Output>, ErasedPin<Output>>;
 /// One motor driver as the thread side powers it: its share of the enable line.
 pub type MotorEnable = StepDir<NoPin, NoPin, SharedEnable>;
 
-/// Why the board could not start. The firmware resets (see [`crate::fault`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[non_exhaustive]
-pub enum SetupError {
-    /// The step timer cannot count at the pin map's rate with the clocks chosen.
-    TimerRate,
-    /// The host UART cannot run at [`HOST_BAUD`] with the clocks chosen.
-    UartConfig,
-    /// The UART queues were already split.
-    UartQueues,
-    /// The store region of `memory/layout.x` disagrees with `src/storage.rs`.
-    StorageLayout,
-    /// The store rejected its region, or its program could not be read.
-    Storage,
-    /// A motor driver pin could not be driven.
-    Stepper,
-    /// The machine configuration does not suit the step clock.
-    Machine,
-}
-
-impl fmt::Display for SetupError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Self::TimerRate => "step timer rate not reachable",
-            Self::UartConfig => "host UART baud rate not reachable",
-            Self::UartQueues => "host UART queues already in use",
-            Self::StorageLayout => "store region disagrees with the linker script",
-            Self::Storage => "store region rejected",
-            Self::Stepper => "motor driver pin failed",
-            Self::Machine => "machine configuration unsuited to the step clock",
-        })
-    }
-}
+pub use forja_app::firmware::SetupError;
 
 /// Everything [`init`] sets up.
 pub struct Hardware {
@@ -110,8 +76,8 @@ pub fn init(dp: pac::Peripherals, cp: cortex_m::Peripherals) -> Result<Hardware,
         SerialConfig::default().baudrate(HOST_BAUD.bps()),
         &mut rcc,
     )
-    .map_err(|_| SetupError::UartConfig)?;
-    let parts = uart::QUEUES.split().ok_or(SetupError::UartQueues)?;
+    .map_err(|_| SetupError::Link)?;
+    let parts = uart::QUEUES.split().ok_or(SetupError::LinkQueues)?;
     let uart = HostUart::new(serial, parts.rx_irq, parts.tx_irq);
     let writer = parts.writer.with_kick(uart::kick);
 

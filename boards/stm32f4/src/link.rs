@@ -1,8 +1,7 @@
 //! The host link as the controller sees it ([`HostLink`]), and its counters.
 //!
-//! [`HostLink`] joins the two thread-side ends of the UART queues, the drivers' `UartReader`
-//! and `UartWriter`, into the one `Read + ReadReady + Write` object that
-//! `Controller::poll` takes. Writing queues bytes for the UART interrupt and waits (spinning)
+//! [`HostLink`] is the drivers' `UartLink`: the two thread-side ends of the UART queues as the
+//! one `Read + ReadReady + Write` object that the controller takes. Writing queues bytes for the UART interrupt and waits (spinning)
 //! only when the 256-byte transmit queue is full, which the higher-priority UART interrupt
 //! drains meanwhile.
 //!
@@ -14,7 +13,7 @@
 use core::sync::atomic::{AtomicU32, Ordering};
 
 use forja_app::controller::Stats;
-use forja_drivers::uart::{UartReader, UartWriter};
+use forja_drivers::uart::UartLink;
 
 use crate::uart::{RX_LEN, TX_LEN};
 
@@ -49,72 +48,19 @@ pub static FORJA_LINK_COUNTERS: LinkCounters = LinkCounters {
 /// Shorter name of [`FORJA_LINK_COUNTERS`].
 pub use FORJA_LINK_COUNTERS as LINK_COUNTERS;
 
-fn bump(counter: &AtomicU32, by: u32) {
-    // Single writer: load and store, no read-modify-write atomics needed.
-    counter.store(
-        counter.load(Ordering::Relaxed).wrapping_add(by),
-        Ordering::Relaxed,
-    );
-}
+/// The host link: the controller's ends of the UART queues, joined by the drivers.
+pub type HostLink = UartLink<'static, RX_LEN, TX_LEN>;
 
-/// The host link: the controller's ends of the UART queues.
-pub struct HostLink {
-    reader: UartReader<'static, RX_LEN>,
-    writer: UartWriter<'static, TX_LEN>,
-}
-
-impl HostLink {
-    /// Join the two ends.
-    pub fn new(reader: UartReader<'static, RX_LEN>, writer: UartWriter<'static, TX_LEN>) -> Self {
-        Self { reader, writer }
-    }
-
-    /// Whether received bytes wait in the queue.
-    ///
-    /// Context: the controller task.
-    pub fn has_input(&mut self) -> bool {
-        embedded_io::ReadReady::read_ready(&mut self.reader).unwrap_or(false)
-    }
-
-    /// Publish the controller's counters and the queue's overruns in [`LINK_COUNTERS`].
-    ///
-    /// Context: the controller task.
-    pub fn publish(&self, stats: &Stats) {
-        let c = &LINK_COUNTERS;
-        c.lines.store(stats.oks, Ordering::Relaxed);
-        c.frames.store(stats.frames, Ordering::Relaxed);
-        c.dropped.store(stats.garbage_runs, Ordering::Relaxed);
-        c.rx_overruns
-            .store(self.reader.overruns(), Ordering::Relaxed);
-    }
-}
-
-impl embedded_io::ErrorType for HostLink {
-    type Error = core::convert::Infallible;
-}
-
-impl embedded_io::Read for HostLink {
-    fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
-        let n = self.reader.read(buf)?;
-        bump(&LINK_COUNTERS.rx_bytes, n as u32);
-        Ok(n)
-    }
-}
-
-impl embedded_io::ReadReady for HostLink {
-    fn read_ready(&mut self) -> Result<bool, Self::Error> {
-        self.reader.read_ready()
-    }
-}
-
-impl embedded_io::Write for HostLink {
-    fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
-        self.writer.write(buf)
-    }
-
-    fn flush(&mut self) -> Result<(), Self::Error> {
-        self.writer.flush()
-    }
+/// Publish the controller's counters and the link's in [`LINK_COUNTERS`].
+///
+/// Context: the controller task.
+pub fn publish(link: &HostLink, stats: &Stats) {
+    let c = &LINK_COUNTERS;
+    c.rx_bytes.store(link.received(), Ordering::Relaxed);
+    c.lines.store(stats.oks, Ordering::Relaxed);
+    c.frames.store(stats.frames, Ordering::Relaxed);
+    c.dropped.store(stats.garbage_runs, Ordering::Relaxed);
+    c.rx_overruns.store(link.overruns(), Ordering::Relaxed);
 }
 
 /// Record the UART's hardware error count.

@@ -26,7 +26,7 @@ use forja_app::peripherals::{
     DriverPeripherals, MotorEnables, NoHeater, NoLimit, NoPwm, NoSpindle, Parts,
 };
 use forja_hal_abstraction::time::Instant;
-use forja_motion::{StepGenerator, StepQueue, SwitchAlert};
+use forja_motion::StepQueue;
 
 use crate::board::{self, AXES, DRIVERS, LIMITS};
 use crate::hardware::{MotorEnable, SetupError, Stepper};
@@ -70,27 +70,7 @@ pub type BoardFirmware = firmware::Firmware<
 >;
 
 /// The step interrupt's part: the step generator, the drivers and the switches.
-pub struct StepSide {
-    generator: StepGenerator<'static, AXES, QUEUE_EVENTS>,
-    steppers: [Stepper; AXES],
-    switches: [Limit; LIMITS],
-}
-
-impl StepSide {
-    /// Run the step generator at `now`; arm the step alarm at what it returns.
-    ///
-    /// Context: the step interrupt. Never blocks.
-    #[inline]
-    pub fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
-        self.generator
-            .on_alarm(now, &mut self.steppers, &mut self.switches)
-    }
-
-    /// The handle the switch lines' EXTI interrupt reports edges through.
-    pub fn switch_alert(&self) -> SwitchAlert<'static> {
-        self.generator.switch_alert()
-    }
-}
+pub type StepSide = firmware::StepSide<'static, AXES, QUEUE_EVENTS, Stepper, Limit, LIMITS>;
 
 /// The thread side: the firmware on the host link.
 pub struct Firmware {
@@ -145,11 +125,7 @@ pub fn build(parts: MachineParts) -> Result<(StepSide, Firmware), SetupError> {
     })
     .map_err(|_| SetupError::Machine)?;
     Ok((
-        StepSide {
-            generator,
-            steppers: parts.steppers,
-            switches: parts.switches,
-        },
+        StepSide::new(generator, parts.steppers, parts.switches),
         Firmware {
             firmware,
             link: parts.link,
@@ -174,7 +150,7 @@ impl Firmware {
     pub fn poll(&mut self, now: Instant) -> Option<Instant> {
         let news = limits::take_fired() != 0 || self.link.has_input();
         let arm = self.firmware.poll(now, &mut self.link, news);
-        self.link.publish(&self.firmware.controller().stats());
+        crate::link::publish(&self.link, &self.firmware.controller().stats());
         arm
     }
 }

@@ -81,13 +81,13 @@ pub struct StepTimer {
 impl StepTimer {
     /// Start SysTick on the core clock, counting `tick_hz` ticks a second.
     ///
-    /// Context: init. Errors: [`SetupError::TimerRate`] when `tick_hz` gives a period of less
+    /// Context: init. Errors: [`SetupError::StepTimer`] when `tick_hz` gives a period of less
     /// than 2 ticks or of more than 2²⁴.
     pub fn new(mut syst: SYST, tick_hz: u32) -> Result<Self, SetupError> {
         let fine = tick_hz / 1_000_000 * FINE_US;
         let coarse = tick_hz / SERVICE_HZ;
         if fine < 2 || coarse > MAX_PERIOD || coarse < fine {
-            return Err(SetupError::TimerRate);
+            return Err(SetupError::StepTimer);
         }
         syst.disable_counter();
         syst.set_clock_source(SystClkSource::Core);

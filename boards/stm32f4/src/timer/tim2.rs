@@ -57,14 +57,14 @@ pub struct StepTimer {
 impl StepTimer {
     /// Start TIM2 counting at `tick_hz`, which must divide the timer's input clock.
     ///
-    /// Context: init. Errors: [`SetupError::TimerRate`] when `tick_hz` does not divide the
+    /// Context: init. Errors: [`SetupError::StepTimer`] when `tick_hz` does not divide the
     /// timer clock or needs a prescaler above 65536.
     pub fn new(tim: pac::TIM2, tick_hz: u32, rcc: &mut Rcc) -> Result<Self, SetupError> {
         let input_hz =
             <pac::TIM2 as stm32f4xx_hal::rcc::RccBus>::Bus::timer_clock(&rcc.clocks).raw();
         let divider = input_hz / tick_hz.max(1);
         if divider == 0 || divider > 0x1_0000 || divider * tick_hz != input_hz {
-            return Err(SetupError::TimerRate);
+            return Err(SetupError::StepTimer);
         }
         pac::TIM2::enable(rcc);
         pac::TIM2::reset(rcc);
