@@ -441,6 +441,15 @@ impl Host {
     fn drop_unsent_moves(&mut self) {
         self.to_send
             .retain(|(_, kind)| !matches!(kind, Kind::Move { .. }));
+        // The move in flight, if the firmware asks for it again (it was damaged, and the `rs`
+        // was sent before the stop arrived), is not sent again: the operator's host does not
+        // send a move written before the stop to run after it. Its number goes as an empty line.
+        if let Some(sent) = self.in_flight.as_mut()
+            && matches!(sent.kind, Kind::Move { .. })
+        {
+            sent.bytes = numbered(sent.number, "");
+            sent.kind = Kind::Other;
+        }
     }
 
     /// Nothing can happen before something is sent: no step is under way (the step alarm is

@@ -117,3 +117,20 @@ fn realtime_path_behind_held_lines() {
     script.push(Op::Move { axis: 2, units: 10 });
     run(&script);
 }
+
+/// Found by `cargo xtask fuzz`: a move damaged on the link, the controller's `rs` for it, and
+/// frame `Reset` sent before the host read that `rs`. The host sent the move again, and it ran
+/// after the reset, in the reset's absolute mode: into the Y switch. A host does not send a move
+/// written before a stop to run after it (the session's host now sends its number as an empty
+/// line); and a damaged line still waiting when the stop comes is refused by the controller,
+/// not asked again (`stop_refuses_a_damaged_waiting_line_instead_of_asking_it_again`).
+#[test]
+fn a_line_damaged_before_a_reset_does_not_run_after_it() {
+    let bytes = [
+        26, 26, 26, 28, 88, 58, 28, 58, 127, 28, 28, 88, 28, 28, 58, 28, 93, 181, 93, 181, 246, 17,
+        49, 13, 61, 230, 230, 230, 93, 230, 230, 55, 45, 61, 36, 25, 44, 41, 44, 0, 44, 0, 44, 255,
+        20, 0, 246, 17, 49, 13, 61, 230, 230, 230, 93, 230, 230, 55, 45, 61, 36, 25, 44, 41, 44, 0,
+        44, 0, 136,
+    ];
+    run(&Op::decode(&bytes));
+}

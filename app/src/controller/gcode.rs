@@ -276,20 +276,47 @@ where
 
     /// A queued line received before a stop: its transport checks as always, then `ok` if it
     /// does nothing to the machine (a comment, `M110`, an `M108` that acted when it arrived),
-    /// else refused with `why`.
+    /// else refused with `why`. A line that fails its transport checks is not asked again: its
+    /// resend would run after the stop ([`Core::drop_damaged`]).
     fn drop_line<W: Write>(&mut self, bytes: &[u8], why: &Refusal, out: &mut W) {
         let line = match Line::parse(bytes) {
             Ok(line) => line,
-            Err(e) => return self.on_line_error(&e, out),
+            Err(e) => return self.drop_damaged(&e, why, out),
         };
         if let Err(e) = self.accept_number(&line) {
-            return self.on_line_error(&e, out);
+            return self.drop_damaged(&e, why, out);
         }
         if line.is_empty() || line.is_command(b'M', 110) || line.is_command(b'M', 108) {
             self.executed();
             return self.ok(out);
         }
         self.refuse(why, out);
+    }
+
+    /// A queued record received before a stop that failed its transport checks (damaged, or
+    /// out of order after a lost line). Outside a stop it would be asked again (`rs`), but the
+    /// host would then send again a line it sent before the stop, to run after it. So the line
+    /// the host is at is refused with `why` and its number used up, as if it had arrived
+    /// intact (for a line that arrived after lost ones, theirs too); the rest of a line answered
+    /// already gets nothing, and a copy of a line taken before is asked as always.
+    fn drop_damaged<W: Write>(&mut self, e: &LineError, why: &Refusal, out: &mut W) {
+        let numbering = &mut self.link.numbering;
+        if !numbering.is_numbered() {
+            return self.on_line_error(e, out);
+        }
+        let expected = numbering.expected();
+        match *e {
+            LineError::Fragment => {}
+            LineError::OutOfOrder { got, .. } if got.wrapping_sub(expected) < u32::MAX / 2 => {
+                numbering.set_expected(got.wrapping_add(1));
+                self.refuse(why, out);
+            }
+            LineError::OutOfOrder { .. } => self.on_line_error(e, out),
+            _ => {
+                numbering.set_expected(expected.wrapping_add(1));
+                self.refuse(why, out);
+            }
+        }
     }
 
     /// Check a line's number and checksum against the link's numbering. An `M110` restarts the

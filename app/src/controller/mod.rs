@@ -42,7 +42,8 @@
 //! - **Frame `Stop` and frame `Reset`** likewise answer every line received before them and
 //!   not yet taken in order without running it (`!! E198 stopped` then `ok`, with the same
 //!   exceptions as after `M112`), so that nothing sent before the stop moves the machine after
-//!   it; lines received after the frame run as usual.
+//!   it: a waiting line damaged on the link is refused too, not asked again, its number used
+//!   up. Lines received after the frame run as usual.
 //! - **`M108`** ends an `M109`/`M116` wait (of the link or of the stored program) at once; the
 //!   line itself then waits its turn and gets its `ok` in order.
 //! - **Other G-code lines** run at once when nothing is waiting. When the kernel answers

@@ -498,6 +498,31 @@ fn stop_answers_the_lines_received_before_it_without_running_them() {
     assert!(b.take().is_empty());
 }
 
+/// A line damaged on the link and still waiting when the stop comes is not asked again: the
+/// host's resend would run after the stop. It is refused like the intact ones, and its number
+/// used up, so that the host's next line is taken.
+#[test]
+fn stop_refuses_a_damaged_waiting_line_instead_of_asking_it_again() {
+    let mut b = Bench::new();
+    b.take();
+    b.send_numbered(1, "M109 S200");
+    b.send_numbered(2, "G1 X5 F3000");
+    // Line 3, its checksum wrong (damaged on the link).
+    b.send_raw(b"N3 G1 X9*0\n");
+    b.run_ms(5);
+    assert!(b.take().is_empty());
+    b.send_frame(&ClientMessage::Action(Action::Stop));
+    b.send_numbered(4, "G1 X1 F3000");
+    b.run_ms(REALTIME_MS);
+    assert_eq!(
+        replies(&mut b),
+        ["ok", "!! E198 stopped", "ok", "!! E198 stopped", "ok", "ok",],
+        "M109's wait ends, line 2 and the damaged line 3 are refused, line 4 runs"
+    );
+    b.idle();
+    assert_eq!(b.position_mm()[0], 1.0);
+}
+
 #[test]
 fn stop_behind_a_full_planner_drops_the_held_and_queued_lines() {
     let mut b = Bench::new();
