@@ -469,6 +469,33 @@ impl Host {
         !poll.stepping && standing && waiting && self.link.pending_to_firmware() == 0
     }
 
+    /// The jog of `mm` on `axis`, or of `-mm`, that keeps the machine 1 mm clear of the ends of
+    /// its travel wherever it falls among the moves not yet run (a jog acts at once, before or
+    /// after the move in flight and the queued ones, as the firmware reads them); `None` when
+    /// neither does.
+    fn jog_within_travel(&self, axis: usize, mm: f64) -> Option<f64> {
+        let Some((min_mm, max_mm)) = self.travel[axis] else {
+            return Some(mm);
+        };
+        let in_flight = self.in_flight.iter().map(|sent| sent.kind);
+        let queued = self.to_send.iter().map(|(_, kind)| *kind);
+        let mut stops = vec![self.expected[axis]];
+        for kind in in_flight.chain(queued) {
+            if let Kind::Move { axis: a, mm } = kind
+                && a == axis
+            {
+                let last = *stops.last().unwrap_or(&self.expected[axis]);
+                stops.push(last + mm);
+            }
+        }
+        let clear = |jog: f64| {
+            stops
+                .iter()
+                .all(|p| p + jog >= min_mm + 1.0 && p + jog <= max_mm - 1.0)
+        };
+        [mm, -mm].into_iter().find(|&j| clear(j))
+    }
+
     /// `mm` on `axis`, or `-mm` when `mm` would take the machine (as far as the moves sent so
     /// far go) within 1 mm of the end of its travel: the operator keeps clear of the switches,
     /// whose alarm would drop acknowledged moves on purpose.
@@ -777,10 +804,11 @@ impl Session {
 
     fn jog(&mut self, axis: usize, count: i8) {
         let mm = f64::from(count) * UNIT_MM;
-        let count = if self.host.within_travel(axis, mm) == mm {
-            count
-        } else {
-            count.saturating_neg()
+        let count = match self.host.jog_within_travel(axis, mm) {
+            Some(j) if j == mm => count,
+            Some(_) => count.saturating_neg(),
+            // No room either way among the moves not yet run: the operator does not jog.
+            None => return,
         };
         let before = self.host.replies.lines.len();
         let axis_letter = [b'X', b'Y', b'Z'][axis];
