@@ -14,7 +14,7 @@ use forja_protocol::gcode::Line;
 use crate::arc::Nm;
 use crate::config::MachineConfig;
 use crate::effect::Effect;
-use crate::interp::{Action, Interpreter, nm_to_steps};
+use crate::interp::{Action, Interpreter};
 use crate::kernel::Kernel;
 use crate::planner::{BlockKind, MoveRequest, Planner};
 use crate::profile::Profile;
@@ -132,19 +132,7 @@ impl<'k, const N: usize, const B: usize> Estimate<'k, N, B> {
         if self.planner.is_full() {
             self.retire();
         }
-        let mut delta = [0i32; N];
-        for (i, a) in self.config.axes.iter().enumerate() {
-            let s = nm_to_steps(target[i], a.steps_per_mm);
-            delta[i] = s.wrapping_sub(self.steps[i]);
-            self.steps[i] = s;
-        }
-        let req = MoveRequest {
-            steps: delta,
-            feed_mm_min: feed,
-            ramp,
-            line: 0,
-            homing_mask: 0,
-        };
+        let req = MoveRequest::to_target(target, &mut self.steps, self.config, feed, ramp, 0, 0);
         let _ = self.planner.push_move(&req, self.config);
     }
 }

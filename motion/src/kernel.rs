@@ -330,9 +330,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// Take the power-on modal state (mm, absolute, no offsets) where the last queued move
     /// ends: the state a resumed job's return moves are made in (see [`crate::Replay`]).
     pub fn reset_modal_state(&mut self) {
-        let pos = self.interp.pos;
-        self.interp = Interpreter::new(&self.config);
-        self.interp.pos = pos;
+        self.interp.reset_modal(&self.config);
     }
 
     /// Take a program's modal state ([`crate::Replay`]) to go on with it, the last queued move
@@ -738,19 +736,15 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         ramp: bool,
         homing_mask: u8,
     ) {
-        let mut delta = [0i32; N];
-        for (i, a) in self.config.axes.iter().enumerate() {
-            let s = nm_to_steps(target[i], a.steps_per_mm);
-            delta[i] = s.wrapping_sub(self.steps[i]);
-            self.steps[i] = s;
-        }
-        let req = MoveRequest {
-            steps: delta,
+        let req = MoveRequest::to_target(
+            target,
+            &mut self.steps,
+            &self.config,
             feed_mm_min,
             ramp,
-            line: self.line_tag,
+            self.line_tag,
             homing_mask,
-        };
+        );
         let _ = self.planner.push_move(&req, &self.config);
     }
 

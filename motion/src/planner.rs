@@ -17,7 +17,9 @@
 
 use libm::sqrtf;
 
+use crate::arc::Nm;
 use crate::config::{AxisKind, MachineConfig};
+use crate::interp::nm_to_steps;
 
 /// What a block does.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -85,6 +87,34 @@ pub(crate) struct MoveRequest<const N: usize> {
     pub line: u32,
     /// Axes whose switch ends this move.
     pub homing_mask: u8,
+}
+
+impl<const N: usize> MoveRequest<N> {
+    /// The move from where the last one ended, `steps` (updated to the end of this one), to
+    /// `target` (machine nm), each axis rounded to its nearest step.
+    pub(crate) fn to_target(
+        target: &[Nm; N],
+        steps: &mut [i32; N],
+        config: &MachineConfig<N>,
+        feed_mm_min: Option<f32>,
+        ramp: bool,
+        line: u32,
+        homing_mask: u8,
+    ) -> Self {
+        let mut delta = [0i32; N];
+        for (i, a) in config.axes.iter().enumerate() {
+            let s = nm_to_steps(target[i], a.steps_per_mm);
+            delta[i] = s.wrapping_sub(steps[i]);
+            steps[i] = s;
+        }
+        Self {
+            steps: delta,
+            feed_mm_min,
+            ramp,
+            line,
+            homing_mask,
+        }
+    }
 }
 
 /// The planner ring: `B` blocks.

@@ -418,7 +418,7 @@ where
         if !self.settings.power_loss_recovery() {
             self.storage
                 .remove(RESUME_RECORD)
-                .map_err(|_| Refusal::new(&StoreRefusal(StoreError::Device)))?;
+                .map_err(|_| text::store_refusal(&StoreError::Device))?;
         }
         Ok(())
     }
@@ -430,7 +430,7 @@ where
         }
         self.storage
             .remove(RESUME_RECORD)
-            .map_err(|_| Refusal::new(&StoreRefusal(StoreError::Device)))
+            .map_err(|_| text::store_refusal(&StoreError::Device))
     }
 
     /// The resume record, if one is kept.
@@ -439,7 +439,7 @@ where
         match self.storage.read(RESUME_RECORD, &mut buf) {
             Ok(Some(n)) => Ok(buf.get(..n).and_then(ResumeRecord::decode)),
             Ok(None) => Ok(None),
-            Err(_) => Err(Refusal::new(&StoreRefusal(StoreError::Device))),
+            Err(_) => Err(text::store_refusal(&StoreError::Device)),
         }
     }
 
