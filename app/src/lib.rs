@@ -33,8 +33,10 @@
 //! |---|---|
 //! | [`controller`] | [`controller::Controller`]: the link, both protocols' replies, jobs, settings and peripherals around the kernel |
 //! | [`firmware`] | [`firmware::assemble`]: the firmware built from a board's parts, and its thread side |
+//! | [`hosts`] | [`hosts::Arbiter`]: one controlling host across a board's ports (sessions, the busy refusal, the read budget) |
 //! | [`job`] | the job runner over a program store: start, pause, stop, rewind, progress, checkpoints |
 //! | [`peripherals`] | [`peripherals::DriverPeripherals`]: the controller's peripherals from the drivers' parts |
+//! | [`wifi`] | the network a WiFi board joins: credentials from the settings, and the watch on them |
 //! | [`error`] | the errors of jobs and program stores, and their wire codes (170–199) |
 #![no_std]
 #![forbid(unsafe_code)]
@@ -46,5 +48,7 @@ extern crate std;
 pub mod controller;
 pub mod error;
 pub mod firmware;
+pub mod hosts;
 pub mod job;
 pub mod peripherals;
+pub mod wifi;

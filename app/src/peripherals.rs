@@ -322,6 +322,26 @@ where
     }
 }
 
+/// The peripherals of a board whose only part is motor power: no heater, fan or spindle, and
+/// no switch read for `M119`.
+pub type MotorPeripherals<M, const N: usize> =
+    DriverPeripherals<NoHeater, NoHeater, NoPwm, NoSpindle, M, NoLimit, N, 0>;
+
+impl<M: StepperEnable, const N: usize> MotorPeripherals<M, N> {
+    /// The peripherals of a board with `motors` and nothing else.
+    pub fn motors_only(motors: M) -> Self {
+        Self::new(Parts {
+            hot_end: None,
+            bed: None,
+            fans: [],
+            spindle: None,
+            motors,
+            limits: [None; N],
+            tolerance_mc: 0,
+        })
+    }
+}
+
 impl<H, B, P, SP, M, L, const N: usize, const F: usize> Peripherals<N>
     for DriverPeripherals<H, B, P, SP, M, L, N, F>
 where
@@ -662,5 +682,29 @@ mod tests {
             p.parts().spindle.as_ref().unwrap().state(),
             SpindleState::Off
         );
+    }
+
+    #[test]
+    fn a_motors_only_board_powers_its_motors_and_has_nothing_else() {
+        let on = Rc::new(Cell::new(false));
+        let mut p: MotorPeripherals<_, 2> =
+            MotorPeripherals::motors_only(MotorEnables([Enable(on.clone())]));
+        p.set_motors(true).unwrap();
+        assert!(on.get());
+        p.set_motors(false).unwrap();
+        assert!(!on.get());
+        assert_eq!(
+            p.set_temperature(Which::Extruder(None), 200_000),
+            Err(PeripheralError::NoDevice)
+        );
+        assert_eq!(p.set_fan(0, 128), Err(PeripheralError::NoDevice));
+        assert_eq!(
+            p.set_spindle(SpindleCommand::Clockwise { rpm: None }),
+            Err(PeripheralError::NoDevice)
+        );
+        assert_eq!(p.temperatures(), Temperatures::default());
+        assert!(p.heaters_at_target());
+        assert_eq!(p.endstops(), [None, None]);
+        p.poll(0).unwrap();
     }
 }

@@ -1,5 +1,6 @@
-//! Checks that exactly one chip is chosen, and rebuilds when the build-time WiFi settings
-//! change.
+//! Checks that exactly one chip is chosen. (The build-time WiFi settings, `FORJA_WIFI_SSID`,
+//! `FORJA_WIFI_PASSWORD` and `FORJA_AP_PASSWORD`, are read by the port with `option_env!`,
+//! which Cargo tracks itself.)
 
 use std::env;
 
@@ -18,13 +19,6 @@ fn main() {
              `--no-default-features --features esp32c6`",
             CHIPS.join(", ")
         );
-    }
-    for var in [
-        "FORJA_WIFI_SSID",
-        "FORJA_WIFI_PASSWORD",
-        "FORJA_AP_PASSWORD",
-    ] {
-        println!("cargo:rerun-if-env-changed={var}");
     }
     println!("cargo:rerun-if-changed=build.rs");
 }

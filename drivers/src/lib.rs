@@ -14,6 +14,7 @@
 //! | [`limit`] | [`LimitInput`](limit::LimitInput) | `LimitSwitch` | either: polled by the step interrupt, one pin read |
 //! | [`uart`] | [`UartBuffers`](uart::UartBuffers), [`UartLink`](uart::UartLink) | `embedded_io::{Read, ReadReady, Write, WriteReady}` | RX/TX interrupts push and pop; the protocol task reads and writes |
 //! | [`session`] | [`LinkSession`](session::LinkSession) | `LinkStatus` | thread: the network task |
+//! | `tcp` (feature `embassy-net`) | `TcpServer`, `TcpLink` | `embedded_io::{Read, ReadReady, Write, WriteReady}`, `LinkStatus` | thread: listening tasks serve the sockets; the controller's task reads and writes |
 //! | [`thermistor`] | [`Thermistor`](thermistor::Thermistor) | `TemperatureSensor` | thread: may block for one ADC conversion |
 //! | [`max31855`] | [`Max31855`](max31855::Max31855) | `TemperatureSensor` | thread: one SPI transfer |
 //! | [`heater`] | [`PidHeater`](heater::PidHeater), [`HeaterChannel`](heater::HeaterChannel) | (sans-IO controller) | thread: the temperature loop |
@@ -21,6 +22,7 @@
 //! | [`storage`] | [`FlashRecordStorage`](storage::FlashRecordStorage), [`Records`](storage::Records) | `RecordStorage` | thread: may block for a flash erase |
 //! | [`program_flash`] | [`SlotProgramStore`](program_flash::SlotProgramStore) | `ProgramStore` | thread: one flash read per line read; may block for a sector erase while a program is loaded |
 //! | [`ram_flash`] | [`RamNorFlash`](ram_flash::RamNorFlash) | `embedded_storage::nor_flash::NorFlash` | a simulated flash for the host simulator and tests |
+//! | [`shared_store`] | [`StoreSlot`](shared_store::StoreSlot), [`SharedStore`](shared_store::SharedStore) | `RecordStorage` | thread: one store (settings and program) shared by two users through a `static` slot |
 //!
 //! "Interrupt" methods are integer-only, allocation-free, panic-free and constant-time: a pin
 //! write or read and a few instructions. "Thread" methods may use `f32` (the heater and the
@@ -43,10 +45,16 @@
 //!
 //! ## Board requirements
 //!
-//! The UART queues coordinate through the `critical-section` crate, so that they also run on
-//! targets without compare-and-swap atomics (RISC-V `imc`). The firmware binary provides the
-//! implementation: `cortex-m`'s `critical-section-single-core` feature, or the one built into
-//! esp-hal.
+//! The UART queues and the TCP link coordinate through the `critical-section` crate, so that
+//! they also run on targets without compare-and-swap atomics (RISC-V `imc`). The firmware
+//! binary provides the implementation: `cortex-m`'s `critical-section-single-core` feature, or
+//! the one built into esp-hal.
+//!
+//! ## Features
+//!
+//! | feature | adds |
+//! |---|---|
+//! | `embassy-net` | the `tcp` module: a TCP host link over an `embassy-net` stack (embassy-sync queues, embassy-time time-outs), for boards with a network; no executor is named |
 //!
 //! ## Writing a driver
 //!
@@ -74,8 +82,11 @@ pub mod program_flash;
 pub mod pwm;
 pub mod ram_flash;
 pub mod session;
+pub mod shared_store;
 pub mod stepper;
 pub mod storage;
+#[cfg(feature = "embassy-net")]
+pub mod tcp;
 pub mod thermistor;
 pub mod uart;
 

@@ -11,15 +11,11 @@
 //! | [`client`] | streaming a job and the interactive console over a link |
 //! | [`frames`] | the frame client: upload, actions, jog, positions and progress |
 //! | [`codes`] | the controller's error codes in words |
-//! | [`machine`] | axes, steps per mm and start positions from a machine file |
-//! | [`plot`] | toolpaths and step-trace overlays, to PNG or SVG |
 #![forbid(unsafe_code)]
 
 pub mod client;
 pub mod codes;
 pub mod frames;
 pub mod link;
-pub mod machine;
-pub mod plot;
 pub mod program;
 pub mod streamer;

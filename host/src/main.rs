@@ -11,15 +11,13 @@ use clap::{Args, Parser, Subcommand};
 use forja_host::client::{self, Observer};
 use forja_host::frames::{self, FrameClient, UploadOptions};
 use forja_host::link::{Connection, LinkSpec};
-use forja_host::machine::MachineInfo;
-use forja_host::plot::{self, Executed, Toolpath};
 use forja_host::program::Program;
 use forja_host::streamer::{self, Window};
 use forja_protocol::frame::{Action, Decimal};
 use indicatif::{ProgressBar, ProgressStyle};
 
-/// Forja's client: stream G-code to a controller, store and run programs, jog, watch the
-/// machine, and plot toolpaths.
+/// Forja's client: stream G-code to a controller, store and run programs, jog and watch the
+/// machine.
 #[derive(Parser, Debug)]
 #[command(
     name = "forja",
@@ -101,21 +99,6 @@ enum Command {
         /// Show every line sent and received, resend requests included.
         #[arg(long)]
         verbose: bool,
-    },
-    /// Draw a G-code file's toolpath to a PNG or SVG image; with a step trace from the
-    /// simulator, overlay the path the machine really took.
-    Plot {
-        /// The G-code file.
-        file: PathBuf,
-        /// The image to write: .png or .svg.
-        #[arg(short, long, value_name = "OUT")]
-        output: PathBuf,
-        /// A step trace written by the simulator (`forja-sim --trace FILE`).
-        #[arg(long, value_name = "FILE")]
-        trace: Option<PathBuf>,
-        /// The machine file: axes' steps per mm and start positions.
-        #[arg(long, value_name = "FILE")]
-        machine: Option<PathBuf>,
     },
 }
 
@@ -211,12 +194,6 @@ fn run(cli: Cli) -> Result<ExitCode> {
             count,
         } => status(&cli.link, if once { Some(1) } else { count }, interval),
         Command::Console { verbose } => console(&cli.link, verbose),
-        Command::Plot {
-            file,
-            output,
-            trace,
-            machine,
-        } => plot(&file, &output, trace.as_deref(), machine.as_deref()),
     }
 }
 
@@ -479,56 +456,5 @@ fn console(link: &LinkArgs, verbose: bool) -> Result<ExitCode> {
         }
     }
     result?;
-    Ok(ExitCode::SUCCESS)
-}
-
-fn plot(
-    file: &Path,
-    output: &Path,
-    trace: Option<&Path>,
-    machine: Option<&Path>,
-) -> Result<ExitCode> {
-    let program = Program::load(file)?;
-    let machine = machine.map(MachineInfo::load).transpose()?;
-    let start = |l: char| {
-        machine
-            .as_ref()
-            .and_then(|m| m.axis(l))
-            .map_or(0.0, |a| a.start_mm)
-    };
-    let path = Toolpath::from_program(&program, [start('X'), start('Y'), start('Z')])?;
-    let executed = match trace {
-        Some(t) => {
-            let text = std::fs::read_to_string(t)
-                .with_context(|| format!("cannot read the step trace {}", t.display()))?;
-            Some(
-                Executed::from_trace(&text, machine.as_ref())
-                    .map_err(|e| anyhow!("{}: {e}", t.display()))?,
-            )
-        }
-        None => None,
-    };
-    let title = file.file_name().map_or_else(
-        || file.display().to_string(),
-        |n| n.to_string_lossy().into_owned(),
-    );
-    plot::render(output, &title, &path, executed.as_ref())?;
-    say!(
-        "plotted {} to {}: {:.1} mm at feed, {:.1} mm rapid",
-        file.display(),
-        output.display(),
-        path.feed_mm,
-        path.rapid_mm
-    );
-    if let Some(ex) = &executed {
-        let off = ((ex.end[0] - path.end[0]).powi(2) + (ex.end[1] - path.end[1]).powi(2)).sqrt();
-        say!(
-            "executed: {:.1} mm in XY from {} steps over {:.1} s; ends {off:.3} mm from the \
-             program's end",
-            ex.length_mm,
-            ex.steps,
-            ex.duration_s
-        );
-    }
     Ok(ExitCode::SUCCESS)
 }

@@ -5,7 +5,9 @@ mod common;
 
 use std::time::Duration;
 
-use common::{Sim, axis, forja, forja_with_input, positions, scratch, settle, text, with};
+use common::{
+    Sim, axis, forja, forja_with_input, positions, scratch, settle, sim_binary, text, with,
+};
 
 /// A job of `n` relative moves of different lengths, and how far it moves X and Y: a move run
 /// twice or not at all moves the end by at least 0.05 mm, four steps of the default machine.
@@ -261,22 +263,26 @@ fn plot_overlays_the_step_trace() {
         env!("CARGO_MANIFEST_DIR"),
         "/../boards/sim-hal/machines/default.toml"
     );
+    // The plot is the simulator's: the toolpath as its kernel reads the job, the steps of the
+    // run under `forja send` over it.
     for ext in ["png", "svg"] {
         let image = dir.join(format!("plot.{ext}"));
-        let out = forja(&[
-            "plot",
-            file.to_str().unwrap(),
-            "-o",
-            image.to_str().unwrap(),
-            "--trace",
-            trace.to_str().unwrap(),
-            "--machine",
-            machine,
-        ]);
+        let out = std::process::Command::new(sim_binary())
+            .args([
+                "--machine",
+                machine,
+                "--job",
+                file.to_str().unwrap(),
+                "--check",
+            ])
+            .args(["--plot", image.to_str().unwrap()])
+            .args(["--plot-trace", trace.to_str().unwrap()])
+            .output()
+            .expect("forja-sim runs");
         assert!(out.status.success(), "{}", text(&out));
         let stdout = String::from_utf8_lossy(&out.stdout);
         let off: f64 = stdout
-            .split("ends ")
+            .split("; ends ")
             .nth(1)
             .and_then(|s| s.split(' ').next())
             .and_then(|s| s.parse().ok())

@@ -46,6 +46,7 @@
 //! | [`effect`] | [`Effect`]: commands for other subsystems, returned in stream order |
 //! | [`error`] | the error enums and the table of their wire codes |
 //! | [`estimate`] | [`Estimate`]: how long a program takes, by a dry run of the interpreter and planner |
+//! | [`preview`] | [`Preview`]: the path a program asks for, as the kernel cuts it into straight pieces (a toolpath plot) |
 //! | [`replay`] | [`Replay`]: the modal state a program leaves after some of its lines (a resumed job) |
 #![no_std]
 #![forbid(unsafe_code)]
@@ -63,6 +64,7 @@ mod interp;
 mod kernel;
 mod planner;
 mod prep;
+pub mod preview;
 mod profile;
 mod queue;
 pub mod replay;
@@ -73,6 +75,7 @@ pub use effect::{Effect, Sync};
 pub use error::{Alarm, CommandError, ConfigError};
 pub use estimate::Estimate;
 pub use kernel::{Kernel, MachineState, PositionReport, Reply, split};
+pub use preview::{Preview, Travel};
 pub use queue::{StepQueue, SwitchAlert};
 pub use replay::Replay;
 pub use stepgen::StepGenerator;

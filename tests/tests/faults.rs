@@ -15,8 +15,8 @@ use std::time::Duration;
 
 use forja_host::streamer::{Config, Stats, Window};
 use forja_sim::board::BoardConfig;
-use forja_sim::host::StreamHost;
 use forja_sim_hal::link::{FaultConfig, FaultInjector, MemoryLink};
+use forja_simulator::host::StreamHost;
 use forja_tests::{HostEnd, Rig};
 
 fn job(n: usize) -> Vec<String> {

@@ -8,8 +8,8 @@ use std::time::{Duration, Instant};
 use forja_host::streamer::{Config, Window};
 use forja_protocol::reply::Reply;
 use forja_sim::board::BoardConfig;
-use forja_sim::host::StreamHost;
 use forja_sim_hal::link::{PtyLink, TcpLink};
+use forja_simulator::host::StreamHost;
 use forja_tests::{HostEnd, PtyHost, Rig, same_mm, wall_ms};
 
 /// The job: home, heat, a zig-zag of `moves` extruding moves, reports, cool down.

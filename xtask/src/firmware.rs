@@ -81,7 +81,8 @@ pub struct Budget {
     pub map: MemoryMap,
 }
 
-/// A firmware crate, excluded from the workspace and built here.
+/// A firmware crate, excluded from the root workspace and built here: the root of a workspace
+/// of its own, with its family's chip support (`ports/<family>`) as the other member.
 pub struct Firmware {
     /// The name on the command line.
     pub name: &'static str,
@@ -338,10 +339,13 @@ impl Firmware {
         steps
     }
 
-    /// Format check (once) and clippy with -D warnings for `variant`.
+    /// Format check (once) and clippy with -D warnings for `variant`, over every member of
+    /// the firmware's workspace: the board and its family's chip support (`ports/<family>`).
     fn lint_steps(&'static self, variant: &'static Variant, with_fmt: bool) -> Vec<Step> {
         let mut steps = Vec::new();
         if with_fmt {
+            // At a workspace's root, `cargo fmt` checks every member (and no path dependency
+            // outside it, which `--all` would add).
             let mut cmd = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
             cmd.args(["fmt", "--check"])
                 .current_dir(root().join(self.dir));
@@ -359,7 +363,7 @@ impl Firmware {
                 "{} firmware, {} (clippy -D warnings)",
                 self.name, variant.feature
             ),
-            &["clippy", "--release", "--", "-D", "warnings"],
+            &["clippy", "--release", "--workspace", "--", "-D", "warnings"],
             variant,
         ));
         steps

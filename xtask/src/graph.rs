@@ -13,8 +13,13 @@
 //! the kernel nor the application, nor a board that wires it; the firmware runs on it, not in
 //! it.
 //!
-//! The firmware boards are outside the workspace (they pin their own targets), so their
-//! manifests are read as well.
+//! Every crate under `ports/` is a chip family's support (`forja-port-stm32f4`, …: its step
+//! timer, flash, link and start-up over the chip's HAL), which the boards of that family wire:
+//! no portable crate (traits, codecs, kernel, drivers, application) reaches a port, and a port
+//! reaches no board.
+//!
+//! The firmware boards and their ports are outside the workspace (they pin their own targets),
+//! so their manifests are read as well.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -25,7 +30,11 @@ use serde_json::Value;
 use crate::root;
 
 /// Manifests read besides the workspace's: the firmware boards.
-const FIRMWARE_MANIFESTS: &[&str] = &["boards/stm32f4/Cargo.toml", "boards/esp32/Cargo.toml"];
+const FIRMWARE_MANIFESTS: &[&str] = &[
+    "boards/stm32f4/Cargo.toml",
+    "boards/esp32/Cargo.toml",
+    "boards/rp2040/Cargo.toml",
+];
 
 const HAL: &str = "forja-hal-abstraction";
 const PROTOCOL: &str = "forja-protocol";
@@ -35,11 +44,13 @@ const DRIVERS: &str = "forja-drivers";
 const CLIENT: &str = "forja-host";
 const SIMULATOR: &str = "forja-sim";
 const SIMULATOR_HAL: &str = "forja-sim-hal";
+const SIMULATOR_PROGRAM: &str = "forja-simulator";
 
-/// A Forja package: its name, whether it is a board, and the Forja crates it depends on
-/// (normal and build dependencies).
+/// A Forja package: whether it is a board or a chip family's support, and the Forja crates it
+/// depends on (normal and build dependencies).
 struct Package {
     board: bool,
+    port: bool,
     deps: BTreeSet<String>,
 }
 
@@ -69,13 +80,17 @@ fn packages_of(manifest: &Path, into: &mut BTreeMap<String, Package>) -> Result<
     let meta: Value =
         serde_json::from_slice(&out.stdout).map_err(|e| format!("cargo metadata's output: {e}"))?;
     let boards = root().join("boards");
+    let ports = root().join("ports");
     for p in meta["packages"].as_array().into_iter().flatten() {
         let Some(name) = p["name"].as_str().filter(|n| n.starts_with("forja-")) else {
             continue;
         };
-        let board = p["manifest_path"]
-            .as_str()
-            .is_some_and(|m| Path::new(m).starts_with(&boards));
+        let under = |dir: &Path| {
+            p["manifest_path"]
+                .as_str()
+                .is_some_and(|m| Path::new(m).starts_with(dir))
+        };
+        let (board, port) = (under(&boards), under(&ports));
         let deps = p["dependencies"]
             .as_array()
             .into_iter()
@@ -85,7 +100,7 @@ fn packages_of(manifest: &Path, into: &mut BTreeMap<String, Package>) -> Result<
             .filter(|n| n.starts_with("forja-"))
             .map(str::to_string)
             .collect();
-        into.insert(name.to_string(), Package { board, deps });
+        into.insert(name.to_string(), Package { board, port, deps });
     }
     Ok(())
 }
@@ -115,6 +130,12 @@ fn forbidden(name: &str, packages: &BTreeMap<String, Package>) -> Vec<(String, &
         .iter()
         .filter(|(_, p)| p.board)
         .map(|(n, _)| n.clone());
+    let ports = || {
+        packages
+            .iter()
+            .filter(|(_, p)| p.port)
+            .map(|(n, _)| (n.clone(), "portable crates name no chip"))
+    };
     let named = |list: &[&str], why: &'static str| -> Vec<(String, &'static str)> {
         list.iter().map(|n| (n.to_string(), why)).collect()
     };
@@ -124,24 +145,40 @@ fn forbidden(name: &str, packages: &BTreeMap<String, Package>) -> Vec<(String, &
             .filter(|n| n.as_str() != name)
             .map(|n| (n.clone(), "the traits and the codecs stand alone"))
             .collect(),
-        DRIVERS => named(
-            &[KERNEL, APP],
-            "a driver implements the traits of hal-abstraction only",
-        ),
+        DRIVERS => {
+            let mut v = named(
+                &[KERNEL, APP],
+                "a driver implements the traits of hal-abstraction only",
+            );
+            v.extend(ports());
+            v
+        }
+        APP => ports().collect(),
         KERNEL => {
             let mut v = named(
                 &[DRIVERS, APP],
                 "the kernel reaches hardware through traits",
             );
             v.extend(boards.map(|b| (b, "the kernel is board-agnostic")));
+            v.extend(ports());
             v
         }
+        port if packages.get(port).is_some_and(|p| p.port) => boards
+            .map(|b| (b, "a chip's support knows no board that wires it"))
+            .collect(),
         CLIENT => named(
-            &[KERNEL, APP, SIMULATOR, SIMULATOR_HAL],
+            &[KERNEL, APP, SIMULATOR, SIMULATOR_HAL, SIMULATOR_PROGRAM],
             "the client speaks the protocol, it does not embed the firmware",
         ),
+        SIMULATOR => named(
+            &[SIMULATOR_PROGRAM],
+            "the board knows no program that runs it",
+        ),
         hal if is_board_hal(hal, packages) => {
-            let mut v = named(&[KERNEL, APP], "a board's HAL knows no firmware");
+            let mut v = named(
+                &[KERNEL, APP, SIMULATOR_PROGRAM],
+                "a board's HAL knows no firmware",
+            );
             v.extend(
                 boards
                     .filter(|b| b != hal)
@@ -169,6 +206,7 @@ pub fn check() -> Result<(), String> {
         CLIENT,
         SIMULATOR,
         SIMULATOR_HAL,
+        SIMULATOR_PROGRAM,
     ] {
         if !packages.contains_key(must) {
             return Err(format!("no package {must} in the workspace"));

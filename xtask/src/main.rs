@@ -258,7 +258,34 @@ fn test() -> Result<(), String> {
                 "warnings",
             ],
         ),
+        // The TCP host link of the embassy-net boards is a feature of the drivers.
+        Step::cargo(
+            "clippy of the drivers' embassy-net link (-D warnings)",
+            &[
+                "clippy",
+                "-p",
+                "forja-drivers",
+                "--features",
+                "embassy-net",
+                "--all-targets",
+                "--",
+                "-D",
+                "warnings",
+            ],
+        ),
         Step::cargo("host tests", &["test", "--workspace", "--all-targets"]),
+        Step::cargo(
+            "host tests of the drivers' embassy-net link",
+            &[
+                "test",
+                "-p",
+                "forja-drivers",
+                "--features",
+                "embassy-net",
+                "--lib",
+                "tcp",
+            ],
+        ),
         Step::cargo("doc tests", &["test", "--workspace", "--doc"]),
     ];
     for target in FIRMWARE_TARGETS {
@@ -273,7 +300,7 @@ fn test() -> Result<(), String> {
 }
 
 fn sim(args: &[String]) -> Result<(), String> {
-    let mut all = vec!["run", "--quiet", "--release", "-p", "forja-sim", "--"];
+    let mut all = vec!["run", "--quiet", "--release", "-p", "forja-simulator", "--"];
     all.extend(args.iter().map(String::as_str));
     Step::cargo("simulator", &all).run()
 }

@@ -610,17 +610,17 @@ pub struct EndToEnd {
 }
 
 /// The same job and program, run through the simulator's firmware over its in-memory link
-/// (`forja_sim::run::run_job`), on the simulator's default machine: the final position of each
+/// (`forja_simulator::run::run_job`), on the simulator's default machine: the final position of each
 /// axis, from where the machine started.
 pub fn simulate() -> Result<(Position, forja_sim_hal::MachineConfig), Error> {
-    use forja_sim::run::{JobOptions, run_job};
+    use forja_simulator::run::{JobOptions, run_job};
     let config = forja_sim_hal::MachineConfig::default_router();
     let text: String = JOB
         .iter()
         .chain(PROGRAM)
         .map(|l| format!("{l}\n"))
         .collect();
-    let job = forja_sim::Job::from_text("qemu end-to-end", text);
+    let job = forja_simulator::Job::from_text("qemu end-to-end", text);
     let options = JobOptions {
         home_first: false,
         ..JobOptions::default()

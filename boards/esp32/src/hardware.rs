@@ -1,58 +1,70 @@
-//! Board bring-up: clocks, the heap, esp-rtos, pins, the step timer, the store, the WiFi
-//! driver and the watchdog, from the pin map of [`crate::board`]. `main` calls [`init`] and
-//! hands the parts to its tasks.
+//! The board's parts: bring-up from the pin map of [`crate::board`] ([`init`]), and the one
+//! description of the parts handed to the application layer ([`firmware()`]).
+//!
+//! | firmware part | on this board |
+//! |---|---|
+//! | step interrupt | `StepDir` drivers on the STEP/DIR outputs and debounced `LimitInput`s on the switch inputs, in the port's `StepContext` |
+//! | peripherals | `DriverPeripherals`: the shared enable line (released until the controller energises the motors), the switches read again for `M119`; no heater, fan or spindle |
+//! | stores | the `forja` partition: the settings in a `FlashRecordStorage`, the uploaded program in a `SlotProgramStore` |
+//! | kernel | [`board::MACHINE`] with the stored settings over it, [`PLANNER_BLOCKS`] blocks, a step queue of [`QUEUE_EVENTS`] events |
+//! | host link | the WiFi link (`forja_port_esp32::link`) |
 
-use esp_hal::clock::CpuClock;
-use esp_hal::gpio::{Input, Io, Output};
+use esp_hal::gpio::{Io, Output};
 use esp_hal::interrupt::InterruptHandler;
-use esp_hal::peripherals::{Peripherals, TIMG0};
-use esp_hal::rng::Rng;
-use esp_hal::time::Duration;
-use esp_hal::timer::timg::{MwdtStage, TimerGroup, Wdt};
-use esp_radio::wifi::{ControllerConfig, Interface, WifiController};
-use forja_drivers::limit::{LimitConfig, LimitInput};
+use forja_app::controller::ControllerConfig;
+use forja_app::firmware::{self, Firmware, SetupError};
+use forja_app::peripherals::{self, DriverPeripherals, MotorEnables, NoHeater, NoPwm, NoSpindle};
 use forja_drivers::pin::NoPin;
 use forja_drivers::stepper::StepDir;
+use forja_hal_abstraction::clock::Clock;
+use forja_motion::StepQueue;
+use forja_port_esp32::limits::{self, ThreadLimit};
+use forja_port_esp32::link::{LINK, WifiLink};
+use forja_port_esp32::step::{StepCell, StepContext, Stepper};
+use forja_port_esp32::storage::{self, ProgramFlash, Store, Stores};
+use forja_port_esp32::system;
+use forja_port_esp32::timer::{StepClock, StepTimer};
+use forja_port_esp32::watchdog::Watchdog;
+use forja_port_esp32::wifi::{self, Radio};
+use static_cell::StaticCell;
 
 use crate::board::{self, AXES, DRIVERS, LIMIT_POLARITY, LIMITS};
-use crate::limits::{self, ThreadLimit};
-use crate::link::WifiLink;
-use crate::step::StepContext;
-use crate::storage::{self, Stores};
-use crate::timer::{StepClock, StepTimer};
 
-/// One motor driver as the step interrupt drives it: its STEP and DIR lines.
-pub type Stepper = StepDir<Output<'static>, Output<'static>>;
+/// Events of the step queue between the kernel and the step interrupt (a power of two; 8 KiB,
+/// the simulator's size).
+pub const QUEUE_EVENTS: usize = 1024;
+
+/// Planner blocks of the kernel (the simulator's).
+pub const PLANNER_BLOCKS: usize = 32;
 
 /// The drivers' shared enable line as the controller drives it (`M17`/`M18`, before motion):
 /// a driver with no STEP or DIR line, as the simulator's enables.
 pub type EnableLine = StepDir<NoPin, NoPin, Output<'static>>;
 
-/// One limit switch as the step interrupt reads it, debounced.
-pub type Limit = LimitInput<Input<'static>>;
+/// The board's peripherals: motor power and the switches for `M119`.
+pub type BoardPeripherals = DriverPeripherals<
+    NoHeater,
+    NoHeater,
+    NoPwm,
+    NoSpindle,
+    MotorEnables<EnableLine, 1>,
+    ThreadLimit,
+    AXES,
+    0,
+>;
 
-/// Samples that must agree before a switch changes state.
-pub const DEBOUNCE_SAMPLES: u8 = 3;
+/// The firmware of this board, as the application layer assembles it.
+pub type BoardFirmware =
+    Firmware<'static, AXES, PLANNER_BLOCKS, QUEUE_EVENTS, ProgramFlash, BoardPeripherals, Store>;
 
-/// Milliseconds without feeding after which the watchdog resets the chip: more than the
-/// longest flash erase (see [`crate::storage`]).
-pub const WATCHDOG_TIMEOUT_MS: u64 = 2_000;
-
-/// Heap for the WiFi driver: in the RAM the ROM bootloader used (free once the app runs),
-/// and in main RAM.
-const HEAP_RECLAIMED: usize = 64 * 1024;
-const HEAP_MAIN: usize = 48 * 1024;
-
-pub use forja_app::firmware::SetupError;
-
-/// The watchdog, fed by the controller task.
-pub type Watchdog = Wdt<TIMG0<'static>>;
+/// The step context of this board.
+pub type BoardStep = StepCell<AXES, QUEUE_EVENTS, LIMITS>;
 
 /// Everything [`init`] sets up.
 pub struct Hardware {
     /// What the step interrupt owns: the step alarm, the STEP/DIR lines and the limit
     /// switches; no step generator yet.
-    pub step: StepContext,
+    pub step: StepContext<AXES, QUEUE_EVENTS, LIMITS>,
     /// The step clock, for any context.
     pub clock: StepClock,
     /// The drivers' enable line (released), for the controller.
@@ -61,14 +73,8 @@ pub struct Hardware {
     pub limits: [ThreadLimit; LIMITS],
     /// The settings and program stores.
     pub stores: Stores,
-    /// The WiFi driver.
-    pub wifi: WifiController<'static>,
-    /// The station interface.
-    pub station: Interface,
-    /// The access point interface.
-    pub access_point: Interface,
-    /// A random seed for the network stacks.
-    pub seed: u64,
+    /// The WiFi driver and its interfaces.
+    pub radio: Radio,
     /// The controller's end of the host link.
     pub link: WifiLink,
     /// The running watchdog.
@@ -77,23 +83,16 @@ pub struct Hardware {
 
 /// Bring the board up from reset; `step_interrupt` is bound to the step alarm and
 /// `switch_interrupt` to the GPIO interrupt, which the limit switch inputs raise once the step
-/// generator is attached (see [`crate::limits`]).
+/// generator is attached.
 ///
 /// Context: the start of `main`, before any task runs. Errors: see [`SetupError`].
 pub fn init(
     step_interrupt: InterruptHandler,
     switch_interrupt: InterruptHandler,
 ) -> Result<Hardware, SetupError> {
-    let p: Peripherals = esp_hal::init(esp_hal::Config::default().with_cpu_clock(CpuClock::max()));
-
-    esp_alloc::heap_allocator!(#[esp_hal::ram(reclaimed)] size: HEAP_RECLAIMED);
-    esp_alloc::heap_allocator!(size: HEAP_MAIN);
-
+    let p = system::init();
     let pins = board::pins!(p);
-
-    let timg0 = TimerGroup::new(p.TIMG0);
-    esp_rtos::start(timg0.timer0, p.FROM_CPU_INTR0);
-    let mut watchdog = timg0.wdt;
+    let mut watchdog = system::start_rtos(p.TIMG0, p.FROM_CPU_INTR0);
 
     #[cfg(feature = "esp32")]
     let timer = StepTimer::new(p.TIMG1, step_interrupt);
@@ -113,43 +112,69 @@ pub fn init(
     };
     let steppers: [Stepper; AXES] = [stepper()?, stepper()?, stepper()?];
 
-    let thread_limits = pins.limits.each_ref().map(limits::thread_side);
-    let limit_config = LimitConfig::new(LIMIT_POLARITY, DEBOUNCE_SAMPLES);
-    let step_limits = pins.limits.map(|pin| LimitInput::new(pin, limit_config));
+    let thread_limits = pins
+        .limits
+        .each_ref()
+        .map(|pin| limits::thread_side(pin, LIMIT_POLARITY));
+    let step_limits = pins
+        .limits
+        .map(|pin| limits::step_side(pin, LIMIT_POLARITY));
 
     let stores = storage::open(p.FLASH)?;
+    let radio = wifi::radio(p.WIFI)?;
 
-    let wifi =
-        WifiController::new(p.WIFI, ControllerConfig::default()).map_err(|_| SetupError::Link)?;
-    let station = Interface::station();
-    let access_point = Interface::access_point();
-
-    let rng = Rng::new();
-    let seed = (u64::from(rng.random()) << 32) | u64::from(rng.random());
-
-    // Last: from here on the controller task must run at least every WATCHDOG_TIMEOUT_MS.
-    watchdog.set_timeout(
-        MwdtStage::Stage0,
-        Duration::from_millis(WATCHDOG_TIMEOUT_MS),
-    );
-    watchdog.enable();
+    // Last: from here on the controller task must feed the watchdog.
+    watchdog.start();
 
     Ok(Hardware {
-        step: StepContext {
-            timer,
-            steppers,
-            limits: step_limits,
-            generator: None,
-        },
+        step: StepContext::new(timer, steppers, step_limits),
         clock,
         enable,
         limits: thread_limits,
         stores,
-        wifi,
-        station,
-        access_point,
-        seed,
-        link: WifiLink::take().ok_or(SetupError::Link)?,
+        radio,
+        link: LINK.take().ok_or(SetupError::Link)?,
         watchdog,
     })
+}
+
+static QUEUE: StaticCell<StepQueue<AXES, QUEUE_EVENTS>> = StaticCell::new();
+
+/// The board's parts handed to the application layer: the firmware from [`board::MACHINE`]
+/// and the stored settings, its step generator attached to `step`.
+///
+/// Context: init, after the step context is installed and its alarm passed the self-test;
+/// call once. Errors: [`SetupError::Machine`] when the stored settings make a machine the
+/// kernel refuses at this clock rate, [`SetupError::Storage`] when this was called before.
+pub fn firmware(
+    clock: StepClock,
+    stores: Stores,
+    enable: EnableLine,
+    limits: [ThreadLimit; LIMITS],
+    step: &'static BoardStep,
+) -> Result<BoardFirmware, SetupError> {
+    let queue = QUEUE
+        .try_init(StepQueue::new())
+        .ok_or(SetupError::Storage)?;
+    let peripherals = DriverPeripherals::new(peripherals::Parts {
+        hot_end: None,
+        bed: None,
+        fans: [],
+        spindle: None,
+        motors: MotorEnables([enable]),
+        limits: limits.map(Some),
+        tolerance_mc: 0,
+    });
+    let (generator, firmware, _) = firmware::assemble(firmware::Parts {
+        machine: board::MACHINE,
+        settings: stores.settings,
+        queue,
+        tick_hz: clock.tick_hz(),
+        config: ControllerConfig::new("cnc", DRIVERS.timing),
+        program: stores.program,
+        peripherals,
+    })
+    .map_err(|_| SetupError::Machine)?;
+    step.attach(generator);
+    Ok(firmware)
 }

@@ -1,51 +1,46 @@
 //! Board bring-up: pins, clocks, the step timer, the host UART, the switches, the stores and
-//! the watchdog, from the pin map of [`crate::board`]. The `#[app]` module calls [`init`] and
-//! hands the parts to its tasks.
+//! the watchdog, from the pin map of [`crate::board`] and the chip support of
+//! `forja-port-rp2040`; then the firmware, assembled by the application layer from these
+//! parts. The `#[app]` module calls [`init`] and hands the parts to its tasks.
 
+use cortex_m::peripheral::NVIC;
+use forja_app::controller::{ControllerConfig, RecordProgramStore};
+use forja_app::firmware::{MotionParts, SetupError, assemble_motion};
+use forja_app::peripherals::MotorEnables;
 use forja_drivers::pin::NoPin;
 use forja_drivers::stepper::StepDir;
+use forja_port_rp2040::timer::{TICK_HZ, TimerAlarm};
+use forja_port_rp2040::uart::HostUart;
+use forja_port_rp2040::{flash, limits, watchdog};
 use rp2040_hal::clocks::{Clock as _, init_clocks_and_plls};
-use rp2040_hal::fugit::{ExtU32, RateExtU32};
+use rp2040_hal::fugit::RateExtU32;
+use rp2040_hal::pac::{self, Interrupt, UART0};
 use rp2040_hal::uart::{DataBits, StopBits, UartConfig, UartPeripheral};
-use rp2040_hal::{Sio, Timer, Watchdog, gpio, pac};
+use rp2040_hal::{Sio, Timer, Watchdog, gpio};
 
-use crate::board::{self, DRIVERS, HOST_BAUD, Output};
-use crate::limits;
-use crate::machine::MachineParts;
-use crate::storage;
-use crate::timer::TimerAlarm;
-use crate::uart::{self, HostUart};
-
-/// One motor driver as the step interrupt drives it: STEP and DIR.
-pub type Stepper = StepDir<Output, Output>;
-
-/// One motor driver as the thread side powers it: its ENABLE line.
-pub type MotorEnable = StepDir<NoPin, NoPin, Output>;
-
-/// Milliseconds without feeding after which the watchdog resets the chip: more than the
-/// longest stall made on purpose, a sector erase (at most 400 ms, see [`crate::storage`]).
-pub const WATCHDOG_MS: u32 = 1_000;
-
-pub use forja_app::firmware::SetupError;
+use crate::board::{self, DRIVERS, HOST_BAUD, HostUartPins};
+use crate::machine::{Firmware, PROGRAM_LINES, Queue, StepSide};
 
 /// Everything [`init`] sets up.
-pub struct Hardware {
+pub struct Board {
     /// The step alarm (TIMER alarm 0).
     pub step_alarm: TimerAlarm<0>,
     /// The controller task's wake-up (TIMER alarm 1).
     pub wake_alarm: TimerAlarm<1>,
     /// The host UART with the interrupt ends of its queues.
-    pub uart: HostUart,
-    /// The parts of the kernel and the controller.
-    pub machine: MachineParts,
-    /// The watchdog, not yet started ([`start_watchdog`]).
+    pub uart: HostUart<UART0, HostUartPins>,
+    /// The step interrupt's part.
+    pub step: StepSide,
+    /// The thread side, not yet booted.
+    pub firmware: Firmware,
+    /// The running watchdog.
     pub watchdog: Watchdog,
 }
 
-/// Bring the board up from reset.
+/// Bring the board up from reset, with `queue` as the step queue.
 ///
 /// Context: init (interrupts disabled). Errors: see [`SetupError`].
-pub fn init(mut dp: pac::Peripherals) -> Result<Hardware, SetupError> {
+pub fn init(mut dp: pac::Peripherals, queue: &'static mut Queue) -> Result<Board, SetupError> {
     let sio = Sio::new(dp.SIO);
     let gpio = gpio::Pins::new(dp.IO_BANK0, dp.PADS_BANK0, sio.gpio_bank0, &mut dp.RESETS);
     let pins = board::pins(gpio);
@@ -70,43 +65,45 @@ pub fn init(mut dp: pac::Peripherals) -> Result<Hardware, SetupError> {
     let serial = UartPeripheral::new(dp.UART0, pins.uart, &mut dp.RESETS)
         .enable(config, clocks.peripheral_clock.freq())
         .map_err(|_| SetupError::Link)?;
-    let parts = uart::QUEUES.split().ok_or(SetupError::LinkQueues)?;
+    let (uart, link) = HostUart::start(serial, || NVIC::pend(Interrupt::UART0_IRQ))?;
 
     let [s0, s1, s2, s3] = pins.step;
     let [d0, d1, d2, d3] = pins.dir;
+    let drive = |s, d| StepDir::new(s, d, DRIVERS).map_err(|_| SetupError::Stepper);
+    let steppers = [
+        drive(s0, d0)?,
+        drive(s1, d1)?,
+        drive(s2, d2)?,
+        drive(s3, d3)?,
+    ];
     let [e0, e1, e2, e3] = pins.enable;
-    let stepper = |s, d| StepDir::new(s, d, DRIVERS).map_err(|_| SetupError::Stepper);
-    let enable =
-        |e| StepDir::with_enable(NoPin, NoPin, e, DRIVERS).map_err(|_| SetupError::Stepper);
+    let power = |e| StepDir::with_enable(NoPin, NoPin, e, DRIVERS).map_err(|_| SetupError::Stepper);
+    let motors = MotorEnables([power(e0)?, power(e1)?, power(e2)?, power(e3)?]);
 
-    let (settings, program) = storage::stores()?;
+    let settings = flash::store(board::SETTINGS_REGION)?;
+    let program = RecordProgramStore::open(flash::store(board::PROGRAM_REGION)?, PROGRAM_LINES)
+        .map_err(|_| SetupError::Storage)?;
+    let (step, firmware) = assemble_motion(MotionParts {
+        machine: board::machine(),
+        config: ControllerConfig::new("cnc", DRIVERS.timing),
+        queue,
+        tick_hz: TICK_HZ,
+        steppers,
+        motors,
+        switches: limits::switches(pins.limits, board::LIMIT_POLARITY),
+        settings,
+        program,
+        link,
+    })?;
+    // The stores are open (opening may repair, erasing sectors): the watchdog may start.
+    watchdog::start(&mut watchdog);
 
-    Ok(Hardware {
+    Ok(Board {
         step_alarm,
         wake_alarm,
-        uart: HostUart::new(serial, parts.rx_irq, parts.tx_irq),
-        machine: MachineParts {
-            steppers: [
-                stepper(s0, d0)?,
-                stepper(s1, d1)?,
-                stepper(s2, d2)?,
-                stepper(s3, d3)?,
-            ],
-            enables: [enable(e0)?, enable(e1)?, enable(e2)?, enable(e3)?],
-            switches: limits::switches(pins.limits),
-            settings,
-            program,
-            link: uart::link(parts.reader, parts.writer),
-        },
+        uart,
+        step,
+        firmware,
         watchdog,
     })
-}
-
-/// Start the watchdog with [`WATCHDOG_MS`]; it stops with the core while a debugger halts it.
-/// Call it once the stores are open: opening them may repair (erase) sectors.
-///
-/// Context: init.
-pub fn start_watchdog(watchdog: &mut Watchdog) {
-    watchdog.pause_on_debug(true);
-    watchdog.start(WATCHDOG_MS.millis());
 }

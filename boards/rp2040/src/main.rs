@@ -1,15 +1,18 @@
 //! # Forja on the RP2040
 //!
 //! The firmware of the RP2040 boards (the BigTreeTech SKR Pico): RTIC 2 tasks over
-//! `rp2040-hal` 0.12, with the host link on an interrupt-driven UART. This module is wiring
-//! only: which interrupt runs which task at which priority, and which task owns which part.
-//! The plumbing lives in the modules below it, the pin map in [`board`].
+//! `rp2040-hal` 0.12 and the chip support (`forja-port-rp2040`: step clock and alarms, host
+//! UART, limit interrupt, flash stores, watchdog, faults), with the host link on an
+//! interrupt-driven UART. This crate is wiring only: the pin map ([`board`]), the bring-up that
+//! joins the pins to the port's drivers and hands the parts to the application layer
+//! ([`hardware`], [`machine`]), and here which interrupt runs which task at which priority, and
+//! which task owns which part.
 //!
 //! | task | bound to | priority | does |
 //! |---|---|---|---|
-//! | `step` | TIMER_IRQ_0 | 4 | step alarm: `StepGenerator::on_alarm`, re-armed from its return ([`timer`], [`machine::StepSide`]) |
-//! | `host_uart` | UART0_IRQ | 3 | moves bytes between the UART and its queues ([`uart`]) |
-//! | `limit_edges` | IO_IRQ_BANK0 | 3 | acknowledges limit switch edges, reports them to the step interrupt ([`limits`]) |
+//! | `step` | TIMER_IRQ_0 | 4 | step alarm: `StepGenerator::on_alarm`, re-armed from its return (the port's `TimerAlarm`, [`machine::StepSide`]) |
+//! | `host_uart` | UART0_IRQ | 3 | moves bytes between the UART and its queues (the port's `HostUart`) |
+//! | `limit_edges` | IO_IRQ_BANK0 | 3 | acknowledges limit switch edges, reports them to the step interrupt (the port's `limits`) |
 //! | `controller` | TIMER_IRQ_1 | 1 | `Controller::poll` on the host link, arms the step alarm, feeds the watchdog ([`machine::Firmware`]) |
 //! | `idle` | — | 0 | sleeps until the next interrupt |
 //!
@@ -22,11 +25,7 @@
 
 pub mod board;
 pub mod hardware;
-pub mod limits;
 pub mod machine;
-pub mod storage;
-pub mod timer;
-pub mod uart;
 
 /// The second-stage boot loader, the first 256 bytes of the flash: it sets the W25Q16 up for
 /// quad-SPI execute-in-place and jumps to the vector table.
@@ -38,46 +37,21 @@ pub static BOOT2_FIRMWARE: [u8; 256] = rp2040_boot2::BOOT_LOADER_W25Q080;
 /// The longest the controller task sleeps, so that the watchdog is fed.
 pub const CONTROLLER_MAX_SLEEP_MS: u32 = 100;
 
-/// What happens when the firmware cannot go on (a panic, a hard fault, a board that fails to
-/// set up): a watchdog reset of the whole chip but its oscillators, at once. Every GPIO then
-/// returns to an input, so the STEP lines stop; the host sees `start` again.
-pub fn reset() -> ! {
-    cortex_m::interrupt::disable();
-    // SAFETY: the power-on state machine's watchdog selection (every block but the two
-    // oscillators, as `rp2040_hal::Watchdog::start` sets it) and the watchdog's trigger bit.
-    unsafe {
-        let psm = &*rp2040_hal::pac::PSM::ptr();
-        psm.wdsel().write(|w| w.bits(0x0001_fffc));
-        let watchdog = &*rp2040_hal::pac::WATCHDOG::ptr();
-        watchdog.ctrl().write(|w| w.trigger().set_bit());
-    }
-    loop {
-        cortex_m::asm::nop();
-    }
-}
-
-#[panic_handler]
-fn panic(_info: &core::panic::PanicInfo) -> ! {
-    reset()
-}
-
-#[cortex_m_rt::exception]
-unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
-    reset()
-}
-
 #[rtic::app(device = rp2040_hal::pac, peripherals = true)]
 mod app {
     use forja_hal_abstraction::clock::{Alarm as _, Clock as _};
     use forja_hal_abstraction::time::Duration;
     use forja_motion::SwitchAlert;
+    use forja_port_rp2040::fault::reset;
+    use forja_port_rp2040::limits::{self, Edges};
+    use forja_port_rp2040::timer::{TICK_HZ, TimerAlarm, TimerClock};
+    use forja_port_rp2040::uart::HostUart;
     use rp2040_hal::Watchdog;
-    use rp2040_hal::pac::Interrupt;
+    use rp2040_hal::pac::{Interrupt, UART0};
 
-    use crate::machine::{self, Firmware, Queue, StepSide};
-    use crate::timer::{TICK_HZ, TimerAlarm, TimerClock};
-    use crate::uart::HostUart;
-    use crate::{CONTROLLER_MAX_SLEEP_MS, hardware, limits, reset};
+    use crate::board::HostUartPins;
+    use crate::machine::{Firmware, Queue, StepSide};
+    use crate::{CONTROLLER_MAX_SLEEP_MS, hardware};
 
     #[shared]
     struct Shared {
@@ -87,9 +61,10 @@ mod app {
     #[local]
     struct Local {
         step: StepSide,
-        uart: HostUart,
+        uart: HostUart<UART0, HostUartPins>,
         alert: SwitchAlert<'static>,
         firmware: Firmware,
+        edges: Edges,
         wake_alarm: TimerAlarm<1>,
         watchdog: Watchdog,
     }
@@ -99,11 +74,9 @@ mod app {
         // SAFETY: nothing holds a spinlock yet; one may be left taken by a reset that kept
         // the SIO (a debugger's), and the critical-section implementation uses one.
         unsafe { rp2040_hal::sio::spinlock_reset() };
-        let mut hw = hardware::init(cx.device).unwrap_or_else(|_| reset());
-        let (step, mut firmware) =
-            machine::build(cx.local.queue, TICK_HZ, hw.machine).unwrap_or_else(|_| reset());
-        hardware::start_watchdog(&mut hw.watchdog);
-        let alert = step.switch_alert();
+        let hw = hardware::init(cx.device, cx.local.queue).unwrap_or_else(|_| reset());
+        let alert = hw.step.switch_alert();
+        let mut firmware = hw.firmware;
         // The UART is enabled: announce the boot. Sent by the UART interrupt once init returns.
         firmware.boot();
         rtic::pend(Interrupt::TIMER_IRQ_1);
@@ -112,10 +85,11 @@ mod app {
                 step_alarm: hw.step_alarm,
             },
             Local {
-                step,
+                step: hw.step,
                 uart: hw.uart,
                 alert,
                 firmware,
+                edges: Edges::new(),
                 wake_alarm: hw.wake_alarm,
                 watchdog: hw.watchdog,
             },
@@ -157,13 +131,14 @@ mod app {
         rtic::pend(Interrupt::TIMER_IRQ_1);
     }
 
-    /// The protocol and planner task.
-    #[task(binds = TIMER_IRQ_1, priority = 1, shared = [step_alarm], local = [firmware, wake_alarm, watchdog])]
+    /// The protocol and planner task: polled when bytes wait, a switch changed, or the
+    /// firmware's `wake_at` has come.
+    #[task(binds = TIMER_IRQ_1, priority = 1, shared = [step_alarm], local = [firmware, edges, wake_alarm, watchdog])]
     fn controller(mut cx: controller::Context) {
         cx.local.watchdog.feed();
         cx.local.wake_alarm.take();
         let now = TimerClock.now();
-        if let Some(at) = cx.local.firmware.poll(now) {
+        if let Some(at) = cx.local.firmware.poll(now, cx.local.edges.take()) {
             cx.shared.step_alarm.lock(|alarm| {
                 let _ = alarm.set_alarm(at);
             });

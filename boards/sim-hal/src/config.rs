@@ -59,6 +59,17 @@
 //!
 //! Unknown fields are errors, so that a misspelt field is not silently ignored. Integers are
 //! accepted where a decimal number is expected.
+//!
+//! # What the parts are
+//!
+//! Names give heaters and outputs their part: the heater named `bed` is the bed
+//! ([`MachineConfig::bed_heater`]), the first other heater the hot end
+//! ([`MachineConfig::hot_end_heater`]); the output named `spindle` is the spindle
+//! ([`MachineConfig::spindle_output`]), the others are fans 0, 1, … in file order
+//! ([`MachineConfig::fan_outputs`]). An axis's homing switch is the one on the side it homes
+//! towards ([`AxisConfig::homing_switch`]); other switches (a hard limit at the far end) are
+//! modelled but are not the homing switch. Every axis's steps are scheduled for the slowest
+//! driver of the machine ([`MachineConfig::slowest_step_timing`]).
 
 use core::fmt;
 use std::net::IpAddr;
@@ -87,6 +98,12 @@ pub const MIN_TICK_HZ: u32 = 10_000;
 
 /// Highest accepted [`MachineConfig::tick_hz`] (above every supported board's timer).
 pub const MAX_TICK_HZ: u32 = 250_000_000;
+
+/// The name of the heater that is the bed.
+pub const BED: &str = "bed";
+
+/// The name of the output that is the spindle.
+pub const SPINDLE: &str = "spindle";
 
 /// Axis letters a machine file may use.
 pub const AXIS_LETTERS: &str = "XYZABCUVWE";
@@ -272,6 +289,45 @@ impl MachineConfig {
         let letter = letter.to_ascii_uppercase();
         self.axes.iter().position(|a| a.letter == letter)
     }
+
+    /// The slowest driver timing of the machine: the longest pulse and direction set-up that
+    /// any of its drivers needs, what a firmware schedules every axis's steps for.
+    pub fn slowest_step_timing(&self) -> StepTiming {
+        self.axes.iter().fold(
+            StepTiming {
+                min_pulse_ns: 0,
+                dir_setup_ns: 0,
+            },
+            |t, a| StepTiming {
+                min_pulse_ns: t.min_pulse_ns.max(a.step_timing.min_pulse_ns),
+                dir_setup_ns: t.dir_setup_ns.max(a.step_timing.dir_setup_ns),
+            },
+        )
+    }
+
+    /// The bed: the heater named `bed`.
+    pub fn bed_heater(&self) -> Option<usize> {
+        self.heaters.iter().position(|h| h.name == BED)
+    }
+
+    /// The hot end: the first heater not named `bed`.
+    pub fn hot_end_heater(&self) -> Option<usize> {
+        self.heaters.iter().position(|h| h.name != BED)
+    }
+
+    /// The spindle: the output named `spindle`.
+    pub fn spindle_output(&self) -> Option<usize> {
+        self.outputs.iter().position(|o| o.name == SPINDLE)
+    }
+
+    /// The fans 0, 1, …: the outputs not named `spindle`, in file order.
+    pub fn fan_outputs(&self) -> impl Iterator<Item = usize> + '_ {
+        self.outputs
+            .iter()
+            .enumerate()
+            .filter(|(_, o)| o.name != SPINDLE)
+            .map(|(i, _)| i)
+    }
 }
 
 impl AxisConfig {
@@ -288,6 +344,23 @@ impl AxisConfig {
     /// The switch on `side`, if any.
     pub fn switch(&self, side: SwitchSide) -> Option<&SwitchConfig> {
         self.switches.iter().find(|s| s.side == side)
+    }
+
+    /// The homing switch: the switch on the side the axis homes towards, if it homes.
+    pub fn homing_switch(&self) -> Option<&SwitchConfig> {
+        self.switch(match self.homing?.direction {
+            Direction::Negative => SwitchSide::Min,
+            Direction::Positive => SwitchSide::Max,
+        })
+    }
+}
+
+impl From<SwitchPolarity> for forja_drivers::limit::Polarity {
+    fn from(p: SwitchPolarity) -> Self {
+        match p {
+            SwitchPolarity::NormallyOpen => Self::NormallyOpen,
+            SwitchPolarity::NormallyClosed => Self::NormallyClosed,
+        }
     }
 }
 
@@ -1119,5 +1192,38 @@ travel_max_mm = 300
             "{MINIMAL}[[output]]\nname = \"fan\"\nmax_duty = 255\n[[output]]\nname = \"fan\"\nmax_duty = 1\n"
         ));
         assert_eq!(e.field(), Some("name"));
+    }
+
+    #[test]
+    fn names_and_sides_say_what_the_parts_are() {
+        let router = MachineConfig::default_router();
+        assert_eq!(router.slowest_step_timing(), StepTiming::CONSERVATIVE);
+        assert_eq!((router.bed_heater(), router.hot_end_heater()), (None, None));
+        assert_eq!(router.spindle_output(), Some(0));
+        assert_eq!(router.fan_outputs().count(), 0);
+        let sides: Vec<_> = router
+            .axes
+            .iter()
+            .map(|a| a.homing_switch().map(|s| s.side))
+            .collect();
+        // X and Y have switches at both ends; Z homes up; A does not home.
+        assert_eq!(
+            sides,
+            [
+                Some(SwitchSide::Min),
+                Some(SwitchSide::Min),
+                Some(SwitchSide::Max),
+                None
+            ]
+        );
+
+        let printer =
+            MachineConfig::from_toml_str(MachineConfig::bundled_toml("printer").unwrap()).unwrap();
+        assert_eq!(
+            (printer.bed_heater(), printer.hot_end_heater()),
+            (Some(1), Some(0))
+        );
+        assert_eq!(printer.spindle_output(), None);
+        assert_eq!(printer.fan_outputs().collect::<Vec<_>>(), [0]);
     }
 }

@@ -31,7 +31,9 @@
 //! duty histories, and the step trace ([`trace`]).
 //!
 //! Besides the machine: [`flash::SimFlash`], a NOR flash (the drivers' in-RAM model, on the
-//! heap) whose operations can be written through to a file, and the host links ([`link`]).
+//! heap) whose operations can be written through to a file; the board's two flashes and the
+//! state file that keeps them across restarts ([`state`]); the board's static RAM
+//! ([`ram::StaticRam`]); and the host links ([`link`]).
 //!
 //! ## The contract
 //!
@@ -63,7 +65,8 @@
 //!
 //! Anything that implements [`Firmware`] runs on the simulated hardware: the simulator board
 //! (`forja-sim`) wires the whole firmware to it, a test wires only the parts it tests, as this
-//! stand-in for the kernel does:
+//! stand-in for the kernel does. [`Simulation::run_hooked`] gives what stands outside the
+//! firmware (a host, a test) a turn after each of its polls.
 //!
 //! ```
 //! use forja_hal_abstraction::clock::{Alarm, Clock};
@@ -121,7 +124,9 @@ pub mod limit;
 pub mod link;
 pub mod machine;
 pub mod pwm;
+pub mod ram;
 pub mod simulation;
+pub mod state;
 pub mod stepper;
 pub mod thermal;
 pub mod trace;

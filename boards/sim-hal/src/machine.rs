@@ -180,6 +180,11 @@ impl SimMachine {
         self.state.borrow().now
     }
 
+    /// Virtual time since start, in whole milliseconds: the clock of link sessions and hosts.
+    pub fn now_ms(&self) -> u64 {
+        (u128::from(self.now_ticks()) * 1000 / u128::from(self.tick_hz())) as u64
+    }
+
     /// Virtual time since start, in seconds.
     pub fn now_secs(&self) -> f64 {
         self.now_ticks() as f64 / f64::from(self.tick_hz())

@@ -98,6 +98,24 @@ where
     }
 }
 
+/// A firmware with a hook after each of its polls ([`Simulation::run_hooked`]).
+struct Hooked<'a, F: ?Sized, H> {
+    firmware: &'a mut F,
+    hook: H,
+}
+
+impl<F: Firmware + ?Sized, H: FnMut(&mut F, Instant) -> Flow> Firmware for Hooked<'_, F, H> {
+    fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
+        self.firmware.on_alarm(now)
+    }
+    fn poll(&mut self, now: Instant) -> Flow {
+        match self.firmware.poll(now) {
+            Flow::Stop => Flow::Stop,
+            Flow::Continue => (self.hook)(self.firmware, now),
+        }
+    }
+}
+
 /// How virtual time relates to the wall clock.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Pacing {
@@ -394,6 +412,20 @@ impl Simulation {
         result
     }
 
+    /// [`Simulation::run`], calling `hook` with the firmware after each of its thread-side
+    /// polls that did not stop it: the turn of what stands outside the firmware (a host that
+    /// reads replies and sends lines, a test that watches). The run also ends when `hook`
+    /// returns [`Flow::Stop`].
+    ///
+    /// Errors: [`RunError::AlarmStorm`].
+    pub fn run_hooked<F, H>(&mut self, firmware: &mut F, hook: H) -> Result<RunReport, RunError>
+    where
+        F: Firmware + ?Sized,
+        H: FnMut(&mut F, Instant) -> Flow,
+    {
+        self.run(&mut Hooked { firmware, hook })
+    }
+
     /// [`Simulation::run`] with two closures: the interrupt and the thread side.
     pub fn run_with<A, P>(&mut self, on_alarm: A, poll: P) -> Result<RunReport, RunError>
     where
@@ -505,6 +537,44 @@ mod tests {
         sim.config_mut().time_limit_ticks = Some(1000);
         let report = sim.run_with(|_| None, |_| Flow::Continue).unwrap();
         assert_eq!((report.start_ticks, report.end_ticks), (10_500, 11_500));
+    }
+
+    #[test]
+    fn the_hook_runs_after_each_poll_until_either_stops() {
+        let m = machine();
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        let mut turns = Vec::new();
+        let mut firmware = FnFirmware {
+            on_alarm: |_| None,
+            poll: |now: Instant| {
+                if now.ticks() < 5_000 {
+                    Flow::Continue
+                } else {
+                    Flow::Stop
+                }
+            },
+        };
+        let report = sim
+            .run_hooked(&mut firmware, |_, now| {
+                turns.push(now.ticks());
+                if now.ticks() < 2_000 {
+                    Flow::Continue
+                } else {
+                    Flow::Stop
+                }
+            })
+            .unwrap();
+        assert_eq!(report.stop, StopReason::Firmware);
+        assert_eq!(turns, [0, 1000, 2000]);
+        // The next run polls again at once; the firmware's own stop ends it without a turn of
+        // the hook.
+        turns.clear();
+        sim.run_hooked(&mut firmware, |_, now| {
+            turns.push(now.ticks());
+            Flow::Continue
+        })
+        .unwrap();
+        assert_eq!(turns, [2000, 3000, 4000]);
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //!
 //! [`crate::SimMachine`] records a trace while tracing is on
 //! ([`crate::SimMachine::set_tracing`]); tests query it ([`StepTrace::step_times`]) and the
-//! simulator writes it to a file (`--trace FILE`) for `forja plot` to overlay on the toolpath.
+//! simulator writes it to a file (`--trace FILE`) for `forja-sim --plot` to overlay on the toolpath.
 //!
 //! # File format
 //!
@@ -23,7 +23,7 @@
 //!
 //! - `steps_per_mm`: steps per millimetre (per degree for a rotary axis) of each axis, and
 //!   `start_mm`: where each axis was when the trace began, mm (degrees), so that a reader can
-//!   replay the path without the machine file (`forja plot` does). Both are written when the
+//!   replay the path without the machine file (`forja-sim --plot` does). Both are written when the
 //!   trace knows them (the simulator's traces always do); `LETTER=VALUE` pairs in axis order.
 //! - `time_ticks`: virtual time in ticks of the simulator's clock since it started (`tick_hz`
 //!   ticks a second), a 64-bit count that does not wrap.
@@ -431,7 +431,7 @@ mod tests {
         let mut out = Vec::new();
         m.take_trace().write_csv(&mut out).unwrap();
         let text = String::from_utf8(out.clone()).unwrap();
-        // The lines `forja plot` reads (`host/src/plot.rs`: `Executed::from_trace`).
+        // The lines `forja-sim --plot` reads (`simulator/src/plot.rs`: `Executed::from_trace`).
         assert!(
             text.starts_with(
                 "# forja step trace 1\n# tick_hz 1000000\n# axes X Z\n\

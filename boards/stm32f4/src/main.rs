@@ -1,16 +1,18 @@
 //! # Forja on STM32F4
 //!
-//! The firmware of the STM32F4 boards: RTIC 2 tasks over `stm32f4xx-hal` 0.23, with the host
-//! link on an interrupt-driven UART. This module is wiring only: which interrupt runs which
-//! task at which priority, and which task owns which part. The plumbing lives in the modules
-//! below it, the pin maps in [`board`].
+//! The firmware of the STM32F4 boards: RTIC 2 tasks over `stm32f4xx-hal` 0.23 and the family's
+//! chip support (`forja-port-stm32f4`: step timer, host UART, limit lines, flash store,
+//! watchdog, faults), with the host link on an interrupt-driven UART. This crate is wiring
+//! only: the pin maps ([`board`]), the bring-up that joins the pins to the port's drivers and
+//! hands the parts to the application layer ([`hardware`], [`machine`]), and here which
+//! interrupt runs which task at which priority, and which task owns which part.
 //!
 //! | task | bound to | priority | does |
 //! |---|---|---|---|
-//! | `step_tim2` (`step_systick` under `qemu`) | TIM2 (SysTick) | 4 | step alarm: `StepGenerator::on_alarm`, re-armed from its return; service tick ([`timer`], [`machine::StepSide`]) |
-//! | `host_usart1` (`host_usart6` under `qemu`) | the pin map's UART | 3 | moves bytes between the UART and its queues ([`uart`]) |
-//! | `limit_lines_5_9`, `limit_lines_10_15` | EXTI9_5, EXTI15_10 | 3 | acknowledges limit switch edges, reports them to the step interrupt ([`limits`]) |
-//! | `controller` | SDIO (no SD card: a free vector) | 1 | `Controller::poll` on the host link; arms the step alarm ([`machine::Firmware`]) |
+//! | `step_tim2` (`step_systick` under `qemu`) | TIM2 (SysTick) | 4 | step alarm: `StepGenerator::on_alarm`, re-armed from its return; service tick (the port's `StepTimer::serve`, [`machine::StepSide`]) |
+//! | `host_usart1` (`host_usart6` under `qemu`) | the pin map's UART | 3 | moves bytes between the UART and its queues (the port's `HostUart`) |
+//! | `limit_lines_5_9`, `limit_lines_10_15` | EXTI9_5, EXTI15_10 | 3 | acknowledges limit switch edges, reports them to the step interrupt (the port's `Limits`) |
+//! | `controller` | SDIO (no SD card: a free vector) | 1 | `Controller::poll` on the host link; arms the step alarm; publishes the link counters ([`machine::Firmware`]) |
 //! | `status` | I2C3_EV (free vector) | 1 | every 100 ms: feeds the watchdog |
 //! | `idle` | — | 0 | sleeps until the next interrupt |
 //!
@@ -24,16 +26,8 @@
 #![no_main]
 
 pub mod board;
-pub mod enable;
-pub mod fault;
 pub mod hardware;
-pub mod limits;
-pub mod link;
 pub mod machine;
-pub mod storage;
-pub mod timer;
-pub mod uart;
-pub mod watchdog;
 
 /// Interrupt vectors that no peripheral of these boards raises, used to run the thread-side
 /// tasks.
@@ -47,20 +41,19 @@ pub mod vectors {
 }
 
 /// Service ticks between two runs of the status task (100 ms).
-pub const STATUS_EVERY: u32 = timer::SERVICE_HZ / 10;
+pub const STATUS_EVERY: u32 = forja_port_stm32f4::timer::SERVICE_HZ / 10;
 
 #[rtic::app(device = stm32f4xx_hal::pac, peripherals = true)]
 mod app {
     use forja_hal_abstraction::clock::{Alarm as _, Clock as _};
+    use forja_port_stm32f4::limits::{self, Limits};
+    use forja_port_stm32f4::timer::{StepClock, StepTimer};
+    use forja_port_stm32f4::uart::{HostUart, LINK_COUNTERS};
+    use forja_port_stm32f4::{fault, watchdog::Watchdog};
 
-    use crate::hardware;
-    use crate::limits::Limits;
-    use crate::link::HostLink;
-    use crate::machine::{self, Firmware, MachineParts, Queue, StepSide};
-    use crate::timer::{StepClock, StepTimer};
-    use crate::uart::HostUart;
-    use crate::watchdog::Watchdog;
-    use crate::{STATUS_EVERY, fault, vectors};
+    use crate::board::HostUsart;
+    use crate::machine::{Firmware, Queue, StepSide};
+    use crate::{STATUS_EVERY, hardware, vectors};
 
     // The timer is shared by the step task and the controller task (which arms the alarm).
     // The step side and the UART are shared only because the two builds bind them from
@@ -71,7 +64,7 @@ mod app {
         timer: StepTimer,
         step: StepSide,
         limits: Limits,
-        uart: HostUart,
+        uart: HostUart<HostUsart>,
     }
 
     #[local]
@@ -83,28 +76,18 @@ mod app {
 
     #[init(local = [queue: Queue = Queue::new()])]
     fn init(cx: init::Context) -> (Shared, Local) {
-        let hw = hardware::init(cx.device, cx.core).unwrap_or_else(|_| fault::reset());
+        let hw =
+            hardware::init(cx.device, cx.core, cx.local.queue).unwrap_or_else(|_| fault::reset());
+        let mut firmware = hw.firmware;
         let clock = hw.timer.clock();
-        let (step, mut firmware) = machine::build(MachineParts {
-            queue: cx.local.queue,
-            tick_hz: clock.tick_hz(),
-            store: hw.store,
-            steppers: hw.steppers,
-            enables: hw.enables,
-            switches: hw.switches,
-            link: HostLink::new(hw.reader, hw.writer),
-        })
-        .unwrap_or_else(|_| fault::reset());
-        let mut limits = hw.limits;
-        limits.attach(step.switch_alert());
         // The UART is enabled: announce the boot. Sent by the UART interrupt once init returns.
         firmware.boot();
         (
             Shared {
-                timer: hw.timer,
-                step,
-                limits,
+                step: hw.step,
+                limits: hw.limits,
                 uart: hw.uart,
+                timer: hw.timer,
             },
             Local {
                 firmware,
@@ -138,13 +121,7 @@ mod app {
     }
 
     fn on_step(timer: &mut StepTimer, step: &mut StepSide, ticks: &mut u32) {
-        let events = timer.on_interrupt();
-        if let Some(now) = events.step
-            && let Some(at) = step.on_alarm(now)
-        {
-            let _ = timer.set_alarm(at);
-        }
-        if events.service {
+        if timer.serve(|now| step.on_alarm(now)) {
             rtic::pend(vectors::CONTROLLER);
             *ticks += 1;
             if *ticks >= STATUS_EVERY {
@@ -152,7 +129,6 @@ mod app {
                 rtic::pend(vectors::STATUS);
             }
         }
-        timer.finish();
     }
 
     /// The host UART interrupt.
@@ -169,11 +145,10 @@ mod app {
         cx.shared.uart.lock(on_uart);
     }
 
-    fn on_uart(uart: &mut HostUart) {
+    fn on_uart(uart: &mut HostUart<HostUsart>) {
         if uart.on_interrupt() {
             rtic::pend(vectors::CONTROLLER);
         }
-        crate::link::note_uart_errors(uart.errors());
     }
 
     /// Limit switch lines 5–9.
@@ -190,15 +165,18 @@ mod app {
         rtic::pend(vectors::CONTROLLER);
     }
 
-    /// The protocol and planner task.
+    /// The protocol and planner task: polled when bytes wait, a limit line fired, or the
+    /// firmware's `wake_at` has come.
     #[task(binds = SDIO, priority = 1, shared = [timer], local = [firmware, clock])]
     fn controller(mut cx: controller::Context) {
         let now = cx.local.clock.now();
-        if let Some(at) = cx.local.firmware.poll(now) {
+        let firmware = cx.local.firmware;
+        if let Some(at) = firmware.poll(now, limits::take_fired() != 0) {
             cx.shared.timer.lock(|timer| {
                 let _ = timer.set_alarm(at);
             });
         }
+        LINK_COUNTERS.publish(firmware.link(), &firmware.firmware().controller().stats());
     }
 
     /// Periodic status.

@@ -22,7 +22,7 @@ pub fn sim_binary() -> PathBuf {
     if !bin.exists() {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let status = Command::new(cargo)
-            .args(["build", "-p", "forja-sim", "--bin", "forja-sim"])
+            .args(["build", "-p", "forja-simulator", "--bin", "forja-sim"])
             .status()
             .expect("cargo runs");
         assert!(status.success(), "building forja-sim failed");

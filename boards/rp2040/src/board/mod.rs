@@ -28,6 +28,8 @@
 //! and 1/16 on E (3). [`machine`] assumes 1/16 on every axis, so set each
 //! axis's steps/mm to match (frame 00) before moving a real machine.
 
+use core::ops::Range;
+
 use embedded_hal::digital::PinState;
 use forja_drivers::limit::Polarity;
 use forja_drivers::stepper::StepDirConfig;
@@ -56,6 +58,13 @@ pub const HOST_BAUD: u32 = 115_200;
 /// How the TMC2209s' lines are driven: active-high STEP, active-low ENABLE, a timing that
 /// covers them.
 pub const DRIVERS: StepDirConfig = StepDirConfig::new(StepTiming::CONSERVATIVE);
+
+/// The settings store: four 4 KiB sectors below the program store, at the top of the 2 MiB
+/// flash (offsets from its first byte; `memory.x` keeps the code below them).
+pub const SETTINGS_REGION: Range<u32> = 0x1F_4000..0x1F_8000;
+
+/// The program store: the flash's last eight sectors.
+pub const PROGRAM_REGION: Range<u32> = 0x1F_8000..0x20_0000;
 
 /// Switches close to ground at the limit, against the input's pull-up (Klipper's `^`).
 pub const LIMIT_POLARITY: Polarity = Polarity::NormallyOpen;

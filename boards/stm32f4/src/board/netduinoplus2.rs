@@ -23,7 +23,7 @@
 //! - the step clock is SysTick, which QEMU counts at the 168 MHz its board model declares;
 //! - GPIO inputs read low, which is what a normally-closed switch reads at rest, so the limit
 //!   inputs use that polarity and never trip;
-//! - settings are kept in RAM ([`crate::storage`]) and there is no watchdog.
+//! - settings are kept in RAM (the port's `flash` module) and there is no watchdog.
 //!
 //! The QEMU machine connects its first serial port to USART1 and its sixth to USART6:
 //! `cargo xtask qemu stm32f4` puts the host link on the sixth.

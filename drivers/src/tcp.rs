@@ -1,0 +1,807 @@
+//! A TCP host link over `embassy-net`: a server on one port with one controlling client at a
+//! time, and the controller's end of it as an `embedded-io` link. Any board with an
+//! `embassy-net` stack (WiFi, Ethernet) serves its host this way. Behind the `embassy-net`
+//! feature.
+//!
+//! A [`TcpServer`] lives in a `static`, its [`TcpQueues`] in another. The board's listening
+//! tasks run [`TcpServer::listen`] on its stacks; the controller's task
+//! [takes](TcpServer::take) the [`TcpLink`] once and polls the controller over it:
+//!
+//! ```text
+//!  client ──TCP── listen task(s) ──receive queue──► TcpLink ──► Controller::poll
+//!                 (TcpServer::listen) ◄─transmit queue── TcpLink ◄── replies, 54, 55
+//! ```
+//!
+//! # Session
+//!
+//! The session rules are [`LinkSession`]'s. The listening tasks report connections and
+//! disconnections to it; the controller's task polls it through [`TcpLink::poll_session`]
+//! and writes the messages itself, into the same outgoing stream as its replies, so that a 54
+//! or 55 never lands inside another line:
+//!
+//! | `LinkSession` says | who | does |
+//! |---|---|---|
+//! | `SendConnected` | controller's task | the client is the controller: `Controller::on_connect` (frame 54, a fresh decoder) |
+//! | `SendKeepAlive(n)` | controller's task | `Controller::keep_alive(n)` (frame 55), every `keep_alive_ms` |
+//! | `RefuseSecondClient` | listening task | sends the new client the refusal it was given (the application's `busy_refusal`) and closes it |
+//!
+//! Give each stack at least two listening tasks: one can hold the controlling client while
+//! another is free to accept, and refuse, a second one. The session is shared by every task of
+//! the server, so the rule holds across all the board's stacks.
+//!
+//! A client that goes away (closes, resets, or stops acknowledging for [`CLIENT_TIMEOUT`]
+//! because its network dropped: the keep-alives make the loss visible) ends the session; the
+//! next client to connect becomes the controller.
+//!
+//! # Bytes
+//!
+//! Bytes move between the sockets and the controller through two queues (embassy-sync pipes
+//! of `RX` and `TX` bytes, [`TcpQueues`]). The controller runs in a task of the same executor as the
+//! sockets, so nothing on its side may wait for them:
+//!
+//! - **Input.** Received bytes are read from the socket only when the receive queue has room,
+//!   so a client that sends faster than the controller reads is held back by TCP flow control,
+//!   never dropped. `read_ready` says `true` only while the transmit queue also has
+//!   [`TX_HEADROOM`] bytes free (`TX` must be larger): a client that does not read its replies
+//!   stops being read.
+//! - **Output.** Writes never wait: what does not fit in the transmit queue is dropped and
+//!   counted (`tx_dropped`), which the headroom makes a client's fault only. With no client
+//!   connected, writes are discarded at once (like a UART with nothing attached), so the
+//!   controller never waits for an absent host; at each new connection anything still queued
+//!   from the previous one is dropped.
+//! - **Waking.** [`TcpLink::wait`] returns when bytes arrive, a client connects or leaves, or
+//!   at a deadline: the controller's task sleeps in it between polls.
+//!
+//! Nothing here depends on the motion side: a program stored on the board runs on while the
+//! link is down.
+//!
+//! # Observing the link
+//!
+//! [`LinkCounters`] count connections, refusals, keep-alives, bytes and dropped replies. The
+//! board keeps them in a `static` of its own, at a symbol a debugger can find.
+//!
+//! # Execution context
+//!
+//! Thread only: tasks of one executor. The queues and the session are shared through
+//! critical sections of a few instructions; nothing here runs in an interrupt.
+
+use core::cell::RefCell;
+use core::convert::Infallible;
+use core::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+
+use embassy_futures::select::{Either, select};
+use embassy_net::tcp::TcpSocket;
+use embassy_net::{IpListenEndpoint, Stack};
+use embassy_sync::blocking_mutex::Mutex;
+use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::pipe::Pipe;
+use embassy_sync::signal::Signal;
+use embassy_time::{Duration, Instant, Timer, with_deadline, with_timeout};
+use forja_hal_abstraction::link::{LinkState, LinkStatus};
+
+use crate::session::{LinkSession, SessionAction};
+
+/// A client that acknowledges nothing for this long is gone.
+pub const CLIENT_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Free bytes the transmit queue must have for the controller to read more input: more than
+/// the longest burst of replies one poll writes for 128 bytes of input (an `M115` answer, a
+/// status frame, a keep-alive).
+pub const TX_HEADROOM: usize = 512;
+
+/// The keep-alive period before [`TcpServer::configure`], ms (the controller's default).
+pub const DEFAULT_KEEP_ALIVE_MS: u32 = 1000;
+
+/// Bytes of each socket's receive and transmit buffers.
+const SOCKET_BUF: usize = 1536;
+
+/// Bytes moved between a socket and a queue at a time.
+const CHUNK: usize = 512;
+
+/// How long a refused client is given to receive the refusal.
+const REFUSAL_TIMEOUT: Duration = Duration::from_millis(500);
+
+/// The milliseconds of the session clock (embassy's time base, wrapping).
+pub fn now_ms() -> u32 {
+    Instant::now().as_millis() as u32
+}
+
+/// Counters of a TCP link, wrapping. Each is written by one context at a time (the serving
+/// task, or the controller's task for `keep_alives` and `tx_dropped`).
+#[repr(C)]
+#[derive(Debug)]
+pub struct LinkCounters {
+    /// Clients that became the controller.
+    pub connections: AtomicU32,
+    /// Clients refused because another was in control.
+    pub refused: AtomicU32,
+    /// Keep-alives (55) sent.
+    pub keep_alives: AtomicU32,
+    /// Bytes received from controlling clients.
+    pub rx_bytes: AtomicU32,
+    /// Bytes sent to controlling clients, 54 and 55 included.
+    pub tx_bytes: AtomicU32,
+    /// Reply bytes dropped because the transmit queue was full (a client that does not read).
+    pub tx_dropped: AtomicU32,
+}
+
+impl LinkCounters {
+    /// All zero.
+    pub const fn new() -> Self {
+        Self {
+            connections: AtomicU32::new(0),
+            refused: AtomicU32::new(0),
+            keep_alives: AtomicU32::new(0),
+            rx_bytes: AtomicU32::new(0),
+            tx_bytes: AtomicU32::new(0),
+            tx_dropped: AtomicU32::new(0),
+        }
+    }
+}
+
+impl Default for LinkCounters {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+fn bump(counter: &AtomicU32, by: usize) {
+    // One writer at a time, and targets without read-modify-write atomics (RISC-V `imc`): load
+    // and store.
+    counter.store(
+        counter.load(Ordering::Relaxed).wrapping_add(by as u32),
+        Ordering::Relaxed,
+    );
+}
+
+/// The session, and whether its controller was not yet greeted (54).
+struct Shared {
+    session: LinkSession,
+    greet: bool,
+}
+
+type Queue<const N: usize> = Pipe<CriticalSectionRawMutex, N>;
+
+/// The byte queues of a TCP link: `RX` bytes from the client to the controller, `TX` bytes back.
+/// Put them in a `static` of their own, apart from the [`TcpServer`]: all zero at start, they
+/// take RAM but no room in the firmware image.
+pub struct TcpQueues<const RX: usize, const TX: usize> {
+    rx: Queue<RX>,
+    tx: Queue<TX>,
+}
+
+impl<const RX: usize, const TX: usize> TcpQueues<RX, TX> {
+    /// Empty queues.
+    pub const fn new() -> Self {
+        Self {
+            rx: Pipe::new(),
+            tx: Pipe::new(),
+        }
+    }
+}
+
+impl<const RX: usize, const TX: usize> Default for TcpQueues<RX, TX> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// The server side of a TCP host link: its queues, the session, the counters. Put it in a
+/// `static`, run [`TcpServer::listen`] in each listening task and give the controller its
+/// [`TcpLink`] ([`TcpServer::take`]).
+pub struct TcpServer<const RX: usize, const TX: usize> {
+    rx: &'static Queue<RX>,
+    tx: &'static Queue<TX>,
+    /// Raised by the link's writes, so that the serving task sends at once.
+    tx_kick: Signal<CriticalSectionRawMutex, ()>,
+    /// Raised when bytes reach the receive queue or a client comes or goes, to wake the
+    /// controller's task ([`TcpLink::wait`]).
+    wake: Signal<CriticalSectionRawMutex, ()>,
+    shared: Mutex<CriticalSectionRawMutex, RefCell<Shared>>,
+    taken: AtomicBool,
+    counters: &'static LinkCounters,
+}
+
+impl<const RX: usize, const TX: usize> TcpServer<RX, TX> {
+    /// No client, keep-alives every [`DEFAULT_KEEP_ALIVE_MS`]; bytes through `queues`, counted
+    /// in `counters`.
+    pub const fn new(queues: &'static TcpQueues<RX, TX>, counters: &'static LinkCounters) -> Self {
+        Self {
+            rx: &queues.rx,
+            tx: &queues.tx,
+            tx_kick: Signal::new(),
+            wake: Signal::new(),
+            shared: Mutex::new(RefCell::new(Shared {
+                session: LinkSession::new(DEFAULT_KEEP_ALIVE_MS),
+                greet: false,
+            })),
+            taken: AtomicBool::new(false),
+            counters,
+        }
+    }
+
+    /// Start the session with keep-alives every `keep_alive_ms` (the controller's
+    /// `keep_alive_ms` setting).
+    ///
+    /// Context: init, before the listening tasks run.
+    pub fn configure(&self, keep_alive_ms: u32) {
+        self.session(|s| *s = LinkSession::new(keep_alive_ms));
+    }
+
+    /// The controller's end; `None` after the first call.
+    ///
+    /// Context: init. Takes a critical section for a few instructions.
+    pub fn take(&self) -> Option<TcpLink<'_, RX, TX>> {
+        let first = critical_section::with(|_| {
+            let first = !self.taken.load(Ordering::Relaxed);
+            self.taken.store(true, Ordering::Relaxed);
+            first
+        });
+        first.then_some(TcpLink { server: self })
+    }
+
+    /// The counters this server keeps.
+    pub fn counters(&self) -> &LinkCounters {
+        self.counters
+    }
+
+    fn session<R>(&self, f: impl FnOnce(&mut LinkSession) -> R) -> R {
+        self.shared.lock(|s| f(&mut s.borrow_mut().session))
+    }
+
+    /// A client connected at `now_ms`: the session decides whether it is the controller.
+    /// A new controller finds the transmit queue empty (what was queued before it belongs to
+    /// nobody) and is greeted by the controller's task.
+    fn connect(&self, now_ms: u32) -> SessionAction {
+        let action = self.shared.lock(|s| {
+            let mut s = s.borrow_mut();
+            let action = s.session.on_connect(now_ms);
+            if action == SessionAction::SendConnected {
+                self.tx.clear();
+                s.greet = true;
+            }
+            action
+        });
+        if action == SessionAction::SendConnected {
+            bump(&self.counters.connections, 1);
+            self.wake.signal(());
+        }
+        action
+    }
+
+    /// The controlling client went away: the session ends, its unsent replies are dropped.
+    fn disconnect(&self) {
+        self.session(LinkSession::on_disconnect);
+        self.tx.clear();
+        self.wake.signal(());
+    }
+
+    /// Serve one listening socket on `port` of `stack` for ever: accept a client, then either
+    /// serve it as the controller or refuse it and close it, as the session decides. A refused
+    /// client is sent what `refusal` writes into a buffer of `R` bytes (it returns the length):
+    /// the application's `busy_refusal`.
+    ///
+    /// Context: a task (at least two per stack, see the [module documentation](self)). Never
+    /// returns.
+    pub async fn listen<const R: usize>(
+        &self,
+        stack: Stack<'_>,
+        port: u16,
+        refusal: fn(&mut [u8; R]) -> usize,
+    ) -> ! {
+        let mut rx_buf = [0u8; SOCKET_BUF];
+        let mut tx_buf = [0u8; SOCKET_BUF];
+        let mut socket = TcpSocket::new(stack, &mut rx_buf, &mut tx_buf);
+        let endpoint = IpListenEndpoint { addr: None, port };
+        loop {
+            socket.set_timeout(None);
+            if socket.accept(endpoint).await.is_err() {
+                socket.abort();
+                Timer::after(Duration::from_millis(100)).await;
+                continue;
+            }
+            socket.set_timeout(Some(CLIENT_TIMEOUT));
+            socket.set_nagle_enabled(false);
+            match self.connect(now_ms()) {
+                SessionAction::SendConnected => {
+                    self.serve(&mut socket).await;
+                    self.disconnect();
+                }
+                _ => self.refuse(&mut socket, refusal).await,
+            }
+            socket.close();
+            let _ = with_timeout(REFUSAL_TIMEOUT, socket.flush()).await;
+            socket.abort();
+        }
+    }
+
+    /// Tell a second client that another is in control, with what `refusal` writes.
+    async fn refuse<S: embedded_io_async::Write, const R: usize>(
+        &self,
+        socket: &mut S,
+        refusal: fn(&mut [u8; R]) -> usize,
+    ) {
+        bump(&self.counters.refused, 1);
+        let mut message = [0u8; R];
+        let len = refusal(&mut message);
+        let _ = with_timeout(
+            REFUSAL_TIMEOUT,
+            send(socket, message.get(..len).unwrap_or_default()),
+        )
+        .await;
+    }
+
+    /// Serve the controlling client until it goes away: its bytes into the receive queue (as
+    /// room allows), the transmit queue to it.
+    async fn serve<S>(&self, socket: &mut S)
+    where
+        S: embedded_io_async::Read + embedded_io_async::Write,
+    {
+        let mut inbound = [0u8; CHUNK];
+        // Received bytes not yet in the receive queue: inbound[start..end].
+        let (mut start, mut end) = (0usize, 0usize);
+        let mut outbound = [0u8; CHUNK];
+        loop {
+            let receive = async {
+                match inbound.get(start..end).filter(|rest| !rest.is_empty()) {
+                    Some(rest) => Wake::Queued(self.rx.write(rest).await),
+                    None => Wake::Received(socket.read(&mut inbound).await.ok()),
+                }
+            };
+            let transmit = async {
+                if self.tx.is_empty() {
+                    self.tx_kick.wait().await;
+                }
+                Wake::ToSend(self.tx.try_read(&mut outbound).unwrap_or(0))
+            };
+            let woke = match select(receive, transmit).await {
+                Either::First(w) | Either::Second(w) => w,
+            };
+            match woke {
+                Wake::Received(None | Some(0)) => return,
+                Wake::Received(Some(n)) => {
+                    bump(&self.counters.rx_bytes, n);
+                    end = n;
+                    start = inbound
+                        .get(..n)
+                        .map_or(0, |b| self.rx.try_write(b).unwrap_or(0));
+                    self.wake.signal(());
+                }
+                Wake::Queued(n) => {
+                    start += n;
+                    self.wake.signal(());
+                }
+                Wake::ToSend(n) => {
+                    if send(socket, outbound.get(..n).unwrap_or_default())
+                        .await
+                        .is_err()
+                    {
+                        return;
+                    }
+                    bump(&self.counters.tx_bytes, n);
+                }
+            }
+        }
+    }
+}
+
+/// What woke the serving loop.
+enum Wake {
+    /// Bytes from the client (`None`: the connection failed).
+    Received(Option<usize>),
+    /// Bytes held back were queued.
+    Queued(usize),
+    /// Bytes taken from the transmit queue, to send.
+    ToSend(usize),
+}
+
+/// Write all of `bytes` to `socket`. Errors: the connection is gone.
+async fn send<S: embedded_io_async::Write>(socket: &mut S, mut bytes: &[u8]) -> Result<(), ()> {
+    while !bytes.is_empty() {
+        match socket.write(bytes).await {
+            Ok(0) | Err(_) => return Err(()),
+            Ok(n) => bytes = bytes.get(n..).unwrap_or_default(),
+        }
+    }
+    Ok(())
+}
+
+/// The controller's end of a [`TcpServer`]: `embedded-io` reads and writes over the queues,
+/// and whether a client is in control. See the [module documentation](self) for the rules.
+///
+/// The blocking [`embedded_io::Read::read`] on an empty queue spins until a serving task has
+/// run: from a task, read only what [`embedded_io::ReadReady`] announces (as
+/// `Controller::poll` does), or use [`TcpLink::try_read`] or the async traits.
+pub struct TcpLink<'a, const RX: usize, const TX: usize> {
+    server: &'a TcpServer<RX, TX>,
+}
+
+impl<const RX: usize, const TX: usize> TcpLink<'_, RX, TX> {
+    /// Copy received bytes into `buf`, as many as are there; `0` when none are waiting.
+    ///
+    /// Context: thread. Never blocks.
+    pub fn try_read(&mut self, buf: &mut [u8]) -> usize {
+        self.server.rx.try_read(buf).unwrap_or(0)
+    }
+
+    /// Queue as much of `bytes` as fits for the controlling client; all of it is taken (and
+    /// dropped) while no client is connected.
+    ///
+    /// Context: thread. Never blocks.
+    pub fn try_write(&mut self, bytes: &[u8]) -> usize {
+        if !self.is_connected() {
+            return bytes.len();
+        }
+        let n = self.server.tx.try_write(bytes).unwrap_or(0);
+        if n > 0 {
+            self.server.tx_kick.signal(());
+        }
+        n
+    }
+
+    fn is_connected(&self) -> bool {
+        self.server.session(|s| s.is_connected())
+    }
+
+    /// What the session asks of the controller at `now_ms` (see [`now_ms`]):
+    /// [`SessionAction::SendConnected`] once for each new controlling client, then
+    /// [`SessionAction::SendKeepAlive`] when one is due. Call it until it returns `None`, and
+    /// again at the latest at [`TcpLink::session_poll_at`].
+    ///
+    /// Context: the controller's task. Never blocks.
+    pub fn poll_session(&mut self, now_ms: u32) -> Option<SessionAction> {
+        let action = self.server.shared.lock(|s| {
+            let mut s = s.borrow_mut();
+            if core::mem::replace(&mut s.greet, false) && s.session.is_connected() {
+                Some(SessionAction::SendConnected)
+            } else {
+                s.session.poll(now_ms)
+            }
+        });
+        if let Some(SessionAction::SendKeepAlive(_)) = action {
+            bump(&self.server.counters.keep_alives, 1);
+        }
+        action
+    }
+
+    /// When [`TcpLink::poll_session`] has something to do next; `None` while no client is in
+    /// control.
+    pub fn session_poll_at(&self) -> Option<u32> {
+        self.server.session(|s| s.poll_at())
+    }
+
+    /// Wait until bytes arrive, a client connects or leaves, or `deadline` (embassy time).
+    ///
+    /// Context: the controller's task. Always lets the other tasks run once, even with a
+    /// deadline already past. Bytes that were waiting before the call do not end the wait:
+    /// the controller reads all it can take at each poll, so bytes still queued after it are
+    /// held back on purpose.
+    pub async fn wait(&mut self, deadline: Instant) {
+        if deadline <= Instant::now() {
+            embassy_futures::yield_now().await;
+        } else {
+            let _ = with_deadline(deadline, self.server.wake.wait()).await;
+        }
+    }
+
+    /// How many clients have been in control so far.
+    pub fn connections(&self) -> u32 {
+        self.server.counters.connections.load(Ordering::Relaxed)
+    }
+}
+
+impl<const RX: usize, const TX: usize> LinkStatus for TcpLink<'_, RX, TX> {
+    fn state(&self) -> LinkState {
+        self.server.session(|s| s.state())
+    }
+}
+
+impl<const RX: usize, const TX: usize> embedded_io::ErrorType for TcpLink<'_, RX, TX> {
+    type Error = Infallible;
+}
+
+impl<const RX: usize, const TX: usize> embedded_io::ReadReady for TcpLink<'_, RX, TX> {
+    /// Bytes are waiting, and the transmit queue has room for their replies
+    /// ([`TX_HEADROOM`]).
+    fn read_ready(&mut self) -> Result<bool, Self::Error> {
+        Ok(!self.server.rx.is_empty() && self.server.tx.free_capacity() >= TX_HEADROOM)
+    }
+}
+
+impl<const RX: usize, const TX: usize> embedded_io::Read for TcpLink<'_, RX, TX> {
+    fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        if buf.is_empty() {
+            return Ok(0);
+        }
+        loop {
+            let n = self.try_read(buf);
+            if n > 0 {
+                return Ok(n);
+            }
+            core::hint::spin_loop();
+        }
+    }
+}
+
+impl<const RX: usize, const TX: usize> embedded_io::WriteReady for TcpLink<'_, RX, TX> {
+    fn write_ready(&mut self) -> Result<bool, Self::Error> {
+        Ok(!self.is_connected() || !self.server.tx.is_full())
+    }
+}
+
+impl<const RX: usize, const TX: usize> embedded_io::Write for TcpLink<'_, RX, TX> {
+    /// Queue `buf` for the client; never waits. What does not fit is dropped (and counted).
+    fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+        let n = self.try_write(buf);
+        if n < buf.len() {
+            bump(&self.server.counters.tx_dropped, buf.len() - n);
+        }
+        Ok(buf.len())
+    }
+
+    /// Nothing to do: the serving task sends queued bytes as soon as it runs.
+    fn flush(&mut self) -> Result<(), Self::Error> {
+        Ok(())
+    }
+}
+
+impl<const RX: usize, const TX: usize> embedded_io_async::Read for TcpLink<'_, RX, TX> {
+    async fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        if buf.is_empty() {
+            return Ok(0);
+        }
+        Ok(self.server.rx.read(buf).await)
+    }
+}
+
+impl<const RX: usize, const TX: usize> embedded_io_async::Write for TcpLink<'_, RX, TX> {
+    async fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+        if buf.is_empty() || !self.is_connected() {
+            return Ok(buf.len());
+        }
+        let n = self.server.tx.write(buf).await;
+        self.server.tx_kick.signal(());
+        Ok(n)
+    }
+
+    async fn flush(&mut self) -> Result<(), Self::Error> {
+        while self.is_connected() && !self.server.tx.is_empty() {
+            Timer::after(Duration::from_millis(1)).await;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use core::task::Poll;
+    use embassy_futures::block_on;
+    use embedded_io::{Read, ReadReady, Write, WriteReady};
+    use std::vec::Vec;
+
+    fn server<const RX: usize, const TX: usize>() -> &'static TcpServer<RX, TX> {
+        let queues = Box::leak(Box::new(TcpQueues::new()));
+        let counters = Box::leak(Box::new(LinkCounters::new()));
+        Box::leak(Box::new(TcpServer::new(queues, counters)))
+    }
+
+    /// A client on the other end of a socket: it sends `inbound`, one chunk per read, keeps
+    /// what it is sent, and closes once it has received `close_after` bytes.
+    struct Client {
+        inbound: Vec<&'static [u8]>,
+        received: Vec<u8>,
+        close_after: usize,
+    }
+
+    impl embedded_io_async::ErrorType for Client {
+        type Error = Infallible;
+    }
+
+    impl embedded_io_async::Read for Client {
+        async fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+            core::future::poll_fn(|_| {
+                if !self.inbound.is_empty() {
+                    let chunk = self.inbound.remove(0);
+                    buf[..chunk.len()].copy_from_slice(chunk);
+                    Poll::Ready(Ok(chunk.len()))
+                } else if self.received.len() >= self.close_after {
+                    Poll::Ready(Ok(0))
+                } else {
+                    Poll::Pending
+                }
+            })
+            .await
+        }
+    }
+
+    impl embedded_io_async::Write for Client {
+        async fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+            self.received.extend_from_slice(buf);
+            Ok(buf.len())
+        }
+
+        async fn flush(&mut self) -> Result<(), Self::Error> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn the_link_is_taken_once() {
+        let s = server::<64, 1024>();
+        assert!(s.take().is_some());
+        assert!(s.take().is_none());
+    }
+
+    #[test]
+    fn replies_without_a_client_are_discarded() {
+        let s = server::<64, 1024>();
+        let mut link = s.take().unwrap();
+        assert_eq!(link.state(), LinkState::Disconnected);
+        assert_eq!(link.write(b"ok\n").unwrap(), 3);
+        assert!(s.tx.is_empty(), "nothing queued for nobody");
+        assert!(link.write_ready().unwrap());
+        assert_eq!(s.counters().tx_dropped.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn the_first_client_is_greeted_then_kept_alive_and_a_second_is_refused() {
+        let s = server::<64, 1024>();
+        s.configure(500);
+        let mut link = s.take().unwrap();
+        assert_eq!(link.session_poll_at(), None);
+        assert_eq!(s.connect(1_000), SessionAction::SendConnected);
+        assert_eq!(s.connect(1_010), SessionAction::RefuseSecondClient);
+        assert_eq!(link.state(), LinkState::Connected);
+        assert_eq!(link.poll_session(1_020), Some(SessionAction::SendConnected));
+        assert_eq!(link.poll_session(1_020), None, "greeted once");
+        assert_eq!(link.session_poll_at(), Some(1_500));
+        assert_eq!(
+            link.poll_session(1_500),
+            Some(SessionAction::SendKeepAlive(0))
+        );
+        assert_eq!(link.connections(), 1);
+        assert_eq!(s.counters().keep_alives.load(Ordering::Relaxed), 1);
+        s.disconnect();
+        assert_eq!(link.state(), LinkState::Disconnected);
+        assert_eq!(link.poll_session(3_000), None);
+        assert_eq!(s.connect(3_000), SessionAction::SendConnected);
+        assert_eq!(link.connections(), 2);
+    }
+
+    #[test]
+    fn a_client_that_leaves_before_its_greeting_is_not_greeted() {
+        let s = server::<64, 1024>();
+        let mut link = s.take().unwrap();
+        s.connect(0);
+        s.disconnect();
+        assert_eq!(link.poll_session(10), None);
+    }
+
+    #[test]
+    fn a_new_controller_does_not_get_the_replies_queued_for_the_last() {
+        let s = server::<64, 1024>();
+        let mut link = s.take().unwrap();
+        s.connect(0);
+        link.write_all(b"ok\n").unwrap();
+        assert!(!s.tx.is_empty());
+        s.disconnect();
+        assert!(s.tx.is_empty(), "dropped when the client left");
+        s.connect(10);
+        link.write_all(b"ok\n").unwrap();
+        // The session ends before its serving task has cleared the queue.
+        s.shared.lock(|sh| sh.borrow_mut().session.on_disconnect());
+        s.connect(30);
+        assert!(s.tx.is_empty(), "dropped when the next client came");
+    }
+
+    #[test]
+    fn input_is_read_only_while_its_replies_have_room() {
+        let s = server::<64, 1024>();
+        let mut link = s.take().unwrap();
+        s.connect(0);
+        assert!(!link.read_ready().unwrap(), "nothing received");
+        s.rx.try_write(b"G0\n").unwrap();
+        assert!(link.read_ready().unwrap());
+        let fill = [b'x'; 1024 - TX_HEADROOM + 1];
+        assert_eq!(link.try_write(&fill), fill.len());
+        assert!(!link.read_ready().unwrap(), "less than the headroom free");
+        let mut buf = [0u8; 8];
+        assert_eq!(link.read(&mut buf).unwrap(), 3);
+        assert_eq!(&buf[..3], b"G0\n");
+        assert_eq!(link.try_read(&mut buf), 0);
+    }
+
+    #[test]
+    fn a_full_transmit_queue_drops_and_counts_what_does_not_fit() {
+        let s = server::<64, 1024>();
+        let mut link = s.take().unwrap();
+        s.connect(0);
+        assert_eq!(link.write(&[b'x'; 1000]).unwrap(), 1000);
+        assert_eq!(link.write(&[b'y'; 100]).unwrap(), 100, "never waits");
+        assert_eq!(s.counters().tx_dropped.load(Ordering::Relaxed), 76);
+        assert!(!link.write_ready().unwrap());
+    }
+
+    #[test]
+    fn serving_moves_bytes_both_ways_until_the_client_closes() {
+        let s = server::<64, 1024>();
+        let mut link = s.take().unwrap();
+        s.connect(0);
+        link.write_all(b"start\n").unwrap();
+        let mut client = Client {
+            inbound: std::vec![b"M115\n", b"G0 X1\n"],
+            received: Vec::new(),
+            close_after: 6,
+        };
+        block_on(s.serve(&mut client));
+        assert_eq!(client.received, b"start\n");
+        let mut buf = [0u8; 32];
+        let n = link.try_read(&mut buf);
+        assert_eq!(&buf[..n], b"M115\nG0 X1\n");
+        let counters = s.counters();
+        assert_eq!(counters.rx_bytes.load(Ordering::Relaxed), 11);
+        assert_eq!(counters.tx_bytes.load(Ordering::Relaxed), 6);
+    }
+
+    #[test]
+    fn a_client_faster_than_the_controller_is_held_back_not_dropped() {
+        let s = server::<8, 1024>();
+        let mut link = s.take().unwrap();
+        s.connect(0);
+        let mut client = Client {
+            inbound: std::vec![b"G1 X10 Y20\n"],
+            received: Vec::new(),
+            close_after: 0,
+        };
+        let mut received = Vec::new();
+        let mut serving = core::pin::pin!(s.serve(&mut client));
+        let waker = core::task::Waker::noop();
+        let mut cx = core::task::Context::from_waker(waker);
+        while serving.as_mut().poll(&mut cx).is_pending() {
+            let mut buf = [0u8; 3];
+            let n = link.try_read(&mut buf);
+            received.extend_from_slice(&buf[..n]);
+        }
+        let mut buf = [0u8; 8];
+        loop {
+            let n = link.try_read(&mut buf);
+            if n == 0 {
+                break;
+            }
+            received.extend_from_slice(&buf[..n]);
+        }
+        assert_eq!(received, b"G1 X10 Y20\n");
+    }
+
+    #[test]
+    fn a_refused_client_gets_the_refusal() {
+        let s = server::<64, 1024>();
+        let mut client = Client {
+            inbound: Vec::new(),
+            received: Vec::new(),
+            close_after: 0,
+        };
+        fn busy(out: &mut [u8; 32]) -> usize {
+            let message = b"// E300 link-busy\n";
+            out[..message.len()].copy_from_slice(message);
+            message.len()
+        }
+        block_on(s.refuse(&mut client, busy));
+        assert_eq!(client.received, b"// E300 link-busy\n");
+        assert_eq!(s.counters().refused.load(Ordering::Relaxed), 1);
+    }
+
+    #[test]
+    fn the_wait_ends_at_news_or_at_the_deadline() {
+        let s = server::<64, 1024>();
+        let mut link = s.take().unwrap();
+        let start = Instant::now();
+        block_on(link.wait(start + Duration::from_millis(20)));
+        assert!(Instant::now() >= start + Duration::from_millis(20));
+        s.connect(0);
+        let start = Instant::now();
+        block_on(link.wait(start + Duration::from_secs(60)));
+        assert!(Instant::now() < start + Duration::from_secs(60), "woken");
+    }
+}

@@ -1,0 +1,55 @@
+//! The host link over WiFi: a TCP server on [`PORT`] with one controlling client at a time,
+//! across both stacks (station and access point).
+//!
+//! The link is `forja_drivers::tcp` ([`TcpServer`], [`TcpLink`]): the session rules
+//! (`LinkSession`, frames 54/55, the refusal of a second client with the application's
+//! `busy_refusal`, code 300 `link-busy`), the receive and transmit queues with their flow
+//! control, and the waking of the controller task are documented and tested there. This
+//! module fixes its sizes for the ESP32 family and keeps it in [`LINK`]:
+//!
+//! | what | value |
+//! |---|---|
+//! | port | [`PORT`], the simulator's |
+//! | listening tasks | [`LISTENERS`] per stack, each running [`listen`] |
+//! | receive / transmit queues | [`RX_LEN`] / [`TX_LEN`] bytes |
+//! | counters | [`FORJA_LINK_COUNTERS`], read by a debugger by symbol name |
+
+use forja_app::controller::busy_refusal;
+use forja_drivers::tcp::{LinkCounters, TcpLink, TcpQueues, TcpServer};
+
+use crate::net::Stack;
+
+/// The TCP port of the host link, the simulator's too.
+pub const PORT: u16 = 2323;
+
+/// Listening sockets per stack.
+pub const LISTENERS: usize = 2;
+
+/// Bytes of the receive queue (client to controller).
+pub const RX_LEN: usize = 2048;
+
+/// Bytes of the transmit queue (controller to client).
+pub const TX_LEN: usize = 2048;
+
+/// The link counters, at a symbol a debugger can find: connections, refusals, keep-alives,
+/// bytes and dropped replies.
+#[unsafe(no_mangle)]
+pub static FORJA_LINK_COUNTERS: LinkCounters = LinkCounters::new();
+
+/// The host link's byte queues.
+static QUEUES: TcpQueues<RX_LEN, TX_LEN> = TcpQueues::new();
+
+/// The host link: its session over the queues. The controller task takes its end once
+/// ([`TcpServer::take`]); the listening tasks serve it ([`listen`]).
+pub static LINK: TcpServer<RX_LEN, TX_LEN> = TcpServer::new(&QUEUES, &FORJA_LINK_COUNTERS);
+
+/// The controller's end of the host link.
+pub type WifiLink = TcpLink<'static, RX_LEN, TX_LEN>;
+
+/// Serve one listening socket of `stack` for ever: accept a client, then either serve it as
+/// the controller or refuse it, as the session decides.
+///
+/// Context: a task ([`LISTENERS`] per stack). Never returns.
+pub async fn listen(stack: Stack<'static>) -> ! {
+    LINK.listen(stack, PORT, busy_refusal).await
+}

@@ -1,0 +1,551 @@
+//! The simulator's two ways of running: a job streamed through the controller over an
+//! in-memory link ([`run_job`]), and serving hosts on TCP and a pseudo-terminal ([`listen`]).
+
+use core::fmt;
+use std::io::Write as _;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+use std::time::Duration;
+
+use embedded_io::{Read, ReadReady, Write, WriteReady};
+use forja_app::controller::Stats as ControllerStats;
+use forja_drivers::session::LinkSession;
+use forja_hal_abstraction::link::{LinkState, LinkStatus};
+use forja_host::program::Program;
+use forja_host::streamer::{Config, Stats};
+
+use forja_sim_hal::link::{FaultConfig, FaultInjector, HostLink, MemoryLink, PtyLink, TcpLink};
+use forja_sim_hal::{
+    Flow, MachineConfig, Pacing, SimClock, SimMachine, Simulation, SimulationConfig, StopReason,
+};
+
+use crate::host::StreamHost;
+use crate::job::Job;
+use forja_sim::board::{PortId, SimBoard};
+
+/// How [`run_job`] runs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobOptions {
+    /// Send `G28` before the job when the machine has axes that home (the job's coordinates
+    /// are machine coordinates, which the controller knows only once homed).
+    pub home_first: bool,
+    /// Faults on the bytes from the host.
+    pub faults: FaultConfig,
+    /// Give up after this much virtual time.
+    pub time_limit_ticks: Option<u64>,
+    /// As fast as possible, or held to the wall clock.
+    pub pacing: Pacing,
+    /// Record every step to this file.
+    pub trace: Option<PathBuf>,
+    /// Keep the board's flash in this state file ([`crate::state`]).
+    pub state: Option<PathBuf>,
+}
+
+impl Default for JobOptions {
+    fn default() -> Self {
+        Self {
+            home_first: true,
+            faults: FaultConfig {
+                corrupt_rate: 0.0,
+                drop_rate: 0.0,
+                seed: 0,
+            },
+            time_limit_ticks: None,
+            pacing: Pacing::AsFastAsPossible,
+            trace: None,
+            state: None,
+        }
+    }
+}
+
+/// The reply time-out of [`run_job`]'s streamer ([`Config::reply_timeout`]; its other settings
+/// are `forja send`'s for a serial link, [`Config::default`]). The controller answers a line
+/// only when it can take it, so a line held by homing, a heater wait or a full planner goes
+/// unanswered for as long as that lasts (homing the default router takes over 20 s of virtual
+/// time), and the in-memory link loses no reply: copies sent after a shorter time-out would
+/// only be refused as out of order.
+pub const JOB_REPLY_TIMEOUT: Duration = Duration::from_secs(600);
+
+/// What [`run_job`] did.
+#[derive(Debug, Clone)]
+pub struct JobRun {
+    /// The machine's name.
+    pub machine: String,
+    /// The job's name.
+    pub job: String,
+    /// Whether `G28` was sent first.
+    pub homed_first: bool,
+    /// Whether the controller took every line and the machine came to rest.
+    pub finished: bool,
+    /// Lines of the job streamed (`G28` included when homed first; blank and comment lines,
+    /// the handshake's `M110` and the closing line not counted).
+    pub lines: usize,
+    /// How many of them the controller took.
+    pub accepted: usize,
+    /// The streamer's counters.
+    pub sender: Stats,
+    /// The `!!` lines received (refused lines and faults), in order.
+    pub faults: Vec<String>,
+    /// The controller's view.
+    pub controller: ControllerStats,
+    /// Virtual time the run took, seconds.
+    pub virtual_s: f64,
+    /// Wall-clock time the run took.
+    pub wall: Duration,
+    /// Each axis: its letter, its physical position at the end (mm, or degrees), the steps it
+    /// made, and the steps lost to a disabled driver.
+    pub axes: Vec<(char, f64, u64, u64)>,
+    /// Driver timing rules broken (pulse width, direction set-up).
+    pub violations: u64,
+}
+
+impl JobRun {
+    /// Whether the job ran through, with every line taken and nothing wrong with the steps.
+    pub fn is_clean(&self) -> bool {
+        self.finished
+            && self.faults.is_empty()
+            && self.violations == 0
+            && self.axes.iter().all(|a| a.3 == 0)
+    }
+}
+
+impl fmt::Display for JobRun {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(f, "machine: {}", self.machine)?;
+        writeln!(
+            f,
+            "job: {}{}",
+            self.job,
+            if self.homed_first { " (after G28)" } else { "" }
+        )?;
+        writeln!(
+            f,
+            "result: {}",
+            if self.finished {
+                "finished"
+            } else {
+                "did not finish"
+            }
+        )?;
+        writeln!(
+            f,
+            "lines run: {} of {}{}; executed {} (with M110 and the closing line), refused {}, \
+             resends {}",
+            self.accepted,
+            self.lines,
+            if self.homed_first {
+                " (G28 included)"
+            } else {
+                ""
+            },
+            self.controller.executed,
+            self.controller.refused,
+            self.controller.resends
+        )?;
+        for fault in &self.faults {
+            writeln!(f, "  {fault}")?;
+        }
+        writeln!(
+            f,
+            "virtual time: {:.3} s (wall {:.3} s)",
+            self.virtual_s,
+            self.wall.as_secs_f64()
+        )?;
+        write!(f, "final position:")?;
+        for (letter, mm, _, _) in &self.axes {
+            write!(f, " {letter} {mm:.3}")?;
+        }
+        writeln!(f)?;
+        write!(f, "steps:")?;
+        for (letter, _, steps, lost) in &self.axes {
+            write!(f, " {letter} {steps}")?;
+            if *lost > 0 {
+                write!(f, " ({lost} lost)")?;
+            }
+        }
+        writeln!(f)?;
+        write!(f, "timing violations: {}", self.violations)
+    }
+}
+
+/// Stream `job` to the firmware on a new machine as `config` describes it, over an in-memory
+/// link, as `forja send` does (its program check, then its streamer with the window of a serial
+/// link and [`JOB_REPLY_TIMEOUT`]), as fast as the computer runs, until the controller has taken every
+/// line and the machine is at rest, or the streamer stops (an alarm).
+///
+/// Errors: a job line that does not parse or cannot be sent, a board that cannot be built, a
+/// simulation error.
+pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Result<JobRun, String> {
+    let program =
+        Program::parse(job.text().as_bytes()).map_err(|e| format!("{}: {e}", job.name()))?;
+    let machine = SimMachine::new(config);
+    machine.set_tracing(options.trace.is_some());
+    let board_config = crate::state::board_config(options.state.as_deref())?;
+    let mut board = SimBoard::new(&machine, board_config).map_err(|e| e.to_string())?;
+    let (link, host) = MemoryLink::pair();
+    let link = FaultInjector::new(link, options.faults).map_err(|e| e.to_string())?;
+    board.add_port(link, false);
+    let home = options.home_first && config.axes.iter().any(|a| a.homing.is_some());
+    let lines = home.then_some("G28").into_iter().chain(program.texts());
+    let streamer = Config {
+        reply_timeout: JOB_REPLY_TIMEOUT,
+        ..Config::default()
+    };
+    let mut sender = StreamHost::new(streamer, lines).map_err(|(i, e)| {
+        let source = (i - 1)
+            .checked_sub(usize::from(home))
+            .and_then(|k| program.lines.get(k));
+        match source {
+            Some(l) => format!("{}, line {}: {e}", job.name(), l.source_line),
+            None => format!("G28: {e}"),
+        }
+    })?;
+    let mut sim_config = SimulationConfig::new(config.tick_hz);
+    sim_config.time_limit_ticks = options.time_limit_ticks;
+    sim_config.pacing = options.pacing;
+    let mut sim = Simulation::new(machine.clone(), sim_config);
+    let tick_hz = u64::from(config.tick_hz);
+    let report = board
+        .run(&mut sim, |board, _| {
+            let now_ms = board.machine().now_ticks() * 1000 / tick_hz;
+            let out = sender.exchange(&host.take_received(), now_ms);
+            if !out.is_empty() {
+                host.send(&out);
+            }
+            let status = board.status();
+            if sender.is_over() && status.idle && !status.holding {
+                Flow::Stop
+            } else {
+                Flow::Continue
+            }
+        })
+        .map_err(|e| e.to_string())?;
+    let axes = config
+        .axes
+        .iter()
+        .enumerate()
+        .map(|(i, a)| {
+            (
+                a.letter,
+                machine.position_mm(i).unwrap_or(0.0),
+                machine.step_count(i).unwrap_or(0),
+                machine.lost_steps(i).unwrap_or(0),
+            )
+        })
+        .collect();
+    if let Some(path) = &options.trace {
+        machine
+            .take_trace()
+            .save(path)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    Ok(JobRun {
+        machine: config.name.clone(),
+        job: job.name().to_string(),
+        homed_first: home,
+        finished: report.stop == StopReason::Firmware && sender.is_done(),
+        lines: sender.streamer().pushed() as usize,
+        accepted: sender.streamer().accepted() as usize,
+        sender: sender.stats(),
+        faults: sender.faults().map(str::to_string).collect(),
+        controller: board.status().stats,
+        virtual_s: report.virtual_ticks() as f64 / config.tick_hz as f64,
+        wall: report.wall,
+        axes,
+        violations: machine.violation_count(),
+    })
+}
+
+/// A served link that counts what it received and reports its host coming and going.
+#[derive(Debug)]
+pub struct Watched<L> {
+    name: &'static str,
+    link: L,
+    clock: SimClock,
+    tick_hz: f64,
+    state: LinkState,
+    received: u64,
+}
+
+impl<L: HostLink> Watched<L> {
+    /// Watch `link`, reporting on stderr as `name` at the times of `clock`.
+    pub fn new(name: &'static str, link: L, clock: SimClock, tick_hz: u32) -> Self {
+        Self {
+            name,
+            link,
+            clock,
+            tick_hz: f64::from(tick_hz),
+            state: LinkState::Disconnected,
+            received: 0,
+        }
+    }
+
+    /// Bytes the firmware has read.
+    pub fn received(&self) -> u64 {
+        self.received
+    }
+
+    /// The watched link.
+    pub fn inner(&self) -> &L {
+        &self.link
+    }
+}
+
+impl<L: HostLink> embedded_io::ErrorType for Watched<L> {
+    type Error = L::Error;
+}
+
+impl<L: HostLink> Read for Watched<L> {
+    fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        let n = self.link.read(buf)?;
+        self.received += n as u64;
+        Ok(n)
+    }
+}
+
+impl<L: HostLink> ReadReady for Watched<L> {
+    fn read_ready(&mut self) -> Result<bool, Self::Error> {
+        self.link.read_ready()
+    }
+}
+
+impl<L: HostLink> Write for Watched<L> {
+    fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+        self.link.write(buf)
+    }
+    fn flush(&mut self) -> Result<(), Self::Error> {
+        self.link.flush()
+    }
+}
+
+impl<L: HostLink> WriteReady for Watched<L> {
+    fn write_ready(&mut self) -> Result<bool, Self::Error> {
+        self.link.write_ready()
+    }
+}
+
+impl<L: HostLink> LinkStatus for Watched<L> {
+    fn state(&self) -> LinkState {
+        self.link.state()
+    }
+}
+
+impl<L: HostLink> Watched<L> {
+    /// Report a change of the link's state.
+    fn watch(&mut self) {
+        let state = self.link.state();
+        if state != self.state {
+            self.state = state;
+            let what = match state {
+                LinkState::Connected => "host connected",
+                LinkState::Disconnected => "host disconnected",
+            };
+            let now_s = self.clock.now_ticks() as f64 / self.tick_hz;
+            eprintln!("forja-sim: [{now_s:.3} s] {}: {what}", self.name);
+        }
+    }
+}
+
+impl<L: HostLink> HostLink for Watched<L> {
+    fn poll(&mut self) -> Result<(), Self::Error> {
+        self.link.poll()?;
+        self.watch();
+        Ok(())
+    }
+
+    fn connections(&self) -> u64 {
+        self.link.connections()
+    }
+
+    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
+        let admitted = self.link.admit(session, now_ms)?;
+        self.watch();
+        Ok(admitted)
+    }
+
+    fn discard_input(&mut self) -> Result<usize, Self::Error> {
+        self.link.discard_input()
+    }
+
+    fn hang_up(&mut self) {
+        self.link.hang_up();
+        self.watch();
+    }
+}
+
+/// How [`listen`] serves.
+#[derive(Debug, Clone)]
+pub struct ListenOptions {
+    /// Where the TCP link listens (port 0: any free port).
+    pub tcp: SocketAddr,
+    /// A symbolic link to make to the pseudo-terminal.
+    pub pty_link: Option<PathBuf>,
+    /// Faults on the bytes from hosts.
+    pub faults: FaultConfig,
+    /// Real time, or faster.
+    pub pacing: Pacing,
+    /// Stop after this much virtual time.
+    pub time_limit_ticks: Option<u64>,
+    /// Record every step to this file.
+    pub trace: Option<PathBuf>,
+    /// Keep the board's flash in this state file ([`crate::state`]).
+    pub state: Option<PathBuf>,
+    /// What a host that is not in control is sent: a TCP client that connects while another
+    /// host is in control (it is then closed), and a terminal host whose input is refused.
+    pub busy_message: Vec<u8>,
+    /// Virtual time after which a silent controlling host loses control (a TCP client is
+    /// closed), ms; `None`: never. See [`SimBoard::set_idle_timeout`].
+    pub idle_timeout_ms: Option<u32>,
+}
+
+/// The idle time-out [`listen`] is given by default: a minute of silence.
+pub const DEFAULT_IDLE_TIMEOUT_MS: u32 = 60_000;
+
+type Served<L> = Watched<FaultInjector<L>>;
+
+fn watched<L: HostLink>(
+    name: &'static str,
+    link: L,
+    machine: &SimMachine,
+    faults: FaultConfig,
+) -> Result<Served<L>, String> {
+    Ok(Watched::new(
+        name,
+        FaultInjector::new(link, faults).map_err(|e| e.to_string())?,
+        machine.clock(),
+        machine.tick_hz(),
+    ))
+}
+
+/// Serve hosts on TCP (with frames 54 and 55) and on a pseudo-terminal, through the
+/// controller, paced to the wall clock, until the time limit or until `stop` is raised.
+/// Prints where the links are, then a summary.
+///
+/// Errors: a link that cannot be opened or fails, a board that cannot be built.
+pub fn listen(
+    config: &MachineConfig,
+    options: &ListenOptions,
+    stop: Arc<AtomicBool>,
+) -> Result<(), String> {
+    let tcp_addr = options.tcp;
+    let tcp = TcpLink::bind(tcp_addr, options.busy_message.clone())
+        .map_err(|e| format!("tcp {tcp_addr}: {e}"))?;
+    let tcp_addr = tcp
+        .local_addr()
+        .map_err(|e| format!("tcp {tcp_addr}: {e}"))?;
+    let pty = PtyLink::open(options.pty_link.as_deref()).map_err(|e| match &options.pty_link {
+        Some(p) => format!("pseudo-terminal (link {}): {e}", p.display()),
+        None => format!("pseudo-terminal: {e}"),
+    })?;
+    println!("machine: {}", config.name);
+    println!("tcp: {tcp_addr}");
+    println!("pty: {}", pty.slave_path().display());
+    if let Some(link) = pty.symlink_path() {
+        println!(
+            "pty-link: {} -> {}",
+            link.display(),
+            pty.slave_path().display()
+        );
+    }
+    if options.faults.is_active() {
+        println!(
+            "faults: corrupt {} drop {} seed {} (bytes from hosts only)",
+            options.faults.corrupt_rate, options.faults.drop_rate, options.faults.seed
+        );
+    }
+    let _ = std::io::stdout().flush();
+
+    let machine = SimMachine::new(config);
+    machine.set_tracing(options.trace.is_some());
+    let board_config = crate::state::board_config(options.state.as_deref())?;
+    let mut board = SimBoard::new(&machine, board_config).map_err(|e| e.to_string())?;
+    let tcp_port = board.add_port(watched("tcp", tcp, &machine, options.faults)?, true);
+    let pty_port = board.add_port(watched("pty", pty, &machine, options.faults)?, false);
+    for port in [tcp_port, pty_port] {
+        board.set_idle_timeout(port, options.idle_timeout_ms);
+    }
+    board.set_busy_message(options.busy_message.clone());
+
+    let mut sim_config = SimulationConfig::new(config.tick_hz);
+    sim_config.pacing = options.pacing;
+    sim_config.time_limit_ticks = options.time_limit_ticks;
+    let mut sim = Simulation::new(machine.clone(), sim_config);
+    sim.set_stop_flag(stop);
+    let mut failure = None;
+    let report = board
+        .run(&mut sim, |board, _| {
+            for id in [tcp_port, pty_port] {
+                if let Some(e) = board.port_failure(id) {
+                    failure = Some(e.to_string());
+                    return Flow::Stop;
+                }
+            }
+            Flow::Continue
+        })
+        .map_err(|e| e.to_string())?;
+    if let Some(e) = failure {
+        return Err(e);
+    }
+    let why = match report.stop {
+        StopReason::TimeLimit => "time limit",
+        StopReason::Interrupted => "interrupted",
+        StopReason::Firmware => "stopped",
+    };
+    println!(
+        "ended ({why}) after {:.3} s of virtual time",
+        report.virtual_ticks() as f64 / f64::from(config.tick_hz)
+    );
+    summary::<TcpLink>(&board, tcp_port, "tcp", options.faults);
+    summary::<PtyLink>(&board, pty_port, "pty", options.faults);
+    let stats = board.status().stats;
+    println!(
+        "controller: {} lines executed, {} refused, {} resends, {} frames, {} errors",
+        stats.executed, stats.refused, stats.resends, stats.frames, stats.errors
+    );
+    if let Some(path) = &options.trace {
+        machine
+            .take_trace()
+            .save(path)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+        println!("trace: {}", path.display());
+    }
+    Ok(())
+}
+
+fn summary<L: HostLink<Error = std::io::Error> + 'static>(
+    board: &SimBoard,
+    id: PortId,
+    name: &str,
+    faults: FaultConfig,
+) {
+    let Some(port) = board.port::<Served<L>>(id) else {
+        return;
+    };
+    print!(
+        "{name}: {} connections, {} bytes received",
+        port.connections(),
+        port.received()
+    );
+    if let Some(s) = board.port_stats(id) {
+        print!(
+            ", {} sessions, {} idle time-outs, {} bytes refused",
+            s.sessions, s.idle_timeouts, s.refused_bytes
+        );
+    }
+    let link: &dyn std::any::Any = port.inner().inner();
+    if let Some(tcp) = link.downcast_ref::<TcpLink>() {
+        print!(", {} dropped for not reading", tcp.overflows());
+    } else if let Some(pty) = link.downcast_ref::<PtyLink>() {
+        print!(", {} reply bytes discarded", pty.tx_discarded());
+    }
+    if faults.is_active() {
+        let s = port.inner().stats();
+        print!(
+            " ({} from the host, {} dropped, {} corrupted)",
+            s.bytes, s.dropped, s.corrupted
+        );
+    }
+    println!();
+}
