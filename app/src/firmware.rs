@@ -119,6 +119,7 @@ where
         Firmware {
             controller,
             wake_at: None,
+            loaded: report,
         },
         report,
     ))
@@ -128,6 +129,8 @@ where
 pub struct Firmware<'q, const N: usize, const B: usize, const Q: usize, P, X, S> {
     controller: Controller<'q, N, B, Q, P, X, S>,
     wake_at: Option<Instant>,
+    /// What the settings load found in the storage at start-up.
+    loaded: LoadReport,
 }
 
 impl<'q, const N: usize, const B: usize, const Q: usize, P, X, S> Firmware<'q, N, B, Q, P, X, S>
@@ -182,6 +185,12 @@ where
     /// The controller, for what a board reads of it (its statistics, its settings).
     pub fn controller(&self) -> &Controller<'q, N, B, Q, P, X, S> {
         &self.controller
+    }
+
+    /// What [`assemble`] found in the settings storage: the stored values it applied and those
+    /// it ignored.
+    pub fn load_report(&self) -> LoadReport {
+        self.loaded
     }
 
     /// The controller alone, the firmware given up (a simulator that keeps what it stored).
@@ -421,6 +430,7 @@ mod tests {
     use forja_motion::{AxisConfig, HomeDirection, HomingConfig};
 
     use super::*;
+    use crate::controller::Key;
     use crate::controller::settings::tests::VecStorage;
     use crate::peripherals::MotorEnables;
 
@@ -614,6 +624,45 @@ mod tests {
         assert_eq!(watch.steps.get(), 80, "1 mm of X at 80 steps/mm");
         assert!(b.1.link.replies().contains("ok"));
         assert_eq!(b.1.firmware().controller().stats().oks, 1);
+    }
+
+    #[test]
+    fn a_board_reads_back_its_status_its_settings_load_and_its_program() {
+        let machine = MachineConfig::new([AxisConfig::linear(b'X', 80.0, 6000.0, 500.0, 200.0)]);
+        // One stored value that no longer validates: ignored at start-up, and said so.
+        let mut settings = VecStorage::default();
+        let mut buf = [0u8; 8];
+        let bad = postcard::to_slice(&-1f32, &mut buf).unwrap().to_vec();
+        settings.records.push((Key::JogFeed.record(&machine), bad));
+        let mut program = RamStore::<4>::new();
+        program.begin(3).unwrap();
+        program.store(1, b"G90").unwrap();
+        program.store(2, b"G1 X1").unwrap();
+        let mut queue = StepQueue::<1, 256>::new();
+        let (_, mut fw, report) = assemble::<1, 8, 256, _, _, _>(Parts {
+            machine,
+            settings,
+            queue: &mut queue,
+            tick_hz: TICK_HZ,
+            config: ControllerConfig::new("cnc", StepTiming::CONSERVATIVE),
+            program,
+            peripherals: crate::controller::NoPeripherals,
+        })
+        .unwrap();
+        assert_eq!(fw.load_report(), report);
+        assert_eq!(report.ignored, 1);
+
+        let status = fw.controller().status();
+        assert!(status.idle && !status.holding);
+        assert_eq!(status.state, forja_motion::MachineState::Idle);
+        assert_eq!((status.program_lines, status.program_total), (2, 3));
+        assert_eq!(status.homed, 0);
+        assert_eq!(status.stats, fw.controller().stats());
+
+        let mut line = [0u8; forja_hal_abstraction::program::MAX_LINE_LEN];
+        let c = fw.controller_mut();
+        assert_eq!(c.read_program_line(2, &mut line), Some("G1 X1"));
+        assert_eq!(c.read_program_line(3, &mut line), None, "not stored yet");
     }
 
     #[test]

@@ -44,7 +44,7 @@
 
 use embedded_io::{ErrorType, Read, ReadReady, Write};
 use forja_drivers::session::{LinkSession, SessionAction};
-use forja_hal_abstraction::link::{LinkState, LinkStatus};
+use forja_hal_abstraction::link::LinkState;
 use forja_hal_abstraction::program::ProgramStore;
 use forja_hal_abstraction::storage::RecordStorage;
 use forja_hal_abstraction::time::Instant;
@@ -54,41 +54,9 @@ use crate::controller::{
     BUSY_REFUSAL_LEN, Controller, Peripherals, PollOutcome, Realtime, busy_refusal, realtime,
 };
 
-/// A host link that a board serves as one of its ports: bytes in both directions, whether a
-/// host is there ([`LinkStatus`]), and the connections of its hosts.
-///
-/// Context: thread. No method blocks, writes included: a link drops or discards what its host
-/// does not read.
-pub trait PortLink: Read + ReadReady + Write + LinkStatus {
-    /// Service the link: notice peers that arrive and leave, move bytes between the link and
-    /// its buffers.
-    ///
-    /// Errors: the link itself failed; a peer that goes away is a state change, not an error.
-    fn poll(&mut self) -> Result<(), Self::Error>;
-
-    /// How many hosts have arrived on the link so far: a change is a new host.
-    fn connections(&self) -> u64;
-
-    /// Let `session` admit or refuse, at `now_ms`, the clients that connected to a
-    /// connection-oriented link since the last call (a refused one is sent the link's busy
-    /// message and closed). Returns whether one became the controlling client. A link without
-    /// connections admits nobody, which is the provided implementation.
-    ///
-    /// Errors: as [`PortLink::poll`].
-    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
-        let _ = (session, now_ms);
-        Ok(false)
-    }
-
-    /// Drop every byte received and not yet read. Returns how many were dropped.
-    ///
-    /// Errors: as [`PortLink::poll`].
-    fn discard_input(&mut self) -> Result<usize, Self::Error>;
-
-    /// Close the controlling host's connection (its session timed out). A link that cannot
-    /// (a terminal, a UART) does nothing, which is the provided implementation.
-    fn hang_up(&mut self) {}
-}
+/// What a link must do to be one of the ports: the drivers' link contract
+/// ([`forja_drivers::port_link`]).
+pub use forja_drivers::port_link::PortLink;
 
 /// What happened to the hosts of a port, counted from its start.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -536,6 +504,7 @@ mod tests {
     use std::collections::VecDeque;
     use std::vec::Vec;
 
+    use forja_hal_abstraction::link::LinkStatus;
     use forja_hal_abstraction::program::RamStore;
     use forja_hal_abstraction::stepper::StepTiming;
     use forja_motion::{AxisConfig, MachineConfig, StepQueue, split};

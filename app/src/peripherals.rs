@@ -173,8 +173,8 @@ impl LimitSwitch for NoLimit {
 
 /// One enable line per driver, switched together: a [`StepperEnable`] for all of them.
 ///
-/// Typically `K` [`crate::stepper::StepDir`]s with no STEP or DIR pin
-/// ([`crate::pin::NoPin`]) and each driver's ENABLE pin, when the step interrupt owns the
+/// Typically `K` [`forja_drivers::stepper::StepDir`]s with no STEP or DIR pin
+/// ([`forja_drivers::pin::NoPin`]) and each driver's ENABLE pin, when the step interrupt owns the
 /// STEP and DIR lines.
 #[derive(Debug, Clone)]
 pub struct MotorEnables<E, const K: usize>(pub [E; K]);

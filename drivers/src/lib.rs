@@ -14,6 +14,7 @@
 //! | [`limit`] | [`LimitInput`](limit::LimitInput) | `LimitSwitch` | either: polled by the step interrupt, one pin read |
 //! | [`uart`] | [`UartBuffers`](uart::UartBuffers), [`UartLink`](uart::UartLink) | `embedded_io::{Read, ReadReady, Write, WriteReady}` | RX/TX interrupts push and pop; the protocol task reads and writes |
 //! | [`session`] | [`LinkSession`](session::LinkSession) | `LinkStatus` | thread: the network task |
+//! | [`port_link`] | [`PortLink`](port_link::PortLink): what a link a board serves as a port must do | (contract) `embedded_io::{Read, ReadReady, Write}`, `LinkStatus` | thread: the board's host task |
 //! | `tcp` (feature `embassy-net`) | `TcpServer`, `TcpLink` | `embedded_io::{Read, ReadReady, Write, WriteReady}`, `LinkStatus` | thread: listening tasks serve the sockets; the controller's task reads and writes |
 //! | [`thermistor`] | [`Thermistor`](thermistor::Thermistor) | `TemperatureSensor` | thread: may block for one ADC conversion |
 //! | [`max31855`] | [`Max31855`](max31855::Max31855) | `TemperatureSensor` | thread: one SPI transfer |
@@ -54,6 +55,7 @@
 //!
 //! | feature | adds |
 //! |---|---|
+//! | `alloc` | `PortLink` for `Box<T>` (with `embedded-io`'s and `LinkStatus`'s own), for a board that serves links of several types; it allocates nothing itself |
 //! | `embassy-net` | the `tcp` module: a TCP host link over an `embassy-net` stack (embassy-sync queues, embassy-time time-outs), for boards with a network; no executor is named |
 //!
 //! ## Writing a driver
@@ -78,6 +80,7 @@ pub mod heater;
 pub mod limit;
 pub mod max31855;
 pub mod pin;
+pub mod port_link;
 pub mod program_flash;
 pub mod pwm;
 pub mod ram_flash;

@@ -187,7 +187,7 @@ const PROBE_LIMIT: Duration = Duration::from_secs(2);
 
 /// How many times [`probe_line_check`] asks: an `M115` or its answer damaged on the link gets
 /// an `ok` (or a refusal) with no capabilities line, which a firmware without `M115` gives too.
-const PROBE_ATTEMPTS: u32 = 3;
+pub const PROBE_ATTEMPTS: u32 = 3;
 
 /// Ask the controller with `M115` which check it takes on numbered lines: [`Check::Crc16`]
 /// when its answer announces `LINE_CHECK:CRC16`, else [`Check::Xor`] (another firmware, or no

@@ -315,7 +315,7 @@ fn run(faults: FaultConfig, host: Host) -> Outcome {
                 }
             }
             let s = board.status();
-            if streamer.phase() == Phase::Done && s.idle && !s.holding {
+            if streamer.phase() == Phase::Done && s.controller.idle && !s.controller.holding {
                 return Flow::Stop;
             }
             if wall.elapsed() > wall_limit {
@@ -356,9 +356,9 @@ fn run(faults: FaultConfig, host: Host) -> Outcome {
             .map(|a| machine.step_count(a).unwrap())
             .collect(),
         bursts: axes.map(|a| bursts(&trace, a)).collect(),
-        executed: status.stats.executed,
-        resends: status.stats.resends,
-        refused: status.stats.refused,
+        executed: status.controller.stats.executed,
+        resends: status.controller.stats.resends,
+        refused: status.controller.stats.refused,
         stream: streamer.stats(),
         refusals,
         injected: injector.stats(),

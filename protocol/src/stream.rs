@@ -30,14 +30,14 @@
 //!   numbered, checksummed G-code line (`N12 G1 X5*71 ; …F`) is a line: no frame parses as one
 //!   (a frame's `*` padding is not a checksum, and a frame without padding has no `*`), so the
 //!   line is answered as a line and its resend ends.
-//! - A record longer than [`MAX_LINE_LEN`](crate::gcode::MAX_LINE_LEN) is discarded to its
+//! - A record longer than [`MAX_LINE_LEN`] is discarded to its
 //!   terminator and reported once as [`Event::TooLong`], never truncated.
 //! - A control byte (other than tab, CR, LF) is garbage: the record it falls in is discarded,
 //!   and so is everything up to the next terminator or `N`, where decoding resumes. The run is
 //!   reported once as [`Event::Garbage`] with its length, and whether printable bytes were
 //!   among them (a line, or part of one, was lost). Bytes before a frame at the end of a
 //!   record (`xyzN02…F`) are garbage too.
-//! - Memory is one [`MAX_LINE_LEN`](crate::gcode::MAX_LINE_LEN) buffer; no input can make it
+//! - Memory is one [`MAX_LINE_LEN`] buffer; no input can make it
 //!   grow, loop or panic.
 
 use heapless::Vec;
@@ -72,7 +72,7 @@ pub enum Event<'a> {
         /// not only control bytes between records.
         text: bool,
     },
-    /// A line longer than [`MAX_LINE_LEN`](crate::gcode::MAX_LINE_LEN) was dropped (report as
+    /// A line longer than [`MAX_LINE_LEN`] was dropped (report as
     /// [`crate::error::LineError::TooLong`], code 1).
     TooLong {
         /// Its length, terminator excluded.

@@ -16,7 +16,7 @@ use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use forja_host::program::Program;
 use forja_host::streamer::{Config, Stats};
 
-use forja_sim_hal::link::{FaultConfig, FaultInjector, HostLink, MemoryLink, PtyLink, TcpLink};
+use forja_sim_hal::link::{FaultConfig, FaultInjector, MemoryLink, PortLink, PtyLink, TcpLink};
 use forja_sim_hal::{
     Flow, MachineConfig, Pacing, SimClock, SimMachine, Simulation, SimulationConfig, StopReason,
 };
@@ -215,7 +215,7 @@ pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Resul
                 host.send(&out);
             }
             let status = board.status();
-            if sender.is_over() && status.idle && !status.holding {
+            if sender.is_over() && status.controller.idle && !status.controller.holding {
                 Flow::Stop
             } else {
                 Flow::Continue
@@ -250,7 +250,7 @@ pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Resul
         accepted: sender.streamer().accepted() as usize,
         sender: sender.stats(),
         faults: sender.faults().map(str::to_string).collect(),
-        controller: board.status().stats,
+        controller: board.status().controller.stats,
         virtual_s: report.virtual_ticks() as f64 / config.tick_hz as f64,
         wall: report.wall,
         axes,
@@ -269,7 +269,7 @@ pub struct Watched<L> {
     received: u64,
 }
 
-impl<L: HostLink> Watched<L> {
+impl<L: PortLink> Watched<L> {
     /// Watch `link`, reporting on stderr as `name` at the times of `clock`.
     pub fn new(name: &'static str, link: L, clock: SimClock, tick_hz: u32) -> Self {
         Self {
@@ -293,11 +293,11 @@ impl<L: HostLink> Watched<L> {
     }
 }
 
-impl<L: HostLink> embedded_io::ErrorType for Watched<L> {
+impl<L: PortLink> embedded_io::ErrorType for Watched<L> {
     type Error = L::Error;
 }
 
-impl<L: HostLink> Read for Watched<L> {
+impl<L: PortLink> Read for Watched<L> {
     fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
         let n = self.link.read(buf)?;
         self.received += n as u64;
@@ -305,13 +305,13 @@ impl<L: HostLink> Read for Watched<L> {
     }
 }
 
-impl<L: HostLink> ReadReady for Watched<L> {
+impl<L: PortLink> ReadReady for Watched<L> {
     fn read_ready(&mut self) -> Result<bool, Self::Error> {
         self.link.read_ready()
     }
 }
 
-impl<L: HostLink> Write for Watched<L> {
+impl<L: PortLink> Write for Watched<L> {
     fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
         self.link.write(buf)
     }
@@ -320,19 +320,19 @@ impl<L: HostLink> Write for Watched<L> {
     }
 }
 
-impl<L: HostLink> WriteReady for Watched<L> {
+impl<L: PortLink + WriteReady> WriteReady for Watched<L> {
     fn write_ready(&mut self) -> Result<bool, Self::Error> {
         self.link.write_ready()
     }
 }
 
-impl<L: HostLink> LinkStatus for Watched<L> {
+impl<L: PortLink> LinkStatus for Watched<L> {
     fn state(&self) -> LinkState {
         self.link.state()
     }
 }
 
-impl<L: HostLink> Watched<L> {
+impl<L: PortLink> Watched<L> {
     /// Report a change of the link's state.
     fn watch(&mut self) {
         let state = self.link.state();
@@ -348,7 +348,7 @@ impl<L: HostLink> Watched<L> {
     }
 }
 
-impl<L: HostLink> HostLink for Watched<L> {
+impl<L: PortLink> PortLink for Watched<L> {
     fn poll(&mut self) -> Result<(), Self::Error> {
         self.link.poll()?;
         self.watch();
@@ -405,7 +405,7 @@ pub const DEFAULT_IDLE_TIMEOUT_MS: u32 = 60_000;
 
 type Served<L> = Watched<FaultInjector<L>>;
 
-fn watched<L: HostLink>(
+fn watched<L: PortLink>(
     name: &'static str,
     link: L,
     machine: &SimMachine,
@@ -499,7 +499,7 @@ pub fn listen(
     );
     summary::<TcpLink>(&board, tcp_port, "tcp", options.faults);
     summary::<PtyLink>(&board, pty_port, "pty", options.faults);
-    let stats = board.status().stats;
+    let stats = board.status().controller.stats;
     println!(
         "controller: {} lines executed, {} refused, {} resends, {} frames, {} errors",
         stats.executed, stats.refused, stats.resends, stats.frames, stats.errors
@@ -514,7 +514,7 @@ pub fn listen(
     Ok(())
 }
 
-fn summary<L: HostLink<Error = std::io::Error> + 'static>(
+fn summary<L: PortLink<Error = std::io::Error> + 'static>(
     board: &SimBoard,
     id: PortId,
     name: &str,

@@ -7,7 +7,7 @@
 
 use std::path::Path;
 
-use forja_sim::board::{BoardConfig, SimBoard, Stored};
+use forja_sim::board::{BoardConfig, SimBoard};
 use forja_sim_hal::state::BoardFlash;
 use forja_sim_hal::{MachineConfig, SimMachine};
 
@@ -38,22 +38,21 @@ pub fn describe(machine: &MachineConfig, path: &Path) -> Result<String, String> 
         flash: BoardFlash::snapshot(path).map_err(|e| e.to_string())?,
         ..BoardConfig::default()
     };
-    let Stored {
-        settings,
-        ignored_settings: ignored,
-        program,
-        program_total,
-    } = SimBoard::new(&SimMachine::new(machine), config)
-        .map_err(|e| {
-            format!(
-                "state file {}: the firmware does not start: {e}",
-                path.display()
-            )
-        })?
-        .stored();
+    let mut board = SimBoard::new(&SimMachine::new(machine), config).map_err(|e| {
+        format!(
+            "state file {}: the firmware does not start: {e}",
+            path.display()
+        )
+    })?;
+    let status = board.status();
+    let program: Vec<Option<String>> = (1..=status.controller.program_lines)
+        .map(|i| board.program_line(i))
+        .collect();
+    let (settings, ignored) = (board.settings(), board.load_report().ignored);
+    let program_total = status.controller.program_total;
     let incomplete = (usize::from(program_total) > program.len()).then_some(program_total);
     let mut out = format!("state: {}\n  settings:\n", path.display());
-    for line in &settings {
+    for line in settings.lines() {
         out.push_str(&format!("    {line}\n"));
     }
     if ignored > 0 {

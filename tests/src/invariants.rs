@@ -1,6 +1,6 @@
 //! The controller's safety invariants, checked under arbitrary interleavings of host input.
 //!
-//! A [`Session`] is the simulator's board on a small router ([`MACHINE`]) and an in-memory
+//! A `Session` is the simulator's board on a small router ([`MACHINE`]) and an in-memory
 //! link, played by a host that behaves as Printrun does (numbered, checksummed lines, one in
 //! flight, `rs` answered by a resend) while an operator interleaves the frames' realtime
 //! actions, `M112` (sent out of turn, its own `ok` awaited), jogs, homing, refused lines,
@@ -458,13 +458,13 @@ impl Host {
     /// firmware holds.
     fn settled(&self, poll: &Poll) -> bool {
         let st = &poll.status;
-        let standing = match st.state {
+        let standing = match st.controller.state {
             MachineState::Hold { stopped } => stopped,
-            _ => st.idle && !st.holding,
+            _ => st.controller.idle && !st.controller.holding,
         };
         let waiting = match self.in_flight {
             None => self.to_send.is_empty(),
-            Some(_) => st.holding,
+            Some(_) => st.controller.holding,
         };
         !poll.stepping && standing && waiting && self.link.pending_to_firmware() == 0
     }
@@ -527,11 +527,11 @@ impl Host {
     }
 
     fn check_travel(&self, status: &BoardStatus) {
-        if matches!(status.state, MachineState::Homing) {
+        if matches!(status.controller.state, MachineState::Homing) {
             return;
         }
         for axis in 0..AXES {
-            if status.homed & (1 << axis) == 0 {
+            if status.controller.homed & (1 << axis) == 0 {
                 continue;
             }
             let Some((min, max)) = self.travel[axis] else {
@@ -548,7 +548,7 @@ impl Host {
 
     /// The script keeps clear of the switches: the only alarm is the one `M112` raises.
     fn check_no_alarm(&self, status: &BoardStatus) {
-        if let MachineState::Alarm(a) = status.state {
+        if let MachineState::Alarm(a) = status.controller.state {
             assert_eq!(
                 a,
                 forja_motion::Alarm::EmergencyStop,
@@ -641,7 +641,10 @@ impl Session {
     fn drain(&mut self) {
         let done = self.run_while(|h, p| {
             let st = &p.status;
-            !(h.in_flight.is_none() && h.to_send.is_empty() && st.idle && !st.holding)
+            !(h.in_flight.is_none()
+                && h.to_send.is_empty()
+                && st.controller.idle
+                && !st.controller.holding)
         });
         assert!(
             done,
@@ -687,17 +690,17 @@ impl Session {
     /// Bring the machine to rest after an operation that drops motion on purpose, and take
     /// where it is as the new reference.
     fn rest_and_rebase(&mut self) {
-        if matches!(self.status().state, MachineState::Hold { .. }) {
+        if matches!(self.status().controller.state, MachineState::Hold { .. }) {
             self.host.send_frame(&ClientMessage::Action(Action::Start));
         }
         self.drain();
         let at = self.rig.machine.positions_mm();
         self.host.expected = core::array::from_fn(|a| at[a]);
         let status = self.status();
-        if status.homed != self.host.homed {
+        if status.controller.homed != self.host.homed {
             self.host.zero = core::array::from_fn(|a| at[a] - status.machine_mm[a]);
         }
-        self.host.homed = status.homed;
+        self.host.homed = status.controller.homed;
     }
 
     fn apply(&mut self, op: Op) {
@@ -775,7 +778,7 @@ impl Session {
         self.host.owed_oks += 1;
         let locked = |st: &BoardStatus| {
             matches!(
-                st.state,
+                st.controller.state,
                 MachineState::Alarm(forja_motion::Alarm::EmergencyStop)
             )
         };
@@ -827,7 +830,7 @@ impl Session {
     }
 
     fn finish(&mut self) {
-        if matches!(self.status().state, MachineState::Hold { .. }) {
+        if matches!(self.status().controller.state, MachineState::Hold { .. }) {
             self.host.send_frame(&ClientMessage::Action(Action::Start));
         }
         self.drain();

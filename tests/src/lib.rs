@@ -277,7 +277,7 @@ impl Rig {
         let settled = self.run_until(Duration::from_secs(60), |board, _| {
             replies.feed(&host.receive());
             let s = board.status();
-            s.idle && !s.holding
+            s.controller.idle && !s.controller.holding
         });
         assert!(
             settled,

@@ -59,7 +59,7 @@ fn run(faults: FaultConfig) -> Outcome {
         }
         let s = board.status();
         // The controller's `ok` to the closing line proves that it took every line before it.
-        sender.is_over() && s.idle && !s.holding
+        sender.is_over() && s.controller.idle && !s.controller.holding
     });
     assert!(
         done && sender.is_done(),
@@ -78,9 +78,9 @@ fn run(faults: FaultConfig) -> Outcome {
             .clone()
             .map(|a| rig.machine.step_count(a).unwrap())
             .collect(),
-        executed: status.stats.executed,
-        resends: status.stats.resends,
-        garbage_runs: status.stats.garbage_runs,
+        executed: status.controller.stats.executed,
+        resends: status.controller.stats.resends,
+        garbage_runs: status.controller.stats.garbage_runs,
         sender: sender.stats(),
         injected: (stats.corrupted, stats.dropped),
     }

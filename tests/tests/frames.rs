@@ -139,7 +139,7 @@ fn the_operators_client_over_tcp() {
         &ClientMessage::Action(Action::HomeAll),
     );
     rig.settle(&mut host, &mut replies);
-    assert_eq!(rig.board.status().homed, 0b0111);
+    assert_eq!(rig.board.status().controller.homed, 0b0111);
     ask(
         &mut rig,
         &mut host,
@@ -202,7 +202,7 @@ fn the_operators_client_over_tcp() {
         .count();
     assert_eq!(confirms, 1, "{:?}", replies.lines);
     assert!(replies.error_codes().is_empty());
-    assert_eq!(rig.board.status().program_lines, total);
+    assert_eq!(rig.board.status().controller.program_lines, total);
     for (i, text) in lines.iter().enumerate() {
         assert_eq!(
             rig.board.program_line(i as u16 + 1).as_deref(),
@@ -219,12 +219,12 @@ fn the_operators_client_over_tcp() {
         &ClientMessage::Action(Action::Start),
     );
     let finished = rig.run_until(Duration::from_secs(40), |board, _| {
-        board.status().job == JobState::Finished
+        board.status().controller.job == JobState::Finished
     });
     assert!(finished, "{:?}", rig.board.status());
     let end = rig.board.status();
     assert_eq!(
-        end.stats.program_lines - start.stats.program_lines,
+        end.controller.stats.program_lines - start.controller.stats.program_lines,
         u32::from(total)
     );
     assert!(same_mm(end.machine_mm[0], 12.0 + dx));
@@ -273,7 +273,7 @@ fn the_operators_client_over_tcp() {
     let held = rig.machine.positions_mm();
     rig.exchange(&mut host, &mut replies, 1_000);
     assert_eq!(rig.machine.positions_mm(), held, "paused");
-    assert_eq!(rig.board.status().job, JobState::Paused);
+    assert_eq!(rig.board.status().controller.job, JobState::Paused);
     ask(
         &mut rig,
         &mut host,
@@ -298,9 +298,9 @@ fn the_operators_client_over_tcp() {
     );
     rig.settle(&mut host, &mut replies);
     let status = rig.board.status();
-    assert_eq!(status.job, JobState::Idle);
-    assert_eq!(status.state, MachineState::Idle);
-    let second_run = status.stats.program_lines - end.stats.program_lines;
+    assert_eq!(status.controller.job, JobState::Idle);
+    assert_eq!(status.controller.state, MachineState::Idle);
+    let second_run = status.controller.stats.program_lines - end.controller.stats.program_lines;
     assert!(
         second_run < u32::from(total),
         "{second_run} lines fed before the stop"
@@ -333,7 +333,7 @@ fn the_operators_client_over_tcp() {
             ..BoardConfig::default()
         },
     );
-    assert_eq!(rig.board.status().program_lines, total);
+    assert_eq!(rig.board.status().controller.program_lines, total);
     assert_eq!(
         rig.board.program_line(3).as_deref(),
         Some(lines[2].as_str())

@@ -73,7 +73,7 @@ fn a_printer_job_over_the_pseudo_terminal() {
             host.send(&out);
         }
         let s = board.status();
-        sender.is_over() && s.idle && !s.holding
+        sender.is_over() && s.controller.idle && !s.controller.holding
     });
     assert!(
         done && sender.is_done(),
@@ -98,8 +98,14 @@ fn a_printer_job_over_the_pseudo_terminal() {
     assert!(faults.is_empty(), "{faults:?}");
     let status = rig.board.status();
     // The job's lines, the handshake's `M110` and the closing line.
-    assert_eq!(status.stats.executed, pushed + 2);
-    assert_eq!((status.stats.resends, status.stats.refused), (0, 0));
+    assert_eq!(status.controller.stats.executed, pushed + 2);
+    assert_eq!(
+        (
+            status.controller.stats.resends,
+            status.controller.stats.refused
+        ),
+        (0, 0)
+    );
     assert_eq!(sender.replies().first().map(String::as_str), Some("start"));
 
     // Where the machine is: the kernel's position and the physical one agree.
@@ -155,7 +161,7 @@ fn a_printer_job_over_the_pseudo_terminal() {
     assert_eq!(duties, [200, 0]);
     let hot = rig.machine.heater_index("hotend").unwrap();
     assert!(rig.machine.temperature_c(hot).unwrap() < 200.0);
-    assert_eq!(rig.board.status().stats.faults, 0);
+    assert_eq!(rig.board.status().controller.stats.faults, 0);
 }
 
 /// Lines damaged on the link, one controller on an in-memory link (issue 11, items 3, 4, 9).

@@ -95,7 +95,7 @@ fn a_half_uploaded_program_never_runs_and_takes_no_other_hosts_lines() {
     assert_eq!(replies.error_codes(), [185], "{:?}", replies.lines);
     let status = rig.board.status();
     assert_eq!(
-        (status.job, status.stats.program_lines),
+        (status.controller.job, status.controller.stats.program_lines),
         (JobState::Idle, 0)
     );
 
@@ -129,7 +129,7 @@ fn a_half_uploaded_program_never_runs_and_takes_no_other_hosts_lines() {
             ..BoardConfig::default()
         },
     );
-    assert_eq!(rig.board.status().program_lines, 4);
+    assert_eq!(rig.board.status().controller.program_lines, 4);
     let (_, mut host, mut replies) = serve(&mut rig);
     assert_eq!(progress(&mut rig, &mut host, &mut replies), (4, 0));
     replies.clear();
@@ -161,7 +161,7 @@ fn a_half_uploaded_program_never_runs_and_takes_no_other_hosts_lines() {
     rig.settle(&mut host, &mut replies);
     let status = rig.board.status();
     assert_eq!(
-        (status.job, status.stats.program_lines),
+        (status.controller.job, status.controller.stats.program_lines),
         (JobState::Finished, 10)
     );
 }

@@ -1,6 +1,7 @@
 //! How much code each board crate holds outside its pin maps: a board is wiring (pins, clocks,
 //! timers, interrupt bindings, its link, the description of its parts), and the application
-//! layer does the rest, so this count stays small. `cargo xtask size` prints it.
+//! layer does the rest, so this count stays small. `cargo xtask size` prints it, and it and
+//! `cargo xtask test` fail when a board is over [`BOARD_LINES_BUDGET`].
 //!
 //! Counted: the lines of `boards/<board>/src/**/*.rs` that hold code, leaving out blank lines,
 //! comments (`//`, `///`, `//!`) and the pin maps (`src/board/`), and each file's
@@ -45,6 +46,8 @@ fn count(dir: &Path, skip: &Path) -> Result<usize, String> {
 }
 
 /// Print each board's lines of code outside its pin maps against [`BOARD_LINES_BUDGET`].
+///
+/// Errors: a board over the budget (named with its count).
 pub fn report() -> Result<(), String> {
     let boards = root().join("boards");
     let mut names: Vec<String> = fs::read_dir(&boards)
@@ -56,6 +59,7 @@ pub fn report() -> Result<(), String> {
         .filter(|n| !n.ends_with("-hal"))
         .collect();
     names.sort();
+    let mut over = Vec::new();
     println!(
         "\nboard crate       lines of code outside the pin maps (src/board/), budget {BOARD_LINES_BUDGET}"
     );
@@ -65,11 +69,19 @@ pub fn report() -> Result<(), String> {
         let verdict = if lines <= BOARD_LINES_BUDGET {
             "within".to_string()
         } else {
+            over.push(format!("{name} ({lines})"));
             format!("{} over", lines - BOARD_LINES_BUDGET)
         };
         println!("{name:<17} {lines:>6}   {verdict}");
     }
-    Ok(())
+    if over.is_empty() {
+        Ok(())
+    } else {
+        Err(format!(
+            "board crates over the {BOARD_LINES_BUDGET}-line budget: {}",
+            over.join(", ")
+        ))
+    }
 }
 
 #[cfg(test)]

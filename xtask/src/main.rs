@@ -84,7 +84,8 @@ enum Task {
         variant: Option<String>,
     },
     /// Build a board's hardware image and write it: with probe-rs through a debug probe
-    /// (STM32), or with espflash over USB (ESP32); installs the tool when it is missing.
+    /// (STM32, RP2040), or with espflash over USB (ESP32); installs the tool when it is
+    /// missing.
     Flash {
         /// The board: stm32f4, esp32 or rp2040.
         board: String,
@@ -107,7 +108,8 @@ enum Task {
         check: bool,
     },
     /// Build every default firmware release image and print its flash and RAM use against
-    /// the smallest chip it must fit (fails when one does not).
+    /// the smallest chip it must fit, and each board crate's lines of code outside its pin
+    /// maps against the 300-line budget (fails when an image does not fit or a board is over).
     Size,
     /// Check the crate graph's rules (the layers point one way; part of `test`).
     Graph,
@@ -247,6 +249,7 @@ fn test() -> Result<(), String> {
     let mut steps = vec![
         Step::cargo("format check", &["fmt", "--all", "--check"]),
         Step::call("crate graph".to_string(), graph::check),
+        Step::call("board lines".to_string(), lines::report),
         Step::cargo(
             "clippy (all targets, -D warnings)",
             &[
@@ -287,6 +290,7 @@ fn test() -> Result<(), String> {
             ],
         ),
         Step::cargo("doc tests", &["test", "--workspace", "--doc"]),
+        rustdoc_step(),
     ];
     for target in FIRMWARE_TARGETS {
         let mut args = vec!["check", "--target", target];
@@ -297,6 +301,16 @@ fn test() -> Result<(), String> {
     }
     steps.extend(firmware::test_steps());
     run_all(steps)
+}
+
+/// The crates' documentation, built with every rustdoc warning an error (broken and private
+/// links, bad HTML): xtask's own comments are its `--help` and left out.
+fn rustdoc_step() -> Step {
+    let mut cmd = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
+    cmd.args(["doc", "--no-deps", "--workspace", "--exclude", "xtask"])
+        .env("RUSTDOCFLAGS", "-D warnings")
+        .current_dir(root());
+    Step::command("documentation (rustdoc -D warnings)".to_string(), cmd)
 }
 
 fn sim(args: &[String]) -> Result<(), String> {

@@ -47,7 +47,7 @@
 //! - **`M108`** ends an `M109`/`M116` wait (of the link or of the stored program) at once; the
 //!   line itself then waits its turn and gets its `ok` in order.
 //! - **Other G-code lines** run at once when nothing is waiting. When the kernel answers
-//!   [`Reply::Busy`](crate::Reply::Busy) (the planner is full, an effect waits for the motion
+//!   [`Reply::Busy`](forja_motion::Reply::Busy) (the planner is full, an effect waits for the motion
 //!   before it, `M226` paused the machine), the line is copied aside and offered again at each
 //!   poll; `G28` waits for the end of its homing cycle, `M109` and `M116` for the heaters (with a
 //!   `// T:… B:…` line every [`ControllerConfig::report_period_ms`]). Meanwhile the lines that
@@ -274,6 +274,31 @@ pub struct Stats {
     pub program_lines: u32,
     /// Faults reported unsolicited (`!!` or 56): alarms, thermal faults, `M112`.
     pub faults: u32,
+}
+
+/// What a controller is doing, whatever its machine's number of axes
+/// ([`Controller::status`]): a snapshot for a board, a monitor or a test to read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Status {
+    /// The kernel's state.
+    pub state: MachineState,
+    /// Whether every queued move has finished and no homing cycle runs.
+    pub idle: bool,
+    /// The job's state.
+    pub job: JobState,
+    /// The frame-52 figures.
+    pub progress: crate::job::Progress,
+    /// What the controller has done so far.
+    pub stats: Stats,
+    /// Whether G-code input is held ([`Controller::is_holding`]).
+    pub holding: bool,
+    /// Axes homed (bit `i` = axis `i`).
+    pub homed: u8,
+    /// Lines of the stored program.
+    pub program_lines: u16,
+    /// The stored program's total number of lines, 0 with no program; more than
+    /// `program_lines` for an upload cut short, which does not run.
+    pub program_total: u16,
 }
 
 /// A wrapping millisecond clock derived from the instants of [`Controller::poll`].
@@ -990,6 +1015,35 @@ where
     /// turn).
     pub fn is_holding(&self) -> bool {
         self.core.link.lines_held()
+    }
+
+    /// What the controller is doing now.
+    pub fn status(&self) -> Status {
+        let k = &self.core.kernel;
+        Status {
+            state: k.state(),
+            idle: k.is_idle() && k.state() != MachineState::Homing,
+            job: self.core.job.state(),
+            progress: self.progress(),
+            stats: self.core.stats,
+            holding: self.is_holding(),
+            homed: k.homed_axes(),
+            program_lines: self.core.program.len(),
+            program_total: self.core.program.total(),
+        }
+    }
+
+    /// Line `index` (1-based) of the stored program, read into `buf`; `None` when the store
+    /// cannot read it or it is not text.
+    ///
+    /// Context: thread. Blocks while the program store reads its flash.
+    pub fn read_program_line<'b>(
+        &mut self,
+        index: u16,
+        buf: &'b mut [u8; forja_hal_abstraction::program::MAX_LINE_LEN],
+    ) -> Option<&'b str> {
+        let len = self.core.program.read(index, buf).ok()?;
+        core::str::from_utf8(buf.get(..len)?).ok()
     }
 }
 

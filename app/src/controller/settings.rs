@@ -500,6 +500,13 @@ impl<const N: usize> Settings<N> {
         Ok(key)
     }
 
+    /// Write the setting `key` as frame 50 shows it, `name=value` (`x.steps_per_mm=80`).
+    pub fn write_line(&self, key: Key, out: &mut impl fmt::Write) -> fmt::Result {
+        key.write_name(&self.machine, out)?;
+        out.write_char('=')?;
+        self.write_value(key, out)
+    }
+
     /// Write the value of `key` as frame 50 shows it (`<hidden>` for the password).
     pub fn write_value(&self, key: Key, out: &mut impl fmt::Write) -> fmt::Result {
         let m = &self.machine;
@@ -533,6 +540,18 @@ impl<const N: usize> Settings<N> {
                 out.write_str(if self.power_loss_recovery { "1" } else { "0" })
             }
         }
+    }
+}
+
+/// Every setting, one `name=value` line each ([`Settings::write_line`]), in the order of
+/// [`Key::all`].
+impl<const N: usize> fmt::Display for Settings<N> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for key in Key::all::<N>() {
+            self.write_line(key, f)?;
+            f.write_str("\n")?;
+        }
+        Ok(())
     }
 }
 
@@ -670,6 +689,32 @@ pub(crate) mod tests {
         let (back, report) = Settings::load(machine(), &mut storage);
         assert_eq!(report.ignored, 1);
         assert_eq!(back.machine().jog_feed_mm_min, 1000.0);
+    }
+
+    #[test]
+    fn every_setting_is_a_line_as_frame_50_shows_it() {
+        let mut storage = VecStorage::default();
+        let mut s = Settings::new(machine());
+        let ok = |m: &MachineConfig<2>| m.validate();
+        s.set("y.max", "250", &mut storage, ok).unwrap();
+        s.set("link.password", "s3cret", &mut storage, ok).unwrap();
+        let mut line = String::new();
+        s.write_line(
+            Key::Axis {
+                axis: 1,
+                field: AxisField::Max,
+            },
+            &mut line,
+        )
+        .unwrap();
+        assert_eq!(line, "y.max=250");
+        let text = std::format!("{s}");
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), Key::all::<2>().count());
+        assert_eq!(lines[0], "x.steps_per_mm=80");
+        assert!(lines.contains(&"y.max=250"));
+        assert!(lines.contains(&"link.password=<hidden>"));
+        assert!(text.ends_with('\n'));
     }
 
     #[test]

@@ -55,7 +55,7 @@
 //! ## Links
 //!
 //! [`link`] has the host links, each an `embedded-io` byte stream with a connection state
-//! ([`link::HostLink`]): [`link::TcpLink`] (like the ESP32's WiFi, one controlling client at a
+//! ([`link::PortLink`]): [`link::TcpLink`] (like the ESP32's WiFi, one controlling client at a
 //! time as `forja_drivers::session::LinkSession` decides, default port
 //! [`config::DEFAULT_TCP_PORT`]), [`link::PtyLink`] (a pseudo-terminal that
 //! serial host software opens like a UART), [`link::MemoryLink`] (in-process), and

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use embedded_io::{Read, ReadReady, Write};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
-use forja_sim_hal::link::{HostLink, PtyLink};
+use forja_sim_hal::link::{PortLink, PtyLink};
 use nix::fcntl::OFlag;
 use nix::sys::termios::{SetArg, SpecialCharacterIndices, cfmakeraw, tcgetattr, tcsetattr};
 

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use embedded_io::{ReadReady, Write};
 use forja_drivers::session::{LinkSession, SessionAction};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
-use forja_sim_hal::link::{FaultConfig, FaultInjector, FaultyBytes, HostLink, TcpLink};
+use forja_sim_hal::link::{FaultConfig, FaultInjector, FaultyBytes, PortLink, TcpLink};
 
 const TIMEOUT: Duration = Duration::from_secs(5);
 
@@ -22,7 +22,7 @@ struct Served<L> {
     session: LinkSession,
 }
 
-fn served<L: HostLink>(link: L) -> Served<L> {
+fn served<L: PortLink>(link: L) -> Served<L> {
     Served {
         link,
         session: LinkSession::new(1_000),
@@ -30,7 +30,7 @@ fn served<L: HostLink>(link: L) -> Served<L> {
 }
 
 /// Poll `s` (its link, then admission) until `done` holds, for at most five seconds.
-fn poll_until<L: HostLink>(s: &mut Served<L>, mut done: impl FnMut(&mut Served<L>) -> bool) {
+fn poll_until<L: PortLink>(s: &mut Served<L>, mut done: impl FnMut(&mut Served<L>) -> bool) {
     let start = Instant::now();
     loop {
         let _ = s.link.poll();
@@ -44,7 +44,7 @@ fn poll_until<L: HostLink>(s: &mut Served<L>, mut done: impl FnMut(&mut Served<L
 }
 
 /// Read from `s` without blocking until `n` bytes have arrived.
-fn receive<L: HostLink>(s: &mut Served<L>, n: usize) -> Vec<u8> {
+fn receive<L: PortLink>(s: &mut Served<L>, n: usize) -> Vec<u8> {
     let mut got = Vec::new();
     poll_until(s, |s| {
         let mut buf = [0u8; 256];

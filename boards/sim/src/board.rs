@@ -7,6 +7,7 @@
 //! | thread side | [`Firmware::poll`]: the ports' links, one controlling host across them and `Controller::poll` on its link, by [`forja_app::hosts::Arbiter`] (see [Links](#links)) |
 //! | peripherals | `forja_app::peripherals::DriverPeripherals`: PID `HeaterChannel`s over the simulated heaters, fans and the spindle on the PWM outputs, the drivers' enable lines, the switches read again for `M119` |
 //! | storage | the board's two flashes ([`BoardFlash`]): `FlashRecordStorage` for the settings, `RecordProgramStore` for the uploaded program; kept in a state file with `BoardFlash::open` |
+//! | read back | what tests and the `forja-sim` program read of the firmware, whatever its number of axes ([`SimBoard::status`], [`SimBoard::program_line`], [`SimBoard::settings`], [`SimBoard::load_report`]): the controller's own accessors (`Controller::status`, `Controller::read_program_line`, the settings' `Display`), adapted |
 //!
 //! The kernel's [`forja_motion::MachineConfig`] is the machine file read as the board's
 //! machine ([`parts::machine`]), with the settings stored in the flash applied over it, as a
@@ -31,10 +32,9 @@ use core::any::Any;
 use core::fmt;
 use std::io;
 
-use forja_app::controller::{Key, RecordProgramStore, Stats as ControllerStats};
+use forja_app::controller::{LoadReport, Peripherals, RecordProgramStore, Status};
 use forja_app::firmware::{self, Parts as FirmwareParts};
 use forja_app::hosts::{Arbiter, Port, PortLink};
-use forja_app::job::{JobState, Progress};
 use forja_app::peripherals::{DriverPeripherals, MotorEnables, Parts};
 use forja_drivers::heater::HeaterChannel;
 use forja_drivers::limit::LimitInput;
@@ -44,18 +44,17 @@ use forja_drivers::session::LinkSession;
 use forja_drivers::stepper::StepDir;
 use forja_drivers::storage::FlashRecordStorage;
 use forja_hal_abstraction::clock::Alarm as _;
-use forja_hal_abstraction::link::{LinkState, LinkStatus};
-use forja_hal_abstraction::program::{MAX_LINE_LEN, MAX_LINES, ProgramStore as _};
+use forja_hal_abstraction::program::{MAX_LINE_LEN, MAX_LINES};
 use forja_hal_abstraction::time::Instant;
-use forja_motion::{MachineState, StepGenerator, StepQueue, SwitchAlert};
-use forja_sim_hal::link::{HostLink, RX_CAPACITY};
+use forja_motion::{StepGenerator, StepQueue, SwitchAlert};
+use forja_sim_hal::link::RX_CAPACITY;
 use forja_sim_hal::ram::StaticRam;
 use forja_sim_hal::state::{
     BoardFlash, PROGRAM_FLASH_LEN, ProgramFlash, SETTINGS_FLASH_LEN, SettingsFlash,
 };
 use forja_sim_hal::{
-    Firmware, Flow, RunError, RunReport, SimAlarm, SimDriverPin, SimHeater, SimMachine, SimPwm,
-    SimSwitchPin, SimTemperatureSensor, Simulation, SwitchEdges,
+    Firmware, Flow, RunError, RunReport, SimAlarm, SimDriverPin, SimMachine, SimSwitchPin,
+    Simulation, SwitchEdges,
 };
 
 pub use forja_app::hosts::PortStats;
@@ -95,34 +94,10 @@ impl fmt::Display for BoardError {
 
 impl std::error::Error for BoardError {}
 
-/// A link the board serves. Every [`HostLink`] over `std::io` is one.
-pub trait ServedLink: HostLink<Error = io::Error> + Any {}
+/// A link the board serves. Every [`PortLink`] over `std::io` is one.
+pub trait ServedLink: PortLink<Error = io::Error> + Any {}
 
-impl<T: HostLink<Error = io::Error> + Any> ServedLink for T {}
-
-impl LinkStatus for Box<dyn ServedLink> {
-    fn state(&self) -> LinkState {
-        (**self).state()
-    }
-}
-
-impl PortLink for Box<dyn ServedLink> {
-    fn poll(&mut self) -> io::Result<()> {
-        (**self).poll()
-    }
-    fn connections(&self) -> u64 {
-        (**self).connections()
-    }
-    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> io::Result<bool> {
-        (**self).admit(session, now_ms)
-    }
-    fn discard_input(&mut self) -> io::Result<usize> {
-        (**self).discard_input()
-    }
-    fn hang_up(&mut self) {
-        (**self).hang_up();
-    }
-}
+impl<T: PortLink<Error = io::Error> + Any> ServedLink for T {}
 
 type Ports = Vec<Port<Box<dyn ServedLink>>>;
 
@@ -130,93 +105,47 @@ type Ports = Vec<Port<Box<dyn ServedLink>>>;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct PortId(usize);
 
-/// What the board is doing, whatever its number of axes.
+/// What the board is doing, whatever its number of axes: the controller's [`Status`], the
+/// kernel's position and the served port.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BoardStatus {
-    /// The kernel's state.
-    pub state: MachineState,
-    /// Whether every queued move has finished.
-    pub idle: bool,
-    /// The job's state.
-    pub job: JobState,
-    /// The frame-52 figures.
-    pub progress: Progress,
-    /// The controller's counters.
-    pub stats: ControllerStats,
-    /// Whether G-code input is held (a line waits for room, or a heater wait).
-    pub holding: bool,
+    /// What the controller is doing (`Controller::status`).
+    pub controller: Status,
     /// The kernel's machine position of each axis, mm.
     pub machine_mm: Vec<f64>,
-    /// Axes homed (bit `i` = axis `i`).
-    pub homed: u8,
-    /// Lines of the stored program.
-    pub program_lines: u16,
     /// The served port, if any.
     pub active_port: Option<PortId>,
-}
-
-/// What a board keeps in its flash, as its firmware read it when it started: the settings and
-/// the uploaded program ([`SimBoard::stored`]).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Stored {
-    /// Every setting as frame 50 shows it: `key=value`.
-    pub settings: Vec<String>,
-    /// Stored setting values the firmware ignored when it started (unreadable, not decodable,
-    /// or making the configuration invalid).
-    pub ignored_settings: u16,
-    /// The program's lines in order, each `None` when it cannot be read.
-    pub program: Vec<Option<String>>,
-    /// The program's total number of lines, 0 with no program; more than `program.len()` for
-    /// an upload cut short, which does not run.
-    pub program_total: u16,
 }
 
 /// The firmware of one axis count.
 trait Wiring {
     fn on_alarm(&mut self, now: Instant) -> Option<Instant>;
     fn poll(&mut self, now: Instant, ports: &mut Ports, arbiter: &mut Arbiter<Vec<u8>>);
-    fn status(&self) -> BoardStatus;
+    fn status(&self, active_port: Option<PortId>) -> BoardStatus;
     fn keep_alive_ms(&self) -> u32;
     fn program_line(&mut self, index: u16) -> Option<String>;
-    fn stored(&mut self) -> Stored;
+    fn settings(&self) -> String;
+    fn load_report(&self) -> LoadReport;
     fn into_flash(self: Box<Self>) -> BoardFlash;
 }
 
-type Heat = HeaterChannel<SimTemperatureSensor, SimHeater>;
-type EnableLine = StepDir<NoPin, NoPin, SimDriverPin>;
-type Switch = LimitInput<SimSwitchPin>;
-type SimPeripherals<const N: usize> = DriverPeripherals<
-    Heat,
-    Heat,
-    SimPwm,
-    Spindle<SimPwm>,
-    MotorEnables<EnableLine, N>,
-    Switch,
-    N,
-    MAX_FANS,
->;
-type SimFirmware<const N: usize> = firmware::Firmware<
-    'static,
-    N,
-    PLANNER_BLOCKS,
-    QUEUE_EVENTS,
-    RecordProgramStore<FlashRecordStorage<ProgramFlash>>,
-    SimPeripherals<N>,
-    FlashRecordStorage<SettingsFlash>,
->;
+type SimFirmware<const N: usize, X> =
+    firmware::Firmware<'static, N, PLANNER_BLOCKS, QUEUE_EVENTS, ProgramStore, X, SettingsStore>;
+type ProgramStore = RecordProgramStore<FlashRecordStorage<ProgramFlash>>;
+type SettingsStore = FlashRecordStorage<SettingsFlash>;
 
-struct Wired<const N: usize> {
-    firmware: SimFirmware<N>,
+/// The firmware of `N` axes with its peripherals `X`.
+struct Wired<const N: usize, X> {
+    firmware: SimFirmware<N, X>,
     isr: StepGenerator<'static, N, QUEUE_EVENTS>,
-    steppers: [StepDir<SimDriverPin, SimDriverPin>; N],
-    switches: Vec<Switch>,
+    /// The STEP/DIR drivers and the homing switches, for the step interrupt.
+    drivers: [StepDir<SimDriverPin, SimDriverPin>; N],
+    limits: Vec<LimitInput<SimSwitchPin>>,
     /// The switch inputs' pin-change interrupt: reports edges to the step interrupt.
     switch_alert: SwitchAlert<'static>,
     switch_edges: SwitchEdges,
     alarm: SimAlarm,
     machine: SimMachine,
-    /// Stored setting values ignored at start-up.
-    ignored_settings: u16,
     /// The step queue: last, freed after everything that borrows it.
     _queue: StaticRam<StepQueue<N, QUEUE_EVENTS>>,
 }
@@ -225,74 +154,67 @@ fn storage_error(e: impl fmt::Debug) -> BoardError {
     BoardError::Storage(format!("{e:?}"))
 }
 
-impl<const N: usize> Wired<N> {
-    /// The pin-change interrupt of the switch inputs, as an EXTI line would raise it: report
-    /// an edge when any switch changed since the last look (after each step, and each poll
-    /// for switches a test forces).
-    fn look_at_switches(&mut self) {
-        if self.switch_edges.take() {
-            self.switch_alert.notify();
-        }
-    }
+/// Builds the firmware of one axis count on a machine, its flash and its program size.
+type Wire = fn(&SimMachine, BoardFlash, u16) -> Result<Box<dyn Wiring>, BoardError>;
 
-    fn new(
-        machine: &SimMachine,
-        flash: BoardFlash,
-        program_lines: u16,
-    ) -> Result<Self, BoardError> {
-        let file = machine.config();
-        let pins = parts::pins::<N>(machine)?;
-        let mut steppers = Vec::with_capacity(N);
-        let mut enables = Vec::with_capacity(N);
-        for (p, config) in pins.drivers {
-            steppers.push(StepDir::new(p.step, p.dir, config).map_err(storage_error)?);
-            let enable = StepDir::with_enable(NoPin, NoPin, p.enable, config);
-            enables.push(enable.map_err(storage_error)?);
-        }
-        let switch = |s: &Option<(SimSwitchPin, _)>| s.clone().map(|(p, c)| LimitInput::new(p, c));
-        let heater = |h: Option<parts::HeaterPins>| {
-            h.map(|h| HeaterChannel::new(h.sensor, h.heater, h.config))
-        };
-        let peripherals = DriverPeripherals::new(Parts {
+/// The firmware of each axis count the kernel takes, 1 to 8.
+const WIRINGS: [Wire; 8] = [
+    wire::<1>, wire::<2>, wire::<3>, wire::<4>, wire::<5>, wire::<6>, wire::<7>, wire::<8>,
+];
+
+/// The firmware of `N` axes on `machine`, its flash and its parts.
+fn wire<const N: usize>(
+    machine: &SimMachine,
+    flash: BoardFlash,
+    program_lines: u16,
+) -> Result<Box<dyn Wiring>, BoardError> {
+    let pins = parts::pins::<N>(machine)?;
+    let mut steppers = Vec::with_capacity(N);
+    let mut enables = Vec::with_capacity(N);
+    for (p, config) in pins.drivers {
+        steppers.push(StepDir::new(p.step, p.dir, config).map_err(storage_error)?);
+        let enable = StepDir::with_enable(NoPin, NoPin, p.enable, config);
+        enables.push(enable.map_err(storage_error)?);
+    }
+    let switch = |s: &Option<(SimSwitchPin, _)>| s.clone().map(|(p, c)| LimitInput::new(p, c));
+    let heater =
+        |h: Option<parts::HeaterPins>| h.map(|h| HeaterChannel::new(h.sensor, h.heater, h.config));
+    let program = FlashRecordStorage::new(flash.program, 0..PROGRAM_FLASH_LEN as u32)
+        .map_err(storage_error)?;
+    #[allow(unsafe_code)]
+    // SAFETY: the queue is the last field of `Wired`: everything that borrows it (the kernel
+    // in the firmware, the step interrupt, the switch alert) drops before it.
+    let (queue_ram, queue) = unsafe { StaticRam::new(StepQueue::new()) };
+    let (isr, firmware, _) = firmware::assemble(FirmwareParts {
+        machine: parts::machine(machine.config())?,
+        settings: FlashRecordStorage::new(flash.settings, 0..SETTINGS_FLASH_LEN as u32)
+            .map_err(storage_error)?,
+        queue,
+        tick_hz: machine.tick_hz(),
+        config: parts::controller(machine.config()),
+        program: RecordProgramStore::open(program, program_lines).map_err(storage_error)?,
+        peripherals: DriverPeripherals::new(Parts {
             hot_end: heater(pins.hot_end),
             bed: heater(pins.bed),
             fans: pins.fans.map(|f| Fan::new(f?, FanConfig::DIRECT).ok()),
             spindle: pins.spindle.and_then(|(p, c)| Spindle::new(p, c).ok()),
-            motors: MotorEnables(array(enables)?),
+            motors: MotorEnables(array::<_, N>(enables)?),
             limits: pins.homing_switches.each_ref().map(switch),
             tolerance_mc: parts::HEATER_TOLERANCE_MC,
-        });
-        let settings = FlashRecordStorage::new(flash.settings, 0..SETTINGS_FLASH_LEN as u32)
-            .map_err(storage_error)?;
-        let program = FlashRecordStorage::new(flash.program, 0..PROGRAM_FLASH_LEN as u32)
-            .map_err(storage_error)?;
-        #[allow(unsafe_code)]
-        // SAFETY: the queue is the last field of `Wired`: everything that borrows it (the
-        // kernel in the firmware, the step interrupt, the switch alert) drops before it.
-        let (queue_ram, queue) = unsafe { StaticRam::new(StepQueue::new()) };
-        let (isr, firmware, loaded) = firmware::assemble(FirmwareParts {
-            machine: parts::machine(file)?,
-            settings,
-            queue,
-            tick_hz: machine.tick_hz(),
-            config: parts::controller(file),
-            program: RecordProgramStore::open(program, program_lines).map_err(storage_error)?,
-            peripherals,
-        })
-        .map_err(BoardError::Config)?;
-        Ok(Self {
-            firmware,
-            switch_alert: isr.switch_alert(),
-            switch_edges: machine.switch_edges(),
-            isr,
-            steppers: array(steppers)?,
-            switches: pins.homing_switches.iter().filter_map(switch).collect(),
-            alarm: machine.alarm(),
-            machine: machine.clone(),
-            ignored_settings: loaded.ignored,
-            _queue: queue_ram,
-        })
-    }
+        }),
+    })
+    .map_err(BoardError::Config)?;
+    Ok(Box::new(Wired {
+        firmware,
+        switch_alert: isr.switch_alert(),
+        switch_edges: machine.switch_edges(),
+        isr,
+        drivers: array(steppers)?,
+        limits: pins.homing_switches.iter().filter_map(switch).collect(),
+        alarm: machine.alarm(),
+        machine: machine.clone(),
+        _queue: queue_ram,
+    }))
 }
 
 /// One part per axis, as the kernel takes them.
@@ -301,17 +223,24 @@ fn array<T, const N: usize>(parts: Vec<T>) -> Result<[T; N], BoardError> {
     parts.try_into().map_err(|_| BoardError::AxisCount(len))
 }
 
-impl<const N: usize> Wiring for Wired<N> {
+/// The pin-change interrupt of the switch inputs, as an EXTI line would raise it: report an
+/// edge to the step interrupt when any switch changed since the last look (after each step, and
+/// each poll for switches a test forces).
+fn look_at_switches(edges: &mut SwitchEdges, alert: &SwitchAlert<'_>) {
+    if edges.take() {
+        alert.notify();
+    }
+}
+
+impl<const N: usize, X: Peripherals<N>> Wiring for Wired<N, X> {
     fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
-        let next = self
-            .isr
-            .on_alarm(now, &mut self.steppers, &mut self.switches);
-        self.look_at_switches();
+        let next = self.isr.on_alarm(now, &mut self.drivers, &mut self.limits);
+        look_at_switches(&mut self.switch_edges, &self.switch_alert);
         next
     }
 
     fn poll(&mut self, now: Instant, ports: &mut Ports, arbiter: &mut Arbiter<Vec<u8>>) {
-        self.look_at_switches();
+        look_at_switches(&mut self.switch_edges, &self.switch_alert);
         let now_ms = self.machine.now_ms() as u32;
         let controller = self.firmware.controller_mut();
         if let Some(at) = arbiter.poll(ports, controller, now, now_ms).arm_alarm {
@@ -319,20 +248,12 @@ impl<const N: usize> Wiring for Wired<N> {
         }
     }
 
-    fn status(&self) -> BoardStatus {
+    fn status(&self, active_port: Option<PortId>) -> BoardStatus {
         let c = self.firmware.controller();
-        let k = c.kernel();
         BoardStatus {
-            state: k.state(),
-            idle: k.is_idle() && k.state() != MachineState::Homing,
-            job: c.job().state(),
-            progress: c.progress(),
-            stats: c.stats(),
-            holding: c.is_holding(),
-            machine_mm: k.position().machine_mm.to_vec(),
-            homed: k.homed_axes(),
-            program_lines: c.program().len(),
-            active_port: None,
+            controller: c.status(),
+            machine_mm: c.kernel().position().machine_mm.to_vec(),
+            active_port,
         }
     }
 
@@ -341,35 +262,17 @@ impl<const N: usize> Wiring for Wired<N> {
     }
 
     fn program_line(&mut self, index: u16) -> Option<String> {
-        let mut buf = [0u8; MAX_LINE_LEN];
-        let len = self
-            .firmware
-            .controller_mut()
-            .program_mut()
-            .read(index, &mut buf)
-            .ok()?;
-        Some(String::from_utf8_lossy(buf.get(..len)?).into_owned())
+        let mut buf = [0; MAX_LINE_LEN];
+        let c = self.firmware.controller_mut();
+        Some(c.read_program_line(index, &mut buf)?.to_owned())
     }
 
-    fn stored(&mut self) -> Stored {
-        let settings = self.firmware.controller().settings();
-        let settings = Key::all::<N>()
-            .map(|key| {
-                let mut line = String::new();
-                let _ = key.write_name(settings.machine(), &mut line);
-                line.push('=');
-                let _ = settings.write_value(key, &mut line);
-                line
-            })
-            .collect();
-        let store = self.firmware.controller().program();
-        let (len, program_total) = (store.len(), store.total());
-        Stored {
-            settings,
-            ignored_settings: self.ignored_settings,
-            program: (1..=len).map(|i| self.program_line(i)).collect(),
-            program_total,
-        }
+    fn settings(&self) -> String {
+        self.firmware.controller().settings().to_string()
+    }
+
+    fn load_report(&self) -> LoadReport {
+        self.firmware.load_report()
     }
 
     fn into_flash(self: Box<Self>) -> BoardFlash {
@@ -426,37 +329,28 @@ impl SimBoard {
     /// Errors: a machine of more than 8 axes, a machine file the kernel refuses, a flash that
     /// cannot be opened.
     pub fn new(machine: &SimMachine, config: BoardConfig) -> Result<Self, BoardError> {
-        let (f, l) = (config.flash, config.program_lines);
-        let wiring: Box<dyn Wiring> = match machine.axis_count() {
-            1 => Box::new(Wired::<1>::new(machine, f, l)?),
-            2 => Box::new(Wired::<2>::new(machine, f, l)?),
-            3 => Box::new(Wired::<3>::new(machine, f, l)?),
-            4 => Box::new(Wired::<4>::new(machine, f, l)?),
-            5 => Box::new(Wired::<5>::new(machine, f, l)?),
-            6 => Box::new(Wired::<6>::new(machine, f, l)?),
-            7 => Box::new(Wired::<7>::new(machine, f, l)?),
-            8 => Box::new(Wired::<8>::new(machine, f, l)?),
-            n => return Err(BoardError::AxisCount(n)),
-        };
+        let n = machine.axis_count();
+        let wire = WIRINGS
+            .get(n.wrapping_sub(1))
+            .ok_or(BoardError::AxisCount(n))?;
         Ok(Self {
-            wiring,
+            wiring: wire(machine, config.flash, config.program_lines)?,
             ports: Vec::new(),
             arbiter: Arbiter::new(READ_BUDGET, RX_CAPACITY),
             machine: machine.clone(),
         })
     }
 
-    /// Serve `link`; `session`: greet each host with frame 54 and keep it alive with frame 55
+    /// Serve `link`; `frames`: greet each host with frame 54 and keep it alive with frame 55
     /// (TCP, like the ESP32's WiFi).
     ///
     /// Every port has its [`LinkSession`] (keep-alives every `keep_alive_ms` of the stored
     /// settings): a connection-oriented link ([`forja_sim_hal::link::TcpLink`]) admits and
-    /// refuses clients through it ([`HostLink::admit`]), with or without frames. The port has
+    /// refuses clients through it ([`PortLink::admit`]), with or without frames. The port has
     /// no idle time-out until [`SimBoard::set_idle_timeout`].
-    pub fn add_port(&mut self, link: impl ServedLink, session: bool) -> PortId {
-        let keep_alive = LinkSession::new(self.wiring.keep_alive_ms());
-        self.ports
-            .push(Port::new(Box::new(link), keep_alive, session));
+    pub fn add_port(&mut self, link: impl ServedLink, frames: bool) -> PortId {
+        let session = LinkSession::new(self.wiring.keep_alive_ms());
+        self.ports.push(Port::new(Box::new(link), session, frames));
         PortId(self.ports.len() - 1)
     }
 
@@ -465,11 +359,9 @@ impl SimBoard {
     /// [`forja_app::hosts`]); `None`: never. Takes effect for the next host.
     pub fn set_idle_timeout(&mut self, id: PortId, timeout_ms: Option<u32>) {
         let session = LinkSession::new(self.wiring.keep_alive_ms());
+        let session = timeout_ms.map_or(session.clone(), |ms| session.with_idle_timeout(ms));
         if let Some(p) = self.ports.get_mut(id.0) {
-            p.set_session(match timeout_ms {
-                Some(ms) => session.with_idle_timeout(ms),
-                None => session,
-            });
+            p.set_session(session);
         }
     }
 
@@ -502,9 +394,7 @@ impl SimBoard {
 
     /// What the firmware is doing.
     pub fn status(&self) -> BoardStatus {
-        let mut s = self.wiring.status();
-        s.active_port = self.arbiter.active().map(PortId);
-        s
+        self.wiring.status(self.arbiter.active().map(PortId))
     }
 
     /// Line `index` (1-based) of the stored program.
@@ -512,9 +402,17 @@ impl SimBoard {
         self.wiring.program_line(index)
     }
 
-    /// The settings and the program the firmware keeps, as it read them when it started.
-    pub fn stored(&mut self) -> Stored {
-        self.wiring.stored()
+    /// Every setting as the firmware applies it, one `key=value` line each, as frame 50 shows
+    /// it.
+    pub fn settings(&self) -> String {
+        self.wiring.settings()
+    }
+
+    /// What the firmware found in the flash when it started: the stored setting values it
+    /// applied, and those it ignored (unreadable, not decodable, or making the configuration
+    /// invalid).
+    pub fn load_report(&self) -> LoadReport {
+        self.wiring.load_report()
     }
 
     /// Stop the board and take its flash, to start another on it (a restart).
@@ -549,6 +447,7 @@ impl Firmware for SimBoard {
 
 #[cfg(test)]
 mod tests {
+    use forja_motion::MachineState;
     use forja_sim_hal::MachineConfig;
 
     use super::*;
@@ -557,8 +456,8 @@ mod tests {
     fn a_restart_keeps_the_flash() {
         let machine = SimMachine::new(&MachineConfig::default_router());
         let board = SimBoard::new(&machine, BoardConfig::default()).unwrap();
-        assert_eq!(board.status().program_lines, 0);
-        assert_eq!(board.status().state, MachineState::Idle);
+        assert_eq!(board.status().controller.program_lines, 0);
+        assert_eq!(board.status().controller.state, MachineState::Idle);
         let flash = board.into_flash();
         let board = SimBoard::new(
             &machine,

@@ -11,7 +11,7 @@ use std::os::unix::fs::OpenOptionsExt;
 use std::time::{Duration, Instant};
 
 use forja_sim::board::{BoardConfig, PortId, SimBoard};
-use forja_sim_hal::link::{HostLink, MemoryLink, PtyLink, TcpLink};
+use forja_sim_hal::link::{MemoryLink, PortLink, PtyLink, TcpLink};
 use forja_sim_hal::{Flow, MachineConfig, SimMachine, Simulation, SimulationConfig};
 
 /// Hang guard of every wait.
@@ -189,7 +189,11 @@ fn a_tcp_line_sent_while_the_pty_controls_never_runs() {
     rig.run_for(3_000, |_| {});
     assert_eq!(rig.board.status().active_port, None);
     assert_eq!(rig.x_mm(), x0, "the refused client's move ran");
-    assert_eq!(rig.board.status().stats.executed, 1, "only the M115");
+    assert_eq!(
+        rig.board.status().controller.stats.executed,
+        1,
+        "only the M115"
+    );
 }
 
 /// Item 5: the terminal's input while a TCP client is in control is refused with the busy
@@ -225,7 +229,7 @@ fn pty_input_while_tcp_controls_is_refused_and_discarded() {
     rig.run_for(3_000, |_| {});
     assert_eq!(rig.board.status().active_port, Some(rig.pty));
     assert_eq!(rig.x_mm(), x0, "the refused move ran");
-    assert_eq!(rig.board.status().stats.executed, 1);
+    assert_eq!(rig.board.status().controller.stats.executed, 1);
     assert_eq!(pty.count("ok"), 1, "{}", pty.text);
 }
 
@@ -256,7 +260,7 @@ fn a_new_client_never_receives_the_previous_clients_replies() {
     rig.run_for(2_000, |_| b.receive());
     assert_eq!(b.count("ok"), 0, "B received A's replies: {}", b.text);
     assert_eq!(
-        rig.board.status().stats.executed,
+        rig.board.status().controller.stats.executed,
         0,
         "A's lines ran in B's session"
     );
@@ -455,7 +459,7 @@ fn m112_from_a_host_not_in_control_stops_the_machine() {
     assert!(pty.text.contains("error: busy"), "{}", pty.text);
     assert!(
         !matches!(
-            rig.board.status().state,
+            rig.board.status().controller.state,
             forja_motion::MachineState::Alarm(_)
         ),
         "half an M112 stopped the machine"
@@ -463,7 +467,7 @@ fn m112_from_a_host_not_in_control_stops_the_machine() {
     pty.send(b"12*0\n");
     rig.run_until("the emergency stop", |board| {
         matches!(
-            board.status().state,
+            board.status().controller.state,
             forja_motion::MachineState::Alarm(forja_motion::Alarm::EmergencyStop)
         )
     });
@@ -483,7 +487,7 @@ fn m112_from_a_host_not_in_control_stops_the_machine() {
     assert_eq!(rig.board.port_stats(rig.pty).unwrap().emergency_stops, 1);
     assert_eq!(rig.board.status().active_port, Some(rig.tcp));
     assert_eq!(
-        rig.board.status().stats.executed,
+        rig.board.status().controller.stats.executed,
         1,
         "only the TCP client's G1"
     );
@@ -493,5 +497,8 @@ fn m112_from_a_host_not_in_control_stops_the_machine() {
         tcp.receive();
         tcp.count("ok") == 2
     });
-    assert_eq!(rig.board.status().state, forja_motion::MachineState::Idle);
+    assert_eq!(
+        rig.board.status().controller.state,
+        forja_motion::MachineState::Idle
+    );
 }

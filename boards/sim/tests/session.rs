@@ -6,7 +6,7 @@ use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 use forja_sim::board::{BoardConfig, PortId, SimBoard};
-use forja_sim_hal::link::{HostLink, TcpLink};
+use forja_sim_hal::link::{PortLink, TcpLink};
 use forja_sim_hal::{Flow, MachineConfig, SimMachine, Simulation, SimulationConfig};
 
 const WALL: Duration = Duration::from_secs(10);

@@ -14,8 +14,9 @@
 //! `CredentialWatch` tells the controller task of a change, which [`join`]s it.
 //!
 //! A lost network is joined again after [`backoff`] (1 s, doubling up to 30 s). Once the
-//! access point is up it stays up until the board restarts or new credentials are set, so
-//! that a client configuring the board through it is not cut off.
+//! access point is up it stays up until the board restarts or new credentials are set (then
+//! the board tries the new network, and offers the access point again after three failed
+//! attempts).
 //!
 //! The motion side does not depend on any of this: a program stored on the board keeps
 //! running while the WiFi is down; only the host link is gone (see [`crate::link`]).

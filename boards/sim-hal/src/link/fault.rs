@@ -1,6 +1,6 @@
 //! A fault injector for links, in the manner of smoltcp's `phy/fault_injector.rs`.
 //!
-//! [`FaultInjector`] wraps any [`HostLink`] and, at configured rates, **drops** and
+//! [`FaultInjector`] wraps any [`PortLink`] and, at configured rates, **drops** and
 //! **corrupts** (flips one bit of) the bytes received from the host. It is seeded and
 //! reproducible: the same seed and the same received bytes give the same faults, run after
 //! run, so a failure found with `--seed 42` can be replayed.
@@ -30,7 +30,7 @@ use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use rand_chacha::ChaCha8Rng;
 use rand_core::{Rng, SeedableRng};
 
-use super::{HostLink, RX_CAPACITY};
+use super::{PortLink, RX_CAPACITY};
 
 /// Fault rates and seed.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -159,7 +159,7 @@ impl FaultyBytes {
 }
 
 /// A link whose received bytes go through [`FaultyBytes`]; everything else passes through.
-/// Implements [`HostLink`].
+/// Implements [`PortLink`], and [`WriteReady`] over a link that does.
 #[derive(Debug)]
 pub struct FaultInjector<L> {
     inner: L,
@@ -167,7 +167,7 @@ pub struct FaultInjector<L> {
     rx: VecDeque<u8>,
 }
 
-impl<L: HostLink> FaultInjector<L> {
+impl<L: PortLink> FaultInjector<L> {
     /// Wrap `inner` with the faults of `config`.
     ///
     /// Errors: a rate outside 0..=1.
@@ -213,11 +213,11 @@ impl<L: HostLink> FaultInjector<L> {
     }
 }
 
-impl<L: HostLink> ErrorType for FaultInjector<L> {
+impl<L: PortLink> ErrorType for FaultInjector<L> {
     type Error = L::Error;
 }
 
-impl<L: HostLink> ReadReady for FaultInjector<L> {
+impl<L: PortLink> ReadReady for FaultInjector<L> {
     fn read_ready(&mut self) -> Result<bool, Self::Error> {
         if self.rx.is_empty() {
             self.pull()?;
@@ -226,7 +226,7 @@ impl<L: HostLink> ReadReady for FaultInjector<L> {
     }
 }
 
-impl<L: HostLink> Read for FaultInjector<L> {
+impl<L: PortLink> Read for FaultInjector<L> {
     /// Blocks like the inner link's `read` until a byte survives the faults; `Ok(0)` when the
     /// inner link reaches its end.
     fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
@@ -253,13 +253,13 @@ impl<L: HostLink> Read for FaultInjector<L> {
     }
 }
 
-impl<L: HostLink> WriteReady for FaultInjector<L> {
+impl<L: PortLink + WriteReady> WriteReady for FaultInjector<L> {
     fn write_ready(&mut self) -> Result<bool, Self::Error> {
         self.inner.write_ready()
     }
 }
 
-impl<L: HostLink> Write for FaultInjector<L> {
+impl<L: PortLink> Write for FaultInjector<L> {
     fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
         self.inner.write(buf)
     }
@@ -269,13 +269,13 @@ impl<L: HostLink> Write for FaultInjector<L> {
     }
 }
 
-impl<L: HostLink> LinkStatus for FaultInjector<L> {
+impl<L: PortLink> LinkStatus for FaultInjector<L> {
     fn state(&self) -> LinkState {
         self.inner.state()
     }
 }
 
-impl<L: HostLink> HostLink for FaultInjector<L> {
+impl<L: PortLink> PortLink for FaultInjector<L> {
     fn poll(&mut self) -> Result<(), Self::Error> {
         self.inner.poll()?;
         self.pull()

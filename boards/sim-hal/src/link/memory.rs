@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 
-use super::HostLink;
+use super::PortLink;
 
 #[derive(Debug, Default)]
 struct Pipes {
@@ -31,12 +31,12 @@ impl Shared {
     }
 }
 
-/// The firmware's end of an in-process link: implements [`HostLink`].
+/// The firmware's end of an in-process link: implements [`PortLink`].
 ///
 /// Connected while its [`MemoryHost`] exists. [`ReadReady::read_ready`](embedded_io::ReadReady)
 /// is `true` only with bytes waiting; once the host is gone and every byte read,
 /// [`Read::read`](embedded_io::Read) returns `Ok(0)` (end of file) instead of blocking. Writes
-/// after the host is gone are discarded. [`HostLink::poll`] has nothing to do. The two ends may
+/// after the host is gone are discarded. [`PortLink::poll`] has nothing to do. The two ends may
 /// live on different threads.
 #[derive(Debug)]
 pub struct MemoryLink {
@@ -167,13 +167,17 @@ impl LinkStatus for MemoryLink {
     }
 }
 
-impl HostLink for MemoryLink {
+impl PortLink for MemoryLink {
     fn poll(&mut self) -> Result<(), io::Error> {
         Ok(())
     }
 
     fn connections(&self) -> u64 {
         1
+    }
+
+    fn discard_input(&mut self) -> Result<usize, io::Error> {
+        Ok(self.shared.lock().to_controller.drain(..).count())
     }
 }
 

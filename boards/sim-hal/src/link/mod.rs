@@ -1,23 +1,24 @@
 //! Host links: TCP (like the ESP32's WiFi), a pseudo-terminal (like a UART), an in-process
 //! pair, and a fault injector over any of them.
 //!
-//! Every link is a [`HostLink`]: bytes move through `embedded-io` ([`Read`], [`ReadReady`],
-//! [`Write`], [`WriteReady`]) exactly as on the firmware boards, and
-//! [`LinkStatus`] says whether a host is at the other
-//! end. The protocol code does not know which link it is on.
+//! Every link is a [`PortLink`], the contract of a firmware board's links: bytes move through
+//! `embedded-io` ([`Read`], [`ReadReady`], [`Write`], and [`WriteReady`] too) exactly as on
+//! the firmware boards, and
+//! [`LinkStatus`](forja_hal_abstraction::link::LinkStatus) says whether a host is at the
+//! other end. The protocol code does not know which link it is on.
 //!
 //! | link | what | connected while |
 //! |---|---|---|
-//! | [`TcpLink`] | a listening socket, one controlling client at a time, as a [`LinkSession`] decides ([`HostLink::admit`]) | a client is admitted and has not closed |
+//! | [`TcpLink`] | a listening socket, one controlling client at a time, as a [`LinkSession`] decides ([`PortLink::admit`]) | a client is admitted and has not closed |
 //! | [`PtyLink`] | a pseudo-terminal pair; host software opens the slave (`/dev/pts/N`) | some process holds the slave open |
 //! | [`MemoryLink`] | an in-process pipe to a [`MemoryHost`], for tests and scripted jobs | the [`MemoryHost`] exists |
 //! | [`FaultInjector`] | wraps any of them; corrupts and drops received bytes | as the wrapped link |
 //!
 //! # Polling
 //!
-//! OS links are non-blocking and buffered: [`HostLink::poll`] (context: thread; never blocks)
+//! OS links are non-blocking and buffered: [`PortLink::poll`] (context: thread; never blocks)
 //! notices the loss of a peer, moves received bytes into the receive buffer and sends what the
-//! transmit buffer holds; on a connection-oriented link, [`HostLink::admit`] then lets the
+//! transmit buffer holds; on a connection-oriented link, [`PortLink::admit`] then lets the
 //! port's [`LinkSession`] admit or refuse the peers that connected. The simulation's thread
 //! side calls both once per turn, then reads while [`ReadReady::read_ready`] says so; that read
 //! never blocks.
@@ -47,8 +48,9 @@
 //!
 //! Receive buffers hold at most [`RX_CAPACITY`] bytes: past that, OS links stop reading and
 //! the host is held back by TCP flow control or the terminal's buffer, as flow control would
-//! on a UART. Transmit buffers hold [`TX_CAPACITY`] bytes. [`HostLink::discard_input`] drops
-//! what was received and not yet read, when the session of the host that sent it has ended.
+//! on a UART. Transmit buffers hold [`TX_CAPACITY`] bytes. [`PortLink::discard_input`] drops
+//! what was received and not yet read, when the session of the host that sent it has ended:
+//! the buffered links clear their buffers, the in-process link its pipe.
 
 mod fault;
 mod memory;
@@ -64,8 +66,11 @@ pub use memory::{MemoryHost, MemoryLink};
 pub use pty::PtyLink;
 pub use tcp::TcpLink;
 
+/// What every link here is: a link a board serves as a port, the firmware boards' contract.
+pub use forja_drivers::port_link::PortLink;
+
 use forja_drivers::session::LinkSession;
-use forja_hal_abstraction::link::{LinkState, LinkStatus};
+use forja_hal_abstraction::link::LinkState;
 
 /// Most bytes a link's receive buffer holds.
 pub const RX_CAPACITY: usize = 64 * 1024;
@@ -78,89 +83,6 @@ const BLOCKING_POLL: std::time::Duration = std::time::Duration::from_millis(1);
 
 /// Longest [`Write::flush`] waits for a peer to take what is queued.
 pub const FLUSH_LIMIT: std::time::Duration = std::time::Duration::from_millis(500);
-
-/// A byte link to a host.
-pub trait HostLink: Read + ReadReady + Write + WriteReady + LinkStatus {
-    /// Service the link: accept or drop peers, fill the receive buffer, drain the transmit
-    /// buffer.
-    ///
-    /// Context: thread. Never blocks. Errors: the link itself failed (the listening socket or
-    /// the terminal master); a peer that goes away is not an error but a state change.
-    fn poll(&mut self) -> Result<(), Self::Error>;
-
-    /// How many peers have connected so far: a change tells the protocol layer that a new host
-    /// is there and its decoder should start afresh.
-    fn connections(&self) -> u64;
-
-    /// Let `session` decide, at `now_ms`, on what happened on a connection-oriented link since
-    /// the last call, in the order it happened: a controlling peer that closed is
-    /// [`LinkSession::on_disconnect`], each peer that connected is [`LinkSession::on_connect`],
-    /// and the link carries out the answer: [`SessionAction::SendConnected`] makes it the
-    /// controlling peer, [`SessionAction::RefuseSecondClient`] sends it the link's busy message
-    /// and closes it. Returns `true` when a peer became the controller (the caller greets it
-    /// with frame 54); the keep-alives are the caller's, from [`LinkSession::poll`].
-    ///
-    /// The link admits nobody unless this is called; a link without connections (a terminal,
-    /// an in-process pair) ignores it, which is the provided implementation. Give a link the
-    /// same session at every call, and no other link that session.
-    ///
-    /// Context: thread. Never blocks (a refusal is written only if the socket takes it at
-    /// once). Errors: as [`HostLink::poll`].
-    ///
-    /// [`SessionAction::SendConnected`]: forja_drivers::session::SessionAction::SendConnected
-    /// [`SessionAction::RefuseSecondClient`]: forja_drivers::session::SessionAction::RefuseSecondClient
-    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
-        let _ = (session, now_ms);
-        Ok(false)
-    }
-
-    /// Drop every byte received and not yet read (the session of the host that sent it has
-    /// ended, or that host is not the controlling one). Returns how many were dropped.
-    ///
-    /// The provided implementation reads while [`ReadReady::read_ready`] says so, at most
-    /// [`RX_CAPACITY`] bytes; buffered links clear their buffers instead. Bytes that arrive
-    /// later are received as usual.
-    ///
-    /// Context: thread. Never blocks. Errors: as [`HostLink::poll`].
-    fn discard_input(&mut self) -> Result<usize, Self::Error> {
-        let mut sink = [0u8; 256];
-        let mut dropped = 0;
-        while dropped < RX_CAPACITY && self.read_ready()? {
-            let n = self.read(&mut sink)?;
-            if n == 0 {
-                break;
-            }
-            dropped += n;
-        }
-        Ok(dropped)
-    }
-
-    /// End the controlling peer's connection (its session has timed out). A
-    /// connection-oriented link closes it, and its session hears of it at the next
-    /// [`HostLink::admit`]; a link without connections (a terminal, an in-process pair)
-    /// cannot, and does nothing, which is the provided implementation.
-    ///
-    /// Context: thread. Never blocks.
-    fn hang_up(&mut self) {}
-}
-
-impl<T: HostLink + ?Sized> HostLink for &mut T {
-    fn poll(&mut self) -> Result<(), Self::Error> {
-        T::poll(self)
-    }
-    fn connections(&self) -> u64 {
-        T::connections(self)
-    }
-    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
-        T::admit(self, session, now_ms)
-    }
-    fn discard_input(&mut self) -> Result<usize, Self::Error> {
-        T::discard_input(self)
-    }
-    fn hang_up(&mut self) {
-        T::hang_up(self)
-    }
-}
 
 /// The receive and transmit buffers of an OS link.
 #[derive(Debug, Default)]
@@ -276,7 +198,7 @@ pub(crate) fn state(connected: bool) -> LinkState {
     }
 }
 
-/// Implements `embedded-io`, [`LinkStatus`] and [`HostLink`] for a [`BufferedPort`].
+/// Implements `embedded-io`, `LinkStatus` and [`PortLink`] for a [`BufferedPort`].
 macro_rules! buffered_link {
     ($ty:ty) => {
         impl embedded_io::ErrorType for $ty {
@@ -320,7 +242,7 @@ macro_rules! buffered_link {
             }
         }
 
-        impl $crate::link::HostLink for $ty {
+        impl $crate::link::PortLink for $ty {
             fn poll(&mut self) -> Result<(), std::io::Error> {
                 $crate::link::BufferedPort::service(self)
             }

@@ -43,7 +43,7 @@ use super::{BufferedPort, Buffers, buffered_link};
 
 /// A pseudo-terminal whose slave side host software opens like a serial port.
 ///
-/// Implements [`super::HostLink`]; see the module documentation for how connection is
+/// Implements [`super::PortLink`]; see the module documentation for how connection is
 /// detected. Dropping it closes the master (peers see a hang-up) and removes the symbolic link
 /// made by [`PtyLink::open`], if it still points at this terminal.
 #[derive(Debug)]

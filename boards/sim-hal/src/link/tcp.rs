@@ -7,7 +7,7 @@ use forja_drivers::session::{LinkSession, SessionAction};
 
 use super::{BufferedPort, Buffers, buffered_link};
 
-/// Most clients [`HostLink::admit`](super::HostLink::admit) accepts in one call.
+/// Most clients [`PortLink::admit`](super::PortLink::admit) accepts in one call.
 pub const ACCEPTS_PER_ADMIT: usize = 16;
 
 /// Most bytes read (and dropped) from a refused client before it is closed, so that it gets
@@ -17,7 +17,7 @@ pub const REFUSE_DRAIN: usize = 16 * 1024;
 /// A TCP listener with one controlling client at a time.
 ///
 /// Who controls is decided by a [`LinkSession`], the ESP32 board's WiFi link's rules:
-/// [`HostLink::admit`](super::HostLink::admit) accepts the clients waiting on the listener and
+/// [`PortLink::admit`](super::PortLink::admit) accepts the clients waiting on the listener and
 /// reports each to the session (`on_connect`), after reporting the close of the controlling
 /// client (`on_disconnect`), so that a host that closes and reconnects at once is admitted.
 /// The first client controls the machine until it closes; a client that connects while
@@ -32,15 +32,15 @@ pub const REFUSE_DRAIN: usize = 16 * 1024;
 /// A new controlling client starts with empty buffers: it never reads a reply meant for the
 /// previous one, and nothing the previous one sent is read after it takes control. Bytes
 /// received from a client stay in the receive buffer after it disconnects, until
-/// [`HostLink::discard_input`](super::HostLink::discard_input) or the next client takes
+/// [`PortLink::discard_input`](super::PortLink::discard_input) or the next client takes
 /// control; unsent replies are discarded at once.
 ///
 /// Nothing here waits for a client: a controlling client that lets [`super::TX_CAPACITY`]
 /// bytes of replies back up (it stopped reading) is dropped ([`TcpLink::overflows`]); a
 /// refused client gets its busy message only if its socket takes it at once; each
-/// [`HostLink::admit`](super::HostLink::admit) accepts at most `ACCEPTS_PER_ADMIT` clients
+/// [`PortLink::admit`](super::PortLink::admit) accepts at most `ACCEPTS_PER_ADMIT` clients
 /// (the others wait in the backlog for the next call) and reads at most `REFUSE_DRAIN`
-/// bytes from each refused one. Implements [`super::HostLink`].
+/// bytes from each refused one. Implements [`super::PortLink`].
 #[derive(Debug)]
 pub struct TcpLink {
     listener: TcpListener,
@@ -100,7 +100,7 @@ impl TcpLink {
     }
 
     /// Close the controlling client's connection, if any; the session hears of it at the next
-    /// [`HostLink::admit`](super::HostLink::admit).
+    /// [`PortLink::admit`](super::PortLink::admit).
     pub fn disconnect(&mut self) {
         if let Some(client) = self.client.take() {
             let _ = client.shutdown(Shutdown::Both);
@@ -261,7 +261,7 @@ buffered_link!(TcpLink);
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::link::HostLink;
+    use crate::link::PortLink;
 
     fn link() -> TcpLink {
         TcpLink::bind("127.0.0.1:0".parse().unwrap(), b"busy\n".to_vec()).unwrap()
@@ -277,14 +277,14 @@ mod tests {
         let first = TcpStream::connect(addr).unwrap();
         while link.connections() == 0 {
             link.poll().unwrap();
-            HostLink::admit(&mut link, &mut session, 0).unwrap();
+            PortLink::admit(&mut link, &mut session, 0).unwrap();
         }
         // The close and the new connection both come between two reads.
         drop(first);
         let mut second = TcpStream::connect(addr).unwrap();
         std::thread::sleep(std::time::Duration::from_millis(20));
         assert!(
-            HostLink::admit(&mut link, &mut session, 10).unwrap(),
+            PortLink::admit(&mut link, &mut session, 10).unwrap(),
             "admitted"
         );
         assert_eq!(link.refused(), 0);
@@ -306,7 +306,7 @@ mod tests {
         assert_eq!(taken.on_connect(0), SessionAction::SendConnected);
         let mut refused = TcpStream::connect(addr).unwrap();
         std::thread::sleep(std::time::Duration::from_millis(20));
-        assert!(!HostLink::admit(&mut link, &mut taken, 5).unwrap());
+        assert!(!PortLink::admit(&mut link, &mut taken, 5).unwrap());
         assert_eq!((link.connections(), link.refused()), (0, 1));
         let mut text = String::new();
         refused.read_to_string(&mut text).unwrap();
@@ -315,7 +315,7 @@ mod tests {
         taken.on_disconnect();
         let _admitted = TcpStream::connect(addr).unwrap();
         std::thread::sleep(std::time::Duration::from_millis(20));
-        assert!(HostLink::admit(&mut link, &mut taken, 5).unwrap());
+        assert!(PortLink::admit(&mut link, &mut taken, 5).unwrap());
         assert_eq!((link.connections(), link.refused()), (1, 1));
         assert!(taken.is_connected());
     }

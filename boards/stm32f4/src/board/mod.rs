@@ -7,7 +7,7 @@
 //! |---|---|
 //! | `NAME` | the board's name |
 //! | `clocks()` | the `rcc::Config` to freeze |
-//! | `HostUsart`, `HOST_UART_IRQ`, `HOST_UART_PINS` | the UART wired to the host, its interrupt, its pins |
+//! | `HostUsart`, `HOST_UART_IRQ`, `HostUartPins` | the UART wired to the host, its interrupt, its pins |
 //! | `STEP_TICK_HZ` | the rate of the step clock (the port's `timer` module) |
 //! | `LIMIT_POLARITY` | how the limit switch inputs read |
 //! | `pins()` | the GPIO ports split into [`Pins`] |
