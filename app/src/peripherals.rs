@@ -1,159 +1,231 @@
-//! The controller's [`Peripherals`], built from the drivers of this crate: every board reuses
-//! it instead of writing its own.
+//! A board's description of its devices, for the controller: which it has, and what each is.
 //!
-//! [`DriverPeripherals`] holds what a board has of:
+//! [`Parts`] lists them, each device as a trait object of `forja_hal_abstraction::device`
+//! (any driver of `forja-drivers` that implements it, or a board's own), and implements the
+//! controller's [`Peripherals`]:
 //!
-//! | part | type | G-code |
+//! | part | field | G-code |
 //! |---|---|---|
-//! | hot end, bed | any [`TemperatureLoop`] (a [`HeaterChannel`] over a sensor and a heater) | `M104`/`M109`/`M140`/`M116`/`M105` |
-//! | fans | `[Option<Fan<P>>; F]`, by `P` index | `M106 P<i> S<duty>`, `M107` |
-//! | spindle | any [`SpindleOutput`] (a [`Spindle`]) | `M3`/`M4`/`M5` |
+//! | hot end, bed | `Option<&mut dyn TemperatureControl>` (a [`HeaterChannel`](forja_drivers::heater::HeaterChannel) over a sensor and a heater) | `M104`/`M109`/`M140`/`M116`/`M105` |
+//! | fans | `[Option<&mut dyn FanControl>; F]`, by `P` index (a [`Fan`](forja_drivers::pwm::Fan)) | `M106 P<i> S<duty>`, `M107` |
+//! | spindle | `Option<&mut dyn SpindleControl>` (a [`Spindle`](forja_drivers::pwm::Spindle)) | `M3`/`M4`/`M5` |
+//! | coolant | `Option<&mut dyn CoolantControl>` (a [`Coolant`](forja_drivers::coolant::Coolant)) | `M7`/`M8`/`M9` |
 //! | motor power | any [`StepperEnable`] ([`MotorEnables`] for one line per driver, [`NoMotors`] for none) | `M17`/`M18`/`M84`, before motion |
 //! | end-stops | `[Option<L>; N]`, `L:` [`LimitSwitch`], the thread side's own reading of each axis's switch | `M119` |
 //!
-//! A part the board does not have is `None` (or an empty fan array); the placeholder types
-//! [`NoHeater`], [`NoSpindle`], [`NoPwm`] and [`NoLimit`] name its type.
+//! A device the board does not have is `None` (or no fan at all: `F` is 0). The devices are
+//! lent for `'a`: a firmware board keeps them for its whole life (RTIC init locals, statics)
+//! and lends them as `Send` trait objects ([`SendDevices`], the default), since it moves its
+//! parts to the task that runs the controller; the simulator keeps them in its board's static
+//! RAM and lends them as they are ([`LocalDevices`]: its devices share their state through
+//! `Rc` on its one thread). The G-code rules (the last spindle speed, the heater tolerance of a
+//! wait, what is turned off when) are the controller's, not the parts'. A board whose parts are
+//! motion alone (motor power, and perhaps its switches read for `M119`) uses
+//! [`MotorPeripherals`] instead ([`MotorPeripherals::motors_only`]).
 //!
 //! ```
 //! use forja_drivers::heater::{HeaterChannel, HeaterConfig, PidGains};
-//! use forja_app::peripherals::{
-//!     DriverPeripherals, NoHeater, NoLimit, NoMotors, NoPwm, NoSpindle, Parts,
-//! };
+//! use forja_app::controller::Peripherals;
+//! use forja_app::peripherals::{NoLimit, NoMotors, Parts};
 //! # use forja_hal_abstraction::{ErrorType, thermal::{Heater, TemperatureSensor}};
 //! # struct Sensor; struct Element;
 //! # impl ErrorType for Sensor { type Error = core::convert::Infallible; }
 //! # impl TemperatureSensor for Sensor { fn read_millicelsius(&mut self) -> Result<i32, Self::Error> { Ok(25_000) } }
 //! # impl ErrorType for Element { type Error = core::convert::Infallible; }
 //! # impl Heater for Element { fn set_power(&mut self, _: u16) -> Result<(), Self::Error> { Ok(()) } }
-//! use forja_app::controller::Peripherals;
 //!
 //! let gains = PidGains { kp: 0.087, ki: 0.0042, kd: 0.45 };
-//! let hot_end = HeaterChannel::new(Sensor, Element, HeaterConfig::hot_end(gains));
-//! let mut p: DriverPeripherals<_, NoHeater, NoPwm, NoSpindle, NoMotors, NoLimit, 3, 0> =
-//!     DriverPeripherals::new(Parts {
-//!         hot_end: Some(hot_end),
-//!         bed: None,
-//!         fans: [],
-//!         spindle: None,
-//!         motors: NoMotors,
-//!         limits: [None, None, None],
-//!         tolerance_mc: 2_000,
-//!     });
-//! p.poll(0).unwrap();
-//! assert_eq!(p.temperatures().hot_end.unwrap().current_mc, 25_000);
+//! let mut hot_end = HeaterChannel::new(Sensor, Element, HeaterConfig::hot_end(gains));
+//! let mut parts: Parts<'_, NoMotors, NoLimit, 3> = Parts {
+//!     hot_end: Some(&mut hot_end),
+//!     ..Parts::new(NoMotors, [None, None, None])
+//! };
+//! let zone = Peripherals::<3>::hot_end(&mut parts).unwrap();
+//! zone.run(0).unwrap();
+//! assert_eq!(zone.current_mc(), Some(25_000));
+//! assert!(Peripherals::<3>::spindle(&mut parts).is_none());
 //! ```
 //!
 //! # Execution context
 //!
-//! Thread (the controller's). [`Peripherals::poll`] and [`Peripherals::shutdown`] read the
-//! sensors, which may block for one conversion each.
+//! Thread (the controller's). The accessors only answer the devices; the devices' own methods
+//! say what they may block on.
 
 use core::convert::Infallible;
 
-use crate::controller::{PeripheralError, Peripherals, Reading, Temperatures};
-use embedded_hal::digital::OutputPin;
-use embedded_hal::pwm::{self, SetDutyCycle};
 use forja_hal_abstraction::ErrorType;
+use forja_hal_abstraction::device::{
+    CoolantControl, DeviceError, FanControl, SpindleControl, TemperatureControl,
+};
 use forja_hal_abstraction::limit::LimitSwitch;
 use forja_hal_abstraction::stepper::StepperEnable;
-use forja_hal_abstraction::thermal::{Heater, TemperatureSensor};
-use forja_motion::effect::{Heater as Which, Spindle as SpindleCommand};
 
-use forja_drivers::heater::{HeaterChannel, HeaterFault, HeaterReport, PidHeater};
-use forja_drivers::pwm::{Fan, Spindle, SpindleError, SpindleState};
+use crate::controller::Peripherals;
 
-/// A temperature control loop: what [`DriverPeripherals`] needs of a hot end or a bed.
-pub trait TemperatureLoop {
-    /// Read the sensor, run the controller, drive the heater (see [`HeaterChannel::poll`]).
-    ///
-    /// Context: thread. May block for one conversion. Errors: a fault, found now or latched.
-    fn poll(&mut self, now_ms: u32) -> Result<HeaterReport, HeaterFault>;
-
-    /// The controller: target, last measurement, fault.
-    fn pid(&self) -> &PidHeater;
-
-    /// The controller, to set a target or clear a fault.
-    fn pid_mut(&mut self) -> &mut PidHeater;
+/// The trait objects a [`Parts`] lends its devices as. See the
+/// [module documentation](self).
+pub trait DeviceObjects {
+    /// A temperature zone.
+    type Zone: TemperatureControl + ?Sized;
+    /// A fan.
+    type Fan: FanControl + ?Sized;
+    /// A spindle.
+    type Spindle: SpindleControl + ?Sized;
+    /// Coolant.
+    type Coolant: CoolantControl + ?Sized;
 }
 
-impl<S: TemperatureSensor, H: Heater> TemperatureLoop for HeaterChannel<S, H> {
-    fn poll(&mut self, now_ms: u32) -> Result<HeaterReport, HeaterFault> {
-        HeaterChannel::poll(self, now_ms)
-    }
-    fn pid(&self) -> &PidHeater {
-        HeaterChannel::pid(self)
-    }
-    fn pid_mut(&mut self) -> &mut PidHeater {
-        HeaterChannel::pid_mut(self)
-    }
-}
-
-/// A spindle: what [`DriverPeripherals`] needs of one.
-pub trait SpindleOutput {
-    /// Apply `state` (see [`Spindle::set`]); returns the speed commanded.
-    ///
-    /// Context: thread. Errors: as [`Spindle::set`].
-    fn set(&mut self, state: SpindleState) -> Result<u32, SpindleError>;
-
-    /// Stop (see [`Spindle::stop`]).
-    ///
-    /// Context: thread. Errors: a write failure.
-    fn stop(&mut self) -> Result<(), SpindleError>;
-}
-
-impl<P: SetDutyCycle, D: OutputPin, E: OutputPin> SpindleOutput for Spindle<P, D, E> {
-    fn set(&mut self, state: SpindleState) -> Result<u32, SpindleError> {
-        Spindle::set(self, state)
-    }
-    fn stop(&mut self) -> Result<(), SpindleError> {
-        Spindle::stop(self)
-    }
-}
-
-/// The type of an absent heater (`None::<NoHeater>`); it has no values.
+/// Devices lent as `Send` trait objects (`dyn TemperatureControl + Send`, …): a firmware
+/// board's, whose parts move to the task that runs the controller.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum NoHeater {}
+pub enum SendDevices {}
 
-impl TemperatureLoop for NoHeater {
-    fn poll(&mut self, _: u32) -> Result<HeaterReport, HeaterFault> {
-        match *self {}
-    }
-    fn pid(&self) -> &PidHeater {
-        match *self {}
-    }
-    fn pid_mut(&mut self) -> &mut PidHeater {
-        match *self {}
-    }
+impl DeviceObjects for SendDevices {
+    type Zone = dyn TemperatureControl + Send;
+    type Fan = dyn FanControl + Send;
+    type Spindle = dyn SpindleControl + Send;
+    type Coolant = dyn CoolantControl + Send;
 }
 
-/// The type of an absent spindle (`None::<NoSpindle>`); it has no values.
+/// Devices lent as they are (`dyn TemperatureControl`, …): those of a program on one thread,
+/// such as the simulator's, which share their state through `Rc`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum NoSpindle {}
+pub enum LocalDevices {}
 
-impl SpindleOutput for NoSpindle {
-    fn set(&mut self, _: SpindleState) -> Result<u32, SpindleError> {
-        match *self {}
-    }
-    fn stop(&mut self) -> Result<(), SpindleError> {
-        match *self {}
+impl DeviceObjects for LocalDevices {
+    type Zone = dyn TemperatureControl;
+    type Fan = dyn FanControl;
+    type Spindle = dyn SpindleControl;
+    type Coolant = dyn CoolantControl;
+}
+
+/// A board's devices, as the controller reaches them. See the [module documentation](self).
+///
+/// `'a`: how long the devices are lent (`'static` on a firmware board); `M`: motor power; `L`:
+/// the end-stops as the thread side reads them ([`NoLimit`] for none); `N` axes; `F` fan
+/// indices (0 for none); `D`: the trait objects the devices are lent as ([`SendDevices`] or
+/// [`LocalDevices`]).
+pub struct Parts<'a, M, L, const N: usize, const F: usize = 0, D: DeviceObjects = SendDevices> {
+    /// The hot end, if any.
+    pub hot_end: Option<&'a mut D::Zone>,
+    /// The bed, if any.
+    pub bed: Option<&'a mut D::Zone>,
+    /// The fans, by `M106` `P` index (`None` where the board has no fan).
+    pub fans: [Option<&'a mut D::Fan>; F],
+    /// The spindle, if any.
+    pub spindle: Option<&'a mut D::Spindle>,
+    /// The coolant, if any.
+    pub coolant: Option<&'a mut D::Coolant>,
+    /// Motor power.
+    pub motors: M,
+    /// Each axis's switch as the thread side reads it, for `M119`.
+    pub endstops: [Option<L>; N],
+}
+
+impl<M, L, const N: usize, const F: usize, D: DeviceObjects> Parts<'_, M, L, N, F, D> {
+    /// A board with `motors` and `endstops` and no other device; fill in the others it has
+    /// (`Parts { spindle: Some(&mut spindle), ..Parts::new(motors, endstops) }`).
+    pub fn new(motors: M, endstops: [Option<L>; N]) -> Self {
+        Self {
+            hot_end: None,
+            bed: None,
+            fans: core::array::from_fn(|_| None),
+            spindle: None,
+            coolant: None,
+            motors,
+            endstops,
+        }
     }
 }
 
-/// The PWM type of a board without fans (`fans: []`); it has no values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum NoPwm {}
+// Each device is answered through the `&mut T` implementation of its trait, whatever object
+// type `D` lends it as.
+impl<M, L, const N: usize, const F: usize, D> Peripherals<N> for Parts<'_, M, L, N, F, D>
+where
+    M: StepperEnable,
+    L: LimitSwitch,
+    D: DeviceObjects,
+{
+    fn hot_end(&mut self) -> Option<&mut dyn TemperatureControl> {
+        self.hot_end.as_mut().map(|z| z as _)
+    }
 
-impl pwm::ErrorType for NoPwm {
-    type Error = Infallible;
+    fn bed(&mut self) -> Option<&mut dyn TemperatureControl> {
+        self.bed.as_mut().map(|z| z as _)
+    }
+
+    fn fan(&mut self, index: u8) -> Option<&mut dyn FanControl> {
+        let fan = self.fans.get_mut(usize::from(index))?;
+        fan.as_mut().map(|f| f as _)
+    }
+
+    fn spindle(&mut self) -> Option<&mut dyn SpindleControl> {
+        self.spindle.as_mut().map(|s| s as _)
+    }
+
+    fn coolant(&mut self) -> Option<&mut dyn CoolantControl> {
+        self.coolant.as_mut().map(|c| c as _)
+    }
+
+    fn set_motors(&mut self, enabled: bool) -> Result<(), DeviceError> {
+        power(&mut self.motors, enabled)
+    }
+
+    fn endstop(&mut self, axis: usize) -> Option<bool> {
+        read_endstop(&mut self.endstops, axis)
+    }
 }
 
-impl SetDutyCycle for NoPwm {
-    fn max_duty_cycle(&self) -> u16 {
-        match *self {}
+/// The peripherals of a board whose parts are motion alone: motor power, and the end-stops as
+/// the thread side reads them for `M119` ([`NoLimit`]: none). It has no heater, fan, spindle
+/// or coolant: their commands are refused (`E194 no-device`), and the code that drives them is
+/// left out of the board's image.
+#[derive(Debug, Clone)]
+pub struct MotorPeripherals<M, const N: usize, L = NoLimit> {
+    /// Motor power.
+    pub motors: M,
+    /// Each axis's switch as the thread side reads it, for `M119`.
+    pub endstops: [Option<L>; N],
+}
+
+impl<M, const N: usize> MotorPeripherals<M, N> {
+    /// The peripherals of a board with `motors` and nothing else.
+    pub fn motors_only(motors: M) -> Self {
+        Self::new(motors, [None; N])
     }
-    fn set_duty_cycle(&mut self, _: u16) -> Result<(), Infallible> {
-        match *self {}
+}
+
+impl<M, const N: usize, L> MotorPeripherals<M, N, L> {
+    /// The peripherals of a board with `motors` and `endstops`.
+    pub fn new(motors: M, endstops: [Option<L>; N]) -> Self {
+        Self { motors, endstops }
     }
+}
+
+impl<M: StepperEnable, const N: usize, L: LimitSwitch> Peripherals<N>
+    for MotorPeripherals<M, N, L>
+{
+    fn set_motors(&mut self, enabled: bool) -> Result<(), DeviceError> {
+        power(&mut self.motors, enabled)
+    }
+
+    fn endstop(&mut self, axis: usize) -> Option<bool> {
+        read_endstop(&mut self.endstops, axis)
+    }
+}
+
+/// Energise or release `motors`; a line that cannot be driven is a hardware fault.
+fn power<M: StepperEnable>(motors: &mut M, enabled: bool) -> Result<(), DeviceError> {
+    motors
+        .set_enabled(enabled)
+        .map_err(|_| DeviceError::Hardware)
+}
+
+/// The switch of `axis`, if it has one: a switch that cannot be read reads as triggered, as
+/// the kernel takes it.
+fn read_endstop<L: LimitSwitch>(endstops: &mut [Option<L>], axis: usize) -> Option<bool> {
+    let limit = endstops.get_mut(axis)?.as_mut()?;
+    Some(limit.is_triggered().unwrap_or(true))
 }
 
 /// The type of an axis without a switch on the thread side (`None::<NoLimit>`); it has no
@@ -213,269 +285,28 @@ impl StepperEnable for NoMotors {
     }
 }
 
-/// What a board gives [`DriverPeripherals::new`].
-#[derive(Debug)]
-pub struct Parts<H, B, P, SP, M, L, const N: usize, const F: usize> {
-    /// The hot end, if any.
-    pub hot_end: Option<H>,
-    /// The bed, if any.
-    pub bed: Option<B>,
-    /// The fans, by `M106` `P` index (`None` where the board has no fan).
-    pub fans: [Option<Fan<P>>; F],
-    /// The spindle, if any.
-    pub spindle: Option<SP>,
-    /// Motor power.
-    pub motors: M,
-    /// Each axis's switch as the thread side reads it, for `M119`.
-    pub limits: [Option<L>; N],
-    /// How close to its target a heater must be for `M109`/`M116` to go on, millidegrees.
-    pub tolerance_mc: i32,
-}
-
-/// The generic [`Peripherals`] over this crate's drivers. See the
-/// [module documentation](self).
-#[derive(Debug)]
-pub struct DriverPeripherals<H, B, P, SP, M, L, const N: usize, const F: usize> {
-    parts: Parts<H, B, P, SP, M, L, N, F>,
-    rpm: u32,
-    now_ms: u32,
-}
-
-/// The speed of an `M3`/`M4`: its `S` word rounded to whole rpm, or `last` without one.
-fn rpm_or(word: Option<i64>, last: u32) -> u32 {
-    word.map_or(last, |v| v.clamp(0, i64::from(u32::MAX)) as u32)
-}
-
-/// The stable short name of a heater fault, for the wire.
-pub const fn fault_name(fault: HeaterFault) -> &'static str {
-    match fault {
-        HeaterFault::Sensor => "sensor-fault",
-        HeaterFault::HeatingStalled => "heating-stalled",
-        HeaterFault::TemperatureDrop => "thermal-runaway",
-        HeaterFault::OverTemperature => "over-temperature",
-        HeaterFault::Output => "heater-output",
-        HeaterFault::TargetTooHigh => "target-too-high",
-    }
-}
-
-fn thermal(fault: HeaterFault) -> PeripheralError {
-    match fault {
-        HeaterFault::TargetTooHigh => PeripheralError::OutOfRange,
-        f => PeripheralError::Thermal {
-            code: f.code(),
-            name: fault_name(f),
-        },
-    }
-}
-
-fn reading<T: TemperatureLoop>(h: &T) -> Reading {
-    Reading {
-        current_mc: h.pid().measured_mc().unwrap_or(0),
-        target_mc: h.pid().target_mc(),
-    }
-}
-
-impl<H, B, P, SP, M, L, const N: usize, const F: usize> DriverPeripherals<H, B, P, SP, M, L, N, F>
-where
-    H: TemperatureLoop,
-    B: TemperatureLoop,
-    P: SetDutyCycle,
-    SP: SpindleOutput,
-    M: StepperEnable,
-    L: LimitSwitch,
-{
-    /// The peripherals of `parts`.
-    pub fn new(parts: Parts<H, B, P, SP, M, L, N, F>) -> Self {
-        Self {
-            parts,
-            rpm: 0,
-            now_ms: 0,
-        }
-    }
-
-    /// The parts, to inspect them.
-    pub fn parts(&self) -> &Parts<H, B, P, SP, M, L, N, F> {
-        &self.parts
-    }
-
-    /// The parts, mutably.
-    pub fn parts_mut(&mut self) -> &mut Parts<H, B, P, SP, M, L, N, F> {
-        &mut self.parts
-    }
-
-    /// Give the parts back.
-    pub fn into_parts(self) -> Parts<H, B, P, SP, M, L, N, F> {
-        self.parts
-    }
-
-    fn heaters(&mut self) -> [Option<&mut dyn TemperatureLoop>; 2] {
-        [
-            self.parts
-                .hot_end
-                .as_mut()
-                .map(|h| h as &mut dyn TemperatureLoop),
-            self.parts
-                .bed
-                .as_mut()
-                .map(|h| h as &mut dyn TemperatureLoop),
-        ]
-    }
-}
-
-/// The peripherals of a board whose only part is motor power: no heater, fan or spindle, and
-/// no switch read for `M119`.
-pub type MotorPeripherals<M, const N: usize> =
-    DriverPeripherals<NoHeater, NoHeater, NoPwm, NoSpindle, M, NoLimit, N, 0>;
-
-impl<M: StepperEnable, const N: usize> MotorPeripherals<M, N> {
-    /// The peripherals of a board with `motors` and nothing else.
-    pub fn motors_only(motors: M) -> Self {
-        Self::new(Parts {
-            hot_end: None,
-            bed: None,
-            fans: [],
-            spindle: None,
-            motors,
-            limits: [None; N],
-            tolerance_mc: 0,
-        })
-    }
-}
-
-impl<H, B, P, SP, M, L, const N: usize, const F: usize> Peripherals<N>
-    for DriverPeripherals<H, B, P, SP, M, L, N, F>
-where
-    H: TemperatureLoop,
-    B: TemperatureLoop,
-    P: SetDutyCycle,
-    SP: SpindleOutput,
-    M: StepperEnable,
-    L: LimitSwitch,
-{
-    fn set_temperature(&mut self, heater: Which, millicelsius: i32) -> Result<(), PeripheralError> {
-        let pid = match heater {
-            Which::Extruder(None | Some(0)) => self.parts.hot_end.as_mut().map(|h| h.pid_mut()),
-            Which::Bed => self.parts.bed.as_mut().map(|h| h.pid_mut()),
-            Which::Extruder(Some(_)) => None,
-        };
-        pid.ok_or(PeripheralError::NoDevice)?
-            .set_target(millicelsius)
-            .map_err(thermal)
-    }
-
-    fn temperatures(&mut self) -> Temperatures {
-        Temperatures {
-            hot_end: self.parts.hot_end.as_ref().map(reading),
-            bed: self.parts.bed.as_ref().map(reading),
-        }
-    }
-
-    fn heaters_at_target(&mut self) -> bool {
-        let tolerance = self.parts.tolerance_mc;
-        self.heaters()
-            .into_iter()
-            .flatten()
-            .all(|h| h.pid().is_at_target(tolerance))
-    }
-
-    fn set_fan(&mut self, index: u8, duty: u8) -> Result<(), PeripheralError> {
-        self.parts
-            .fans
-            .get_mut(usize::from(index))
-            .and_then(Option::as_mut)
-            .ok_or(PeripheralError::NoDevice)?
-            .set_speed(duty)
-            .map_err(|_| PeripheralError::Hardware)
-    }
-
-    fn set_spindle(&mut self, command: SpindleCommand) -> Result<(), PeripheralError> {
-        let spindle = self
-            .parts
-            .spindle
-            .as_mut()
-            .ok_or(PeripheralError::NoDevice)?;
-        let state = match command {
-            SpindleCommand::Clockwise { rpm } => SpindleState::Clockwise {
-                rpm: rpm_or(rpm.and_then(|d| d.round_to_scale(0)), self.rpm),
-            },
-            SpindleCommand::CounterClockwise { rpm } => SpindleState::CounterClockwise {
-                rpm: rpm_or(rpm.and_then(|d| d.round_to_scale(0)), self.rpm),
-            },
-            SpindleCommand::Off => SpindleState::Off,
-        };
-        match spindle.set(state) {
-            Ok(_) => {
-                if let SpindleState::Clockwise { rpm } | SpindleState::CounterClockwise { rpm } =
-                    state
-                {
-                    self.rpm = rpm;
-                }
-                Ok(())
-            }
-            Err(SpindleError::NotReversible) => Err(PeripheralError::OutOfRange),
-            Err(_) => Err(PeripheralError::Hardware),
-        }
-    }
-
-    fn set_motors(&mut self, enabled: bool) -> Result<(), PeripheralError> {
-        self.parts
-            .motors
-            .set_enabled(enabled)
-            .map_err(|_| PeripheralError::Hardware)
-    }
-
-    fn endstops(&mut self) -> [Option<bool>; N] {
-        let mut states = [None; N];
-        for (state, limit) in states.iter_mut().zip(self.parts.limits.iter_mut()) {
-            // A switch that cannot be read reads as triggered, as the kernel takes it.
-            *state = limit.as_mut().map(|l| l.is_triggered().unwrap_or(true));
-        }
-        states
-    }
-
-    fn poll(&mut self, now_ms: u32) -> Result<(), PeripheralError> {
-        self.now_ms = now_ms;
-        let mut first = Ok(());
-        for h in self.heaters().into_iter().flatten() {
-            if let Err(f) = h.poll(now_ms)
-                && first.is_ok()
-            {
-                first = Err(thermal(f));
-            }
-        }
-        first
-    }
-
-    fn shutdown(&mut self) {
-        let now_ms = self.now_ms;
-        for h in self.heaters().into_iter().flatten() {
-            let _ = h.pid_mut().set_target(0);
-            // Apply the zero power now rather than at the next period.
-            let _ = h.poll(now_ms);
-        }
-        for fan in self.parts.fans.iter_mut().flatten() {
-            let _ = fan.off();
-        }
-        if let Some(s) = self.parts.spindle.as_mut() {
-            let _ = s.stop();
-        }
-    }
-
-    fn reset(&mut self) {
-        for h in self.heaters().into_iter().flatten() {
-            h.pid_mut().clear_fault();
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use forja_drivers::heater::{HeaterConfig, PidGains};
-    use forja_drivers::pwm::{FanConfig, SpindleConfig};
+    use crate::controller::peripherals::Devices;
+    use crate::controller::{PeripheralError, Temperatures};
+    use embedded_hal::digital::OutputPin;
+    use embedded_hal::pwm::{self, SetDutyCycle};
+    use forja_drivers::coolant::Coolant;
+    use forja_drivers::heater::{HeaterChannel, HeaterConfig, HeaterFault, PidGains};
+    use forja_drivers::output::Output;
+    use forja_drivers::pwm::{Fan, FanConfig, Spindle, SpindleConfig, SpindleState};
+    use forja_hal_abstraction::thermal::{Heater, TemperatureSensor};
+    use forja_motion::effect::{
+        Coolant as CoolantCommand, Heater as Which, Spindle as SpindleCommand,
+    };
+    use forja_protocol::gcode::Decimal;
+    use std::cell::Cell;
+    use std::rc::Rc;
 
-    /// A direction pin that takes every level.
-    struct FakeOutput;
+    /// An output pin that records its level.
+    #[derive(Clone, Default)]
+    struct FakeOutput(Rc<Cell<bool>>);
 
     impl embedded_hal::digital::ErrorType for FakeOutput {
         type Error = Infallible;
@@ -483,15 +314,14 @@ mod tests {
 
     impl OutputPin for FakeOutput {
         fn set_low(&mut self) -> Result<(), Infallible> {
+            self.0.set(false);
             Ok(())
         }
         fn set_high(&mut self) -> Result<(), Infallible> {
+            self.0.set(true);
             Ok(())
         }
     }
-    use forja_protocol::gcode::Decimal;
-    use std::cell::Cell;
-    use std::rc::Rc;
 
     /// A heater and sensor around one shared temperature: full power adds 5 °C per poll, 1 % of
     /// the rise above 20 °C is lost per poll.
@@ -499,7 +329,7 @@ mod tests {
     struct Plant(Rc<Cell<i32>>, Rc<Cell<Option<()>>>);
 
     impl ErrorType for Plant {
-        type Error = forja_drivers::heater::HeaterFault;
+        type Error = HeaterFault;
     }
 
     impl TemperatureSensor for Plant {
@@ -562,65 +392,88 @@ mod tests {
         }
     }
 
-    type Board = DriverPeripherals<
-        HeaterChannel<Plant, Plant>,
-        NoHeater,
-        Pwm,
-        Spindle<Pwm, FakeOutput>,
-        MotorEnables<Enable, 2>,
-        Switch,
-        2,
-        1,
-    >;
+    /// The devices of the test board, owned by the test and lent to its parts.
+    struct Owned {
+        hot_end: HeaterChannel<Plant, Plant>,
+        fan: Fan<Pwm>,
+        spindle: Spindle<Pwm, FakeOutput>,
+        coolant: Coolant<FakeOutput, FakeOutput>,
+        /// The sensor fault switch, the enable line, the mist and flood lines.
+        fault: Rc<Cell<Option<()>>>,
+        on: Rc<Cell<bool>>,
+        lines: [FakeOutput; 2],
+    }
 
-    /// The board, its sensor fault switch and its enable line.
-    type Rig = (Board, Rc<Cell<Option<()>>>, Rc<Cell<bool>>);
+    type Board<'a> = Devices<Parts<'a, MotorEnables<Enable, 2>, Switch, 2, 1, LocalDevices>, 2>;
 
-    fn board() -> Rig {
+    /// How close to its target a heater must be, as the controller is configured.
+    const TOLERANCE_MC: i32 = 2_000;
+
+    fn owned() -> Owned {
         let t = Rc::new(Cell::new(20_000));
         let fault = Rc::new(Cell::new(None));
-        let plant = Plant(t.clone(), fault.clone());
+        let plant = Plant(t, fault.clone());
         let gains = PidGains {
             kp: 0.087,
             ki: 0.0042,
             kd: 0.45,
         };
-        let on = Rc::new(Cell::new(false));
-        let spindle =
-            Spindle::with_direction(Pwm::default(), FakeOutput, SpindleConfig::new(10_000))
-                .unwrap();
-        let p = DriverPeripherals::new(Parts {
-            hot_end: Some(HeaterChannel::new(
-                plant.clone(),
-                plant,
-                HeaterConfig::hot_end(gains),
-            )),
-            bed: None,
-            fans: [Some(Fan::new(Pwm::default(), FanConfig::DIRECT).unwrap())],
-            spindle: Some(spindle),
-            motors: MotorEnables([Enable(on.clone()), Enable(on.clone())]),
-            limits: [Some(Switch(true)), None],
-            tolerance_mc: 2_000,
-        });
-        (p, fault, on)
+        let lines = [FakeOutput::default(), FakeOutput::default()];
+        let line = |l: &FakeOutput| Output::new(l.clone(), embedded_hal::digital::PinState::High);
+        Owned {
+            hot_end: HeaterChannel::new(plant.clone(), plant, HeaterConfig::hot_end(gains)),
+            fan: Fan::new(Pwm::default(), FanConfig::DIRECT).unwrap(),
+            spindle: Spindle::with_direction(
+                Pwm::default(),
+                FakeOutput::default(),
+                SpindleConfig::new(10_000),
+            )
+            .unwrap(),
+            coolant: Coolant::mist_and_flood(line(&lines[0]).unwrap(), line(&lines[1]).unwrap()),
+            fault,
+            on: Rc::new(Cell::new(false)),
+            lines,
+        }
+    }
+
+    fn board(o: &mut Owned) -> Board<'_> {
+        Devices::new(Parts {
+            hot_end: Some(&mut o.hot_end),
+            fans: [Some(&mut o.fan)],
+            spindle: Some(&mut o.spindle),
+            coolant: Some(&mut o.coolant),
+            ..Parts::new(
+                MotorEnables([Enable(o.on.clone()), Enable(o.on.clone())]),
+                [Some(Switch(true)), None],
+            )
+        })
     }
 
     #[test]
     fn heats_to_target_reports_and_waits() {
-        let (mut p, _, _) = board();
+        let mut o = owned();
+        let mut p = board(&mut o);
         assert_eq!(
             p.set_temperature(Which::Bed, 60_000),
+            Err(PeripheralError::NoDevice)
+        );
+        assert_eq!(
+            p.set_temperature(Which::Extruder(Some(1)), 60_000),
             Err(PeripheralError::NoDevice)
         );
         assert_eq!(
             p.set_temperature(Which::Extruder(None), 300_000),
             Err(PeripheralError::OutOfRange)
         );
+        assert!(
+            p.heaters_at_target(TOLERANCE_MC),
+            "a heater that is off holds no wait"
+        );
         p.set_temperature(Which::Extruder(Some(0)), 200_000)
             .unwrap();
-        assert!(!p.heaters_at_target());
+        assert!(!p.heaters_at_target(TOLERANCE_MC));
         let mut ms = 0;
-        while !p.heaters_at_target() {
+        while !p.heaters_at_target(TOLERANCE_MC) {
             p.poll(ms).unwrap();
             ms += 100;
             assert!(ms < 200_000, "never reached the target");
@@ -634,7 +487,9 @@ mod tests {
 
     #[test]
     fn a_sensor_fault_is_a_thermal_error_until_reset() {
-        let (mut p, fault, _) = board();
+        let mut o = owned();
+        let fault = o.fault.clone();
+        let mut p = board(&mut o);
         p.set_temperature(Which::Extruder(None), 200_000).unwrap();
         p.poll(0).unwrap();
         fault.set(Some(()));
@@ -648,6 +503,10 @@ mod tests {
         );
         fault.set(None);
         assert_eq!(p.poll(200), Err(e), "latched");
+        assert!(
+            !p.heaters_at_target(i32::MAX),
+            "a faulted heater holds the wait"
+        );
         assert_eq!(p.set_temperature(Which::Extruder(None), 200_000), Err(e));
         p.reset();
         p.poll(300).unwrap();
@@ -655,11 +514,11 @@ mod tests {
     }
 
     #[test]
-    fn fans_spindle_motors_endstops_and_shutdown() {
-        let (mut p, _, on) = board();
+    fn fans_spindle_coolant_motors_endstops_and_shutdown() {
+        let mut o = owned();
+        let mut p = board(&mut o);
         p.set_fan(0, 128).unwrap();
         assert_eq!(p.set_fan(1, 10), Err(PeripheralError::NoDevice));
-        assert_eq!(p.parts().fans[0].as_ref().unwrap().speed(), 128);
         p.set_spindle(SpindleCommand::Clockwise {
             rpm: Some(Decimal::from_integer(5_000)),
         })
@@ -667,28 +526,59 @@ mod tests {
         // No S: the last speed.
         p.set_spindle(SpindleCommand::CounterClockwise { rpm: None })
             .unwrap();
-        assert!(matches!(
-            p.parts().spindle.as_ref().unwrap().state(),
-            SpindleState::CounterClockwise { rpm: 5_000 }
-        ));
+        p.set_coolant(CoolantCommand::Mist).unwrap();
+        p.set_coolant(CoolantCommand::Flood).unwrap();
         p.set_motors(true).unwrap();
-        assert!(on.get());
+        assert!(p.motors_on);
         assert_eq!(p.endstops(), [Some(true), None]);
         p.set_temperature(Which::Extruder(None), 200_000).unwrap();
-        p.shutdown();
-        assert_eq!(p.parts().fans[0].as_ref().unwrap().speed(), 0);
-        assert_eq!(p.temperatures().hot_end.unwrap().target_mc, 0);
+        drop(p);
+        assert_eq!(o.fan.speed(), 128);
         assert_eq!(
-            p.parts().spindle.as_ref().unwrap().state(),
-            SpindleState::Off
+            o.spindle.state(),
+            SpindleState::CounterClockwise { rpm: 5_000 }
         );
+        assert!(
+            o.coolant.is_mist_on() && o.coolant.is_flood_on(),
+            "both on at once"
+        );
+        assert!(o.on.get());
+
+        let mut p = board(&mut o);
+        p.set_coolant(CoolantCommand::Off).unwrap();
+        p.set_coolant(CoolantCommand::Flood).unwrap();
+        p.shutdown();
+        assert_eq!(p.temperatures().hot_end.unwrap().target_mc, 0);
+        drop(p);
+        assert_eq!(o.fan.speed(), 0);
+        assert_eq!(o.spindle.state(), SpindleState::Off);
+        assert!(!o.lines[0].0.get() && !o.lines[1].0.get(), "coolant off");
+    }
+
+    #[test]
+    fn program_end_stops_the_spindle_and_the_coolant_of_the_board() {
+        let mut o = owned();
+        let mut p = board(&mut o);
+        p.set_spindle(SpindleCommand::Clockwise { rpm: None })
+            .unwrap();
+        p.set_coolant(CoolantCommand::Flood).unwrap();
+        p.end_program().unwrap();
+        drop(p);
+        assert_eq!(o.spindle.state(), SpindleState::Off);
+        assert!(!o.coolant.is_flood_on());
+        // A board without them has nothing to stop.
+        let mut bare: Devices<MotorPeripherals<NoMotors, 2>, 2> =
+            Devices::new(MotorPeripherals::motors_only(NoMotors));
+        assert_eq!(bare.endstops(), [None, None]);
+        bare.end_program().unwrap();
     }
 
     #[test]
     fn a_motors_only_board_powers_its_motors_and_has_nothing_else() {
         let on = Rc::new(Cell::new(false));
-        let mut p: MotorPeripherals<_, 2> =
-            MotorPeripherals::motors_only(MotorEnables([Enable(on.clone())]));
+        let mut p: Devices<MotorPeripherals<_, 2>, 2> = Devices::new(
+            MotorPeripherals::motors_only(MotorEnables([Enable(on.clone())])),
+        );
         p.set_motors(true).unwrap();
         assert!(on.get());
         p.set_motors(false).unwrap();
@@ -702,9 +592,18 @@ mod tests {
             p.set_spindle(SpindleCommand::Clockwise { rpm: None }),
             Err(PeripheralError::NoDevice)
         );
+        assert_eq!(
+            p.set_coolant(CoolantCommand::Off),
+            Err(PeripheralError::NoDevice)
+        );
         assert_eq!(p.temperatures(), Temperatures::default());
-        assert!(p.heaters_at_target());
+        assert!(p.heaters_at_target(TOLERANCE_MC));
         assert_eq!(p.endstops(), [None, None]);
         p.poll(0).unwrap();
+        // With its switches read for `M119`.
+        let mut p: Devices<_, 2> =
+            Devices::new(MotorPeripherals::new(NoMotors, [Some(Switch(true)), None]));
+        assert_eq!(p.endstops(), [Some(true), None]);
+        assert_eq!(p.set_fan(0, 1), Err(PeripheralError::NoDevice));
     }
 }

@@ -1,9 +1,11 @@
-//! PID temperature control with thermal protection, for M104/M109 (hot end), M140/M190 (bed),
-//! M105 (report) and M116 (wait).
+//! PID temperature control with thermal protection: one temperature zone (a hot end, a bed).
 //!
 //! [`PidHeater`] is the sans-IO core: it is given the time and the measured temperature and
 //! answers with a heater power, or with a latched [`HeaterFault`]. [`HeaterChannel`] wires it
-//! to a [`TemperatureSensor`] and a [`Heater`] and turns the heater off on any fault.
+//! to a [`TemperatureSensor`] and a [`Heater`], turns the heater off on any fault, and is the
+//! zone's [`TemperatureControl`]: the application sets its target (`M104`, `M140`), reads it
+//! (`M105`) and decides when it is close enough to its target for a wait (`M109`, `M116`) to
+//! end; the channel keeps no G-code rule.
 //!
 //! # Control
 //!
@@ -38,6 +40,7 @@
 
 use core::fmt;
 
+use forja_hal_abstraction::device::{DeviceError, TemperatureControl};
 use forja_hal_abstraction::thermal::{FULL_POWER, Heater, TemperatureSensor};
 use forja_hal_abstraction::{Error, ErrorKind};
 
@@ -157,6 +160,32 @@ impl HeaterFault {
             Self::TargetTooHigh => 215,
         }
     }
+
+    /// The stable short name, for the wire (kebab-case).
+    pub const fn name(&self) -> &'static str {
+        match self {
+            Self::Sensor => "sensor-fault",
+            Self::HeatingStalled => "heating-stalled",
+            Self::TemperatureDrop => "thermal-runaway",
+            Self::OverTemperature => "over-temperature",
+            Self::Output => "heater-output",
+            Self::TargetTooHigh => "target-too-high",
+        }
+    }
+}
+
+/// A refused target is [`DeviceError::OutOfRange`]; every other fault shuts the zone down and
+/// is [`DeviceError::Thermal`] with its code and name.
+impl From<HeaterFault> for DeviceError {
+    fn from(fault: HeaterFault) -> Self {
+        match fault {
+            HeaterFault::TargetTooHigh => DeviceError::OutOfRange,
+            f => DeviceError::Thermal {
+                code: f.code(),
+                name: f.name(),
+            },
+        }
+    }
 }
 
 impl fmt::Display for HeaterFault {
@@ -262,22 +291,6 @@ impl PidHeater {
     /// The last temperature given to [`PidHeater::update`], in millidegrees.
     pub fn measured_mc(&self) -> Option<i32> {
         self.last.map(|(_, mc)| mc)
-    }
-
-    /// Whether the last measurement is within `tolerance_mc` of the target, for M109/M190 and
-    /// M116 waits. `true` for a heater that is off (nothing to wait for); `false` before the
-    /// first measurement and while faulted (the waiting command checks
-    /// [`PidHeater::fault`] to abort).
-    pub fn is_at_target(&self, tolerance_mc: i32) -> bool {
-        if self.fault.is_some() {
-            return false;
-        }
-        if self.target_mc == 0 {
-            return true;
-        }
-        self.measured_mc().is_some_and(|mc| {
-            (i64::from(mc) - i64::from(self.target_mc)).abs() <= i64::from(tolerance_mc)
-        })
     }
 
     /// The latched fault, if any.
@@ -468,7 +481,7 @@ impl<S: TemperatureSensor, H: Heater> HeaterChannel<S, H> {
         self.pid.fault().unwrap_or(HeaterFault::Output)
     }
 
-    /// The controller: target, fault, [`PidHeater::is_at_target`].
+    /// The controller: target, last measurement, fault.
     pub fn pid(&self) -> &PidHeater {
         &self.pid
     }
@@ -484,6 +497,33 @@ impl<S: TemperatureSensor, H: Heater> HeaterChannel<S, H> {
     }
 }
 
+impl<S: TemperatureSensor, H: Heater> TemperatureControl for HeaterChannel<S, H> {
+    fn set_target_mc(&mut self, target_mc: i32) -> Result<(), DeviceError> {
+        Ok(self.pid.set_target(target_mc)?)
+    }
+
+    fn target_mc(&self) -> i32 {
+        self.pid.target_mc()
+    }
+
+    fn current_mc(&self) -> Option<i32> {
+        self.pid.measured_mc()
+    }
+
+    fn run(&mut self, now_ms: u32) -> Result<(), DeviceError> {
+        self.poll(now_ms)?;
+        Ok(())
+    }
+
+    fn fault(&self) -> Option<DeviceError> {
+        self.pid.fault().map(DeviceError::from)
+    }
+
+    fn clear_fault(&mut self) {
+        self.pid.clear_fault();
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -494,6 +534,12 @@ mod tests {
         ki: 0.0042,
         kd: 0.45,
     };
+
+    /// Whether the last measurement is within `tolerance_mc` of the target.
+    fn within(pid: &PidHeater, tolerance_mc: i32) -> bool {
+        pid.measured_mc()
+            .is_some_and(|mc| (mc - pid.target_mc()).abs() <= tolerance_mc)
+    }
 
     /// A lumped thermal model of a hot end: 20 °C ambient, 40 W heater, heat capacity
     /// `cap_j_per_k`, loss `loss_w_per_k`.
@@ -534,7 +580,7 @@ mod tests {
             plant.step(power, 0.1);
             peak = peak.max(plant.mc());
         }
-        assert!(pid.is_at_target(1_000), "{} m°C", plant.mc());
+        assert!(within(&pid, 1_000), "{} m°C", plant.mc());
         assert!(peak < 210_000 + 8_000, "overshoot to {peak}");
         assert_eq!(pid.fault(), None);
     }
@@ -545,10 +591,7 @@ mod tests {
         cfg.max_power = FULL_POWER / 2;
         let mut pid = PidHeater::new(cfg);
         assert_eq!(pid.update(0, 20_000), Ok(0));
-        assert!(
-            pid.is_at_target(0),
-            "an idle heater has nothing to wait for"
-        );
+        assert_eq!(pid.target_mc(), 0, "an idle heater has no target");
         pid.set_target(60_000).unwrap();
         assert_eq!(
             pid.update(100, 20_000),
@@ -586,7 +629,7 @@ mod tests {
         // Latched: stays faulted at a normal reading and refuses targets.
         assert_eq!(pid.update(100, 25_000), Err(HeaterFault::OverTemperature));
         assert_eq!(pid.set_target(200_000), Err(HeaterFault::OverTemperature));
-        assert!(!pid.is_at_target(1_000_000));
+        assert_eq!(pid.target_mc(), 0, "a fault clears the target");
         pid.clear_fault();
         assert_eq!(pid.update(200, 25_000), Ok(0));
         pid.set_target(200_000).unwrap();
@@ -659,7 +702,7 @@ mod tests {
         for i in 1..=200u32 {
             assert!(pid.update(i * 1_000, 200_000 - (i as i32) * 250).is_ok());
         }
-        assert!(pid.is_at_target(1_000));
+        assert!(within(&pid, 1_000));
     }
 
     #[test]
@@ -739,7 +782,7 @@ mod tests {
                 power: FULL_POWER
             }
         );
-        assert!(!ch.pid().is_at_target(2_000));
+        assert!(!within(ch.pid(), 2_000));
         let (_, heater) = ch.release();
         assert_eq!(heater.power, Some(FULL_POWER));
     }
@@ -776,5 +819,63 @@ mod tests {
             HeaterConfig::hot_end(GAINS),
         );
         assert_eq!(ch.poll(0), Err(HeaterFault::OverTemperature));
+    }
+
+    #[test]
+    fn the_channel_is_a_temperature_zone() {
+        let mut ch = HeaterChannel::new(
+            FakeSensor(vec![Ok(25_000), Ok(25_000), Err(())]),
+            FakeHeater::default(),
+            HeaterConfig::hot_end(GAINS),
+        );
+        let zone: &mut dyn TemperatureControl = &mut ch;
+        assert_eq!(zone.current_mc(), None, "nothing measured yet");
+        assert_eq!(zone.set_target_mc(261_000), Err(DeviceError::OutOfRange));
+        zone.set_target_mc(200_000).unwrap();
+        zone.run(0).unwrap();
+        assert_eq!(
+            (zone.current_mc(), zone.target_mc()),
+            (Some(25_000), 200_000)
+        );
+        zone.run(100).unwrap();
+        let sensor = DeviceError::Thermal {
+            code: 210,
+            name: "sensor-fault",
+        };
+        assert_eq!(zone.run(200), Err(sensor));
+        assert_eq!(zone.fault(), Some(sensor), "latched");
+        assert_eq!(zone.target_mc(), 0);
+        assert_eq!(zone.set_target_mc(200_000), Err(sensor));
+        zone.clear_fault();
+        assert_eq!(zone.fault(), None);
+        assert_eq!(zone.target_mc(), 0, "off until a new target");
+        let (_, heater) = ch.release();
+        assert_eq!(heater.power, Some(0));
+    }
+
+    #[test]
+    fn names_are_stable_and_faults_map_to_device_errors() {
+        let all = [
+            (HeaterFault::Sensor, "sensor-fault"),
+            (HeaterFault::HeatingStalled, "heating-stalled"),
+            (HeaterFault::TemperatureDrop, "thermal-runaway"),
+            (HeaterFault::OverTemperature, "over-temperature"),
+            (HeaterFault::Output, "heater-output"),
+        ];
+        for (f, name) in all {
+            assert_eq!(f.name(), name);
+            assert_eq!(
+                DeviceError::from(f),
+                DeviceError::Thermal {
+                    code: f.code(),
+                    name
+                }
+            );
+        }
+        assert_eq!(HeaterFault::TargetTooHigh.name(), "target-too-high");
+        assert_eq!(
+            DeviceError::from(HeaterFault::TargetTooHigh),
+            DeviceError::OutOfRange
+        );
     }
 }

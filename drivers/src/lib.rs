@@ -3,8 +3,11 @@
 //! Concrete drivers for the traits of [`forja_hal_abstraction`], written against
 //! `embedded-hal` 1.0, `embedded-io` and `embedded-storage` only: no chip, no vendor HAL, no
 //! executor, no Forja crate but the traits' own. A board crate builds them from its HAL's pins,
-//! PWM channels, ADC, UART and flash, and hands them to the application layer (`forja-app`),
-//! which gathers the heaters, fans and spindle into the controller's peripherals.
+//! PWM channels, ADC, UART and flash, and lists them for the application layer (`forja-app`).
+//! The machine's devices (temperature zones, fans, the spindle, coolant, outputs) implement
+//! the object-safe traits of `forja_hal_abstraction::device` and apply exactly what they are
+//! told: the G-code rules (an `M3` without `S` keeps the last speed, how close to its target a
+//! heater must be for `M109` to go on) are the application's.
 //!
 //! ## Drivers and their execution contexts
 //!
@@ -18,8 +21,10 @@
 //! | `tcp` (feature `embassy-net`) | `TcpServer`, `TcpLink` | `embedded_io::{Read, ReadReady, Write, WriteReady}`, `LinkStatus` | thread: listening tasks serve the sockets; the controller's task reads and writes |
 //! | [`thermistor`] | [`Thermistor`](thermistor::Thermistor) | `TemperatureSensor` | thread: may block for one ADC conversion |
 //! | [`max31855`] | [`Max31855`](max31855::Max31855) | `TemperatureSensor` | thread: one SPI transfer |
-//! | [`heater`] | [`PidHeater`](heater::PidHeater), [`HeaterChannel`](heater::HeaterChannel) | (sans-IO controller) | thread: the temperature loop |
-//! | [`pwm`] | [`Fan`](pwm::Fan), [`Spindle`](pwm::Spindle), [`PwmHeater`](pwm::PwmHeater) | `Heater` (for `PwmHeater`) | thread |
+//! | [`heater`] | [`PidHeater`](heater::PidHeater) (sans-IO controller), [`HeaterChannel`](heater::HeaterChannel) | `TemperatureControl` (for `HeaterChannel`) | thread: the temperature loop |
+//! | [`pwm`] | [`Fan`](pwm::Fan), [`Spindle`](pwm::Spindle), [`PwmHeater`](pwm::PwmHeater) | `FanControl`, `SpindleControl`, `Heater` | thread |
+//! | [`output`] | [`Output`](output::Output) | `DigitalOutput` | thread: one pin write |
+//! | [`coolant`] | [`Coolant`](coolant::Coolant) | `CoolantControl` (mist and flood over two `Output`s) | thread: one pin write |
 //! | [`storage`] | [`FlashRecordStorage`](storage::FlashRecordStorage), [`Records`](storage::Records) | `RecordStorage` | thread: may block for a flash erase |
 //! | [`program_flash`] | [`SlotProgramStore`](program_flash::SlotProgramStore) | `ProgramStore` | thread: one flash read per line read; may block for a sector erase while a program is loaded |
 //! | [`ram_flash`] | [`RamNorFlash`](ram_flash::RamNorFlash) | `embedded_storage::nor_flash::NorFlash` | a simulated flash for the host simulator and tests |
@@ -35,7 +40,9 @@
 //! Each driver has one small `#[non_exhaustive]` error type with `Display`, mapped onto
 //! [`forja_hal_abstraction::ErrorKind`] through [`forja_hal_abstraction::Error::kind`]: a pin
 //! or bus failure is `Hardware`, an open or shorted sensor is `SensorFault`, a full store is
-//! `Full`. Errors that are reported to the host have stable numeric codes, from
+//! `Full`. Through the device traits they become the one
+//! [`DeviceError`](forja_hal_abstraction::device::DeviceError) (a heater fault keeps its code
+//! and name in `DeviceError::Thermal`). Errors that are reported to the host have stable numeric codes, from
 //! `code()`, in 200..=299:
 //!
 //! | codes | errors |
@@ -76,9 +83,11 @@
     )
 )]
 
+pub mod coolant;
 pub mod heater;
 pub mod limit;
 pub mod max31855;
+pub mod output;
 pub mod pin;
 pub mod port_link;
 pub mod program_flash;

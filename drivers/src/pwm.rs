@@ -1,19 +1,23 @@
-//! Fans (M106/M107), spindles (M3/M4/M5 S…) and heaters on `embedded-hal` PWM channels.
+//! Fans, spindles and heaters on `embedded-hal` PWM channels.
 //!
 //! Every driver here takes any [`SetDutyCycle`] channel, scales its command to the channel's
 //! [`SetDutyCycle::max_duty_cycle`] with integer arithmetic, and writes the duty once per
-//! command.
+//! command. [`Fan`] is a [`FanControl`] and [`Spindle`] a [`SpindleControl`], the devices the
+//! application commands (`M106`/`M107`, `M3`/`M4`/`M5`); [`PwmHeater`] is the [`Heater`] of a
+//! temperature loop. Each applies exactly what it is told: the G-code rules (an `M3` without `S`
+//! runs at the last speed) are the application's.
 //!
 //! # Execution context
 //!
-//! Thread: the G-code interpreter applies fan and spindle commands in order with motion (the
-//! kernel calls them when the preceding moves are done), the temperature loop drives
-//! [`PwmHeater`]. No method blocks.
+//! Thread: the application applies fan and spindle commands in order with motion (when the
+//! moves before them are done), the temperature loop drives [`PwmHeater`]. No method blocks.
 //!
 //! # Errors
 //!
 //! A channel or pin that refuses a write gives [`PwmError`] or [`SpindleError`], with the
-//! `embedded-hal` error kind; their [`Error::kind`] is [`ErrorKind::Hardware`].
+//! `embedded-hal` error kind; their [`Error::kind`] is [`ErrorKind::Hardware`]. Through the
+//! device traits they are [`DeviceError::Hardware`]; a reversal asked of a spindle that cannot
+//! reverse is [`DeviceError::OutOfRange`].
 //!
 //! # Turning off
 //!
@@ -30,6 +34,7 @@ use core::fmt;
 
 use embedded_hal::digital::{self, OutputPin, PinState};
 use embedded_hal::pwm::{self, SetDutyCycle};
+use forja_hal_abstraction::device::{DeviceError, FanControl, Rotation, SpindleControl};
 use forja_hal_abstraction::thermal::{FULL_POWER, Heater};
 use forja_hal_abstraction::{Error, ErrorKind, ErrorType};
 
@@ -156,6 +161,12 @@ impl<P: SetDutyCycle> Fan<P> {
     }
 }
 
+impl<P: SetDutyCycle> FanControl for Fan<P> {
+    fn set_duty(&mut self, duty: u8) -> Result<(), DeviceError> {
+        self.set_speed(duty).map_err(|_| DeviceError::Hardware)
+    }
+}
+
 /// A heater switched by a PWM channel (a MOSFET gate): implements [`Heater`].
 ///
 /// Use a slow PWM (a few Hz to a few hundred Hz) for beds on mechanical or solid-state relays.
@@ -261,6 +272,15 @@ impl Error for SpindleError {
         match self {
             Self::Pwm(_) | Self::Pin(_) => ErrorKind::Hardware,
             Self::NotReversible => ErrorKind::OutOfRange,
+        }
+    }
+}
+
+impl From<SpindleError> for DeviceError {
+    fn from(e: SpindleError) -> Self {
+        match e {
+            SpindleError::NotReversible => DeviceError::OutOfRange,
+            SpindleError::Pwm(_) | SpindleError::Pin(_) => DeviceError::Hardware,
         }
     }
 }
@@ -416,6 +436,21 @@ impl<P: SetDutyCycle, DIR: OutputPin, EN: OutputPin> Spindle<P, DIR, EN> {
     /// Give the channel and pins back, as last driven.
     pub fn release(self) -> (P, Option<DIR>, Option<EN>) {
         (self.pwm, self.dir, self.enable)
+    }
+}
+
+impl<P: SetDutyCycle, DIR: OutputPin, EN: OutputPin> SpindleControl for Spindle<P, DIR, EN> {
+    fn run(&mut self, rotation: Rotation, rpm: u32) -> Result<(), DeviceError> {
+        let state = match rotation {
+            Rotation::Clockwise => SpindleState::Clockwise { rpm },
+            Rotation::CounterClockwise => SpindleState::CounterClockwise { rpm },
+        };
+        self.set(state)?;
+        Ok(())
+    }
+
+    fn stop(&mut self) -> Result<(), DeviceError> {
+        Ok(Spindle::stop(self)?)
     }
 }
 
@@ -585,6 +620,39 @@ mod tests {
         assert_eq!(e.kind(), ErrorKind::OutOfRange);
         assert_eq!(pwm.duty(), Some(500), "nothing changed");
         assert_eq!(s.state(), SpindleState::Clockwise { rpm: 5_000 });
+    }
+
+    #[test]
+    fn fan_and_spindle_are_devices() {
+        let (fan_pwm, spindle_pwm) = (FakePwm::default(), FakePwm::default());
+        let mut fan = Fan::new(fan_pwm.clone(), FanConfig::DIRECT).unwrap();
+        let mut spindle = Spindle::new(spindle_pwm.clone(), SpindleConfig::new(10_000)).unwrap();
+        let f: &mut dyn FanControl = &mut fan;
+        f.set_duty(255).unwrap();
+        assert_eq!(fan_pwm.duty(), Some(1000));
+        let s: &mut dyn SpindleControl = &mut spindle;
+        s.run(Rotation::Clockwise, 20_000).unwrap();
+        assert_eq!(spindle_pwm.duty(), Some(1000), "capped at the maximum");
+        assert_eq!(
+            s.run(Rotation::CounterClockwise, 5_000),
+            Err(DeviceError::OutOfRange)
+        );
+        assert_eq!(spindle_pwm.duty(), Some(1000), "nothing changed");
+        s.stop().unwrap();
+        assert_eq!(spindle.state(), SpindleState::Off);
+        let broken = FakePwm {
+            broken: true,
+            ..FakePwm::default()
+        };
+        let mut fan = Fan {
+            pwm: broken,
+            config: FanConfig::DIRECT,
+            speed: 0,
+        };
+        assert_eq!(
+            FanControl::set_duty(&mut fan, 1),
+            Err(DeviceError::Hardware)
+        );
     }
 
     #[test]

@@ -510,16 +510,7 @@ impl<const RX: usize, const TX: usize> embedded_io::ReadReady for TcpLink<'_, RX
 
 impl<const RX: usize, const TX: usize> embedded_io::Read for TcpLink<'_, RX, TX> {
     fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
-        if buf.is_empty() {
-            return Ok(0);
-        }
-        loop {
-            let n = self.try_read(buf);
-            if n > 0 {
-                return Ok(n);
-            }
-            core::hint::spin_loop();
-        }
+        Ok(crate::uart::read_blocking(buf, |b| self.try_read(b)))
     }
 }
 

@@ -236,16 +236,26 @@ impl<const N: usize> embedded_io::ReadReady for UartReader<'_, N> {
 
 impl<const N: usize> embedded_io::Read for UartReader<'_, N> {
     fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
-        if buf.is_empty() {
-            return Ok(0);
+        Ok(read_blocking(buf, |b| self.try_read(b)))
+    }
+}
+
+/// The blocking `embedded_io::Read` of a link whose bytes another context delivers (an
+/// interrupt, another task): `try_read` until it gives at least one byte; `0` only for an
+/// empty `buf`.
+///
+/// Context: thread. Blocks, spinning, until a byte arrives: the controller never calls it
+/// without `read_ready`.
+pub fn read_blocking(buf: &mut [u8], mut try_read: impl FnMut(&mut [u8]) -> usize) -> usize {
+    if buf.is_empty() {
+        return 0;
+    }
+    loop {
+        let n = try_read(buf);
+        if n > 0 {
+            return n;
         }
-        loop {
-            let n = self.try_read(buf);
-            if n > 0 {
-                return Ok(n);
-            }
-            core::hint::spin_loop();
-        }
+        core::hint::spin_loop();
     }
 }
 

@@ -1,7 +1,8 @@
 //! # Forja hardware traits
 //!
-//! The motion kernel never touches a register. It talks to the machine only through the small
-//! traits of this crate, one capability each, shaped like `embedded-hal` 1.0:
+//! The motion kernel and the application layer never touch a register. They talk to the machine
+//! only through the small traits of this crate, one capability each, shaped like `embedded-hal`
+//! 1.0:
 //!
 //! | module | trait | what it is |
 //! |---|---|---|
@@ -12,6 +13,7 @@
 //! | [`link`] | [`link::LinkStatus`] | whether a host is connected (bytes move over `embedded-io`) |
 //! | [`thermal`] | [`thermal::Heater`], [`thermal::TemperatureSensor`] | heater power and temperature reading |
 //! | [`pwm`] | [`pwm::PwmOutput`] | fans and spindles (the `embedded-hal` PWM trait) |
+//! | [`device`] | [`device::TemperatureControl`], [`device::FanControl`], [`device::SpindleControl`], [`device::CoolantControl`], [`device::DigitalOutput`] | the machine's devices as the application commands them, with one [`device::DeviceError`] |
 //! | [`storage`] | [`storage::RecordStorage`] | power-loss-safe keyed records (over `embedded-storage`) |
 //! | [`program`] | [`program::ProgramStore`] | where a program's lines are kept, stored whole or not at all |
 //!
@@ -26,12 +28,15 @@
 //!
 //! Errors implement [`Error`], whose [`Error::kind`] maps any driver error onto the small,
 //! `#[non_exhaustive]` [`ErrorKind`]. Drivers whose operations cannot fail (most GPIO) use
-//! [`core::convert::Infallible`]. Every trait is implemented for `&mut T` so that a driver can be
-//! lent to the kernel without giving it away.
+//! [`core::convert::Infallible`]. The traits the kernel calls name their driver's error type
+//! ([`ErrorType`]); the [`device`] traits, which the application holds as trait objects
+//! (`&mut dyn FanControl`), share one error, [`device::DeviceError`], instead. Every trait is
+//! implemented for `&mut T` so that a driver can be lent without giving it away.
 #![no_std]
 #![deny(unsafe_code)]
 
 pub mod clock;
+pub mod device;
 pub mod limit;
 pub mod link;
 pub mod program;

@@ -1,7 +1,7 @@
 //! What the kernel hands back to the controller: commands for other subsystems, in order.
 //!
-//! Heaters, fans, spindles, the link's line numbering, storage and motor power are not the
-//! motion kernel's hardware, but their commands arrive in the same G-code stream and must take
+//! Heaters, fans, spindles, coolant, the link's line numbering, storage and motor power are not
+//! the motion kernel's hardware, but their commands arrive in the same G-code stream and must take
 //! effect at the right place in it. The kernel therefore recognises them, parses their
 //! arguments, and returns each as an [`Effect`] from [`crate::Kernel::execute`] — at the moment
 //! it is to be carried out:
@@ -10,9 +10,9 @@
 //!   offered (motion already queued keeps running): temperature targets, reports, line numbers,
 //!   storage commands, motors on;
 //! - an effect that is [`Sync::AfterMotion`] is returned only once every move before it has
-//!   finished: until then `execute` answers [`crate::Reply::Busy`] for that line. Spindle, fan,
-//!   tool change, motors off, program stop, pause and program end thus happen exactly between
-//!   the moves around them, as grbl does for its spindle.
+//!   finished: until then `execute` answers [`crate::Reply::Busy`] for that line. Spindle,
+//!   coolant, fan, tool change, motors off, program stop, pause and program end thus happen
+//!   exactly between the moves around them, as grbl does for its spindle and coolant.
 //!
 //! The controller executes each effect when it receives it, then acknowledges the line.
 //! Waiting effects (`M109`, `M116`) are the controller's to wait for: it offers no further line
@@ -52,6 +52,18 @@ pub enum Spindle {
         rpm: Option<Decimal>,
     },
     /// `M5`: stopped.
+    Off,
+}
+
+/// Coolant state (`M7`/`M8`/`M9`), as grbl and LinuxCNC have it: mist and flood are turned on
+/// each on its own (both may be on), and turned off together.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coolant {
+    /// `M7`: mist on.
+    Mist,
+    /// `M8`: flood on.
+    Flood,
+    /// `M9`: mist and flood off.
     Off,
 }
 
@@ -117,6 +129,8 @@ pub enum Effect<'l> {
     },
     /// `M3`, `M4`, `M5`.
     Spindle(Spindle),
+    /// `M7`, `M8`, `M9`.
+    Coolant(Coolant),
     /// `M110`: the next line number the link expects is this plus one.
     SetLineNumber(u32),
     /// `M115`: report firmware name and capabilities.
@@ -149,6 +163,7 @@ impl Effect<'_> {
     pub fn sync(&self) -> Sync {
         match self {
             Self::Spindle(_)
+            | Self::Coolant(_)
             | Self::Fan { .. }
             | Self::SelectTool(_)
             | Self::Motors { enabled: false }
@@ -196,6 +211,7 @@ impl Effect<'_> {
             Effect::ReportTemperatures => Effect::ReportTemperatures,
             Effect::Fan { index, duty } => Effect::Fan { index, duty },
             Effect::Spindle(s) => Effect::Spindle(s),
+            Effect::Coolant(c) => Effect::Coolant(c),
             Effect::SetLineNumber(n) => Effect::SetLineNumber(n),
             Effect::ReportFirmware => Effect::ReportFirmware,
             Effect::ReportEndstops => Effect::ReportEndstops,

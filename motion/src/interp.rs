@@ -21,13 +21,13 @@
 //! | `M92` | set steps per unit |
 //! | `M114` | report position |
 //! | `M0`, `M112`, `M226` | stop, emergency stop, pause |
-//! | `M3`–`M5`, `M104`–`M107`, `M109`, `M110`, `M115`, `M116`, `M119`, `M140`, `M20`–`M29`, `T` | returned as [`crate::Effect`]s |
+//! | `M3`–`M5`, `M7`–`M9`, `M104`–`M107`, `M109`, `M110`, `M115`, `M116`, `M119`, `M140`, `M20`–`M29`, `T` | returned as [`crate::Effect`]s |
 
 use forja_protocol::gcode::{Decimal, Line};
 
 use crate::arc::{ArcCenter, ArcCutter, Nm};
 use crate::config::{AxisKind, MachineConfig};
-use crate::effect::{Effect, Heater, Spindle, StopKind, Storage};
+use crate::effect::{Coolant, Effect, Heater, Spindle, StopKind, Storage};
 use crate::error::CommandError;
 
 /// Nanometres per millimetre.
@@ -505,6 +505,9 @@ impl<const N: usize> Interpreter<N> {
                 rpm: spindle_speed(s)?,
             })),
             (b'M', 5) => Action::Effect(Effect::Spindle(Spindle::Off)),
+            (b'M', 7) => Action::Effect(Effect::Coolant(Coolant::Mist)),
+            (b'M', 8) => Action::Effect(Effect::Coolant(Coolant::Flood)),
+            (b'M', 9) => Action::Effect(Effect::Coolant(Coolant::Off)),
             (b'M', 104 | 109 | 140) => {
                 let celsius = s.ok_or(CommandError::MissingValue { letter: b'S' })?;
                 let heater = if n == 140 {
@@ -751,6 +754,21 @@ mod tests {
                 rpm: Some(Decimal::new(12000, 0))
             })))
         );
+    }
+
+    #[test]
+    fn coolant_commands_are_effects_after_the_motion_before_them() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        for (line, coolant) in [
+            (&b"M7"[..], Coolant::Mist),
+            (b"M8", Coolant::Flood),
+            (b"M9", Coolant::Off),
+        ] {
+            let effect = Effect::Coolant(coolant);
+            assert_eq!(run(&mut it, line), Ok(Action::Effect(effect)));
+            assert_eq!(effect.sync(), crate::effect::Sync::AfterMotion);
+        }
     }
 
     #[test]

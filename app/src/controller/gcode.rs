@@ -7,80 +7,19 @@ use forja_hal_abstraction::storage::RecordStorage;
 use forja_protocol::gcode::{Decimal, Line, LineError, Recovery};
 use forja_protocol::reply::{Axes, FORJA_CAPABILITIES, KeyValues, LINE_CHECK, Reply, Word};
 
-use super::peripherals::{Peripherals, Reading};
+use super::peripherals::{Devices, PeripheralError, Peripherals, Reading};
 use super::text::{self, Refusal, Text};
-use super::{ControllerError, Core, Dropped, Held, JobState, LineBuf, Queued, wire};
+use super::{
+    ControllerConfig, ControllerError, Core, Dropped, Held, JobState, LineBuf, Queued, wire,
+};
 use crate::error::JobError;
 use forja_hal_abstraction::program::ProgramStore;
 use forja_motion::config::HomeDirection;
-use forja_motion::effect::{Effect, Heater, Spindle, StopKind, Storage};
+use forja_motion::effect::{Effect, StopKind, Storage};
 use forja_motion::error::{Alarm, CommandError};
 use forja_motion::{MachineState, PositionReport, Reply as KernelReply};
 
-/// An effect, owned (the stored program's effects borrow the job's line buffer).
-#[derive(Debug, Clone, Copy)]
-enum Cmd {
-    Temperature { heater: Heater, mc: i32, wait: bool },
-    BadTemperature,
-    WaitHeaters,
-    ReportTemperatures,
-    Fan { index: u8, duty: u8 },
-    Spindle(Spindle),
-    Nothing,
-    Firmware,
-    Endstops,
-    Unsupported(u32),
-    Tool(u8),
-    Motors(bool),
-    Stop(StopKind),
-    Paused,
-    ProgramEnd,
-}
-
-impl Cmd {
-    fn of(e: &Effect<'_>) -> Cmd {
-        match *e {
-            Effect::SetTemperature {
-                heater,
-                celsius,
-                wait,
-            } => match celsius
-                .round_to_scale(3)
-                .and_then(|v| i32::try_from(v).ok())
-                .filter(|v| *v >= 0)
-            {
-                Some(mc) => Cmd::Temperature { heater, mc, wait },
-                None => Cmd::BadTemperature,
-            },
-            Effect::WaitForTemperatures => Cmd::WaitHeaters,
-            Effect::ReportTemperatures => Cmd::ReportTemperatures,
-            Effect::Fan { index, duty } => Cmd::Fan { index, duty },
-            Effect::Spindle(s) => Cmd::Spindle(s),
-            Effect::SetLineNumber(_) => Cmd::Nothing,
-            Effect::ReportFirmware => Cmd::Firmware,
-            Effect::ReportEndstops => Cmd::Endstops,
-            Effect::Storage(s) => Cmd::Unsupported(match s {
-                Storage::List => 20,
-                Storage::Init => 21,
-                Storage::Release => 22,
-                Storage::Select(_) => 23,
-                Storage::Start => 24,
-                Storage::Pause => 25,
-                Storage::SetPosition(_) => 26,
-                Storage::Report => 27,
-                Storage::BeginWrite(_) => 28,
-                Storage::EndWrite(_) => 29,
-            }),
-            Effect::SelectTool(t) => Cmd::Tool(t),
-            Effect::Motors { enabled } => Cmd::Motors(enabled),
-            Effect::Stopped(kind) => Cmd::Stop(kind),
-            Effect::Paused => Cmd::Paused,
-            Effect::ProgramEnd => Cmd::ProgramEnd,
-        }
-    }
-}
-
-/// What carrying out a [`Cmd`] came to.
+/// What carrying out an effect came to.
 enum Done {
     Ok,
     Refused(Refusal),
@@ -88,7 +27,24 @@ enum Done {
     Firmware,
     Endstops,
     Wait,
-    Fault(Refusal),
+    /// `M0`, `M112`: the controller stops ([`Core::stop`]) once the effect is done with.
+    Stop(StopKind),
+}
+
+/// The `M` number of a storage command (`M20`–`M29`).
+fn storage_number(s: &Storage<'_>) -> u32 {
+    match s {
+        Storage::List => 20,
+        Storage::Init => 21,
+        Storage::Release => 22,
+        Storage::Select(_) => 23,
+        Storage::Start => 24,
+        Storage::Pause => 25,
+        Storage::SetPosition(_) => 26,
+        Storage::Report => 27,
+        Storage::BeginWrite(_) => 28,
+        Storage::EndWrite(_) => 29,
+    }
 }
 
 /// What a link line may be while a stored program runs: nothing that moves or changes the
@@ -248,8 +204,8 @@ where
     /// waiting are answered in order without running.
     pub(super) fn emergency_stop<W: Write>(&mut self, out: &mut W) {
         self.kernel.emergency_stop();
-        if let Done::Fault(r) = self.apply(Cmd::Stop(StopKind::Emergency)) {
-            self.report_fault(&r, out);
+        if let Some(fault) = self.stop(StopKind::Emergency) {
+            self.report_fault(&fault, out);
         }
         let locked = text::command_refusal(&CommandError::Locked, &self.letters());
         self.drop_waiting(&locked, out);
@@ -420,7 +376,8 @@ where
             }
             Ok(KernelReply::Effect(e)) => {
                 self.executed();
-                let done = self.apply(Cmd::of(&e));
+                let state = self.kernel.state();
+                let done = Self::apply(&mut self.devices, state, &self.config, &e);
                 self.answer(done, out);
             }
             Err(e) => {
@@ -477,77 +434,97 @@ where
         }
     }
 
-    /// Carry out an effect, from the link or the stored program.
-    fn apply(&mut self, cmd: Cmd) -> Done {
-        let peripheral = |e: super::PeripheralError| Done::Refused(Refusal::new(&e));
-        match cmd {
-            Cmd::Temperature { heater, mc, wait } => {
-                if mc > 0 && self.kernel.state() == MachineState::Alarm(Alarm::EmergencyStop) {
+    /// Carry out an effect, from the link or the stored program, on the board's devices.
+    ///
+    /// An associated function over the devices alone, not a method: a stored program's effect
+    /// borrows the job's line buffer, so it is carried out before the job is used again.
+    fn apply(
+        devices: &mut Devices<X, N>,
+        state: MachineState,
+        config: &ControllerConfig,
+        effect: &Effect<'_>,
+    ) -> Done {
+        let device = |e: PeripheralError, what: core::fmt::Arguments<'_>| {
+            Done::Refused(Refusal::with(&e, what))
+        };
+        match *effect {
+            Effect::SetTemperature {
+                heater,
+                celsius,
+                wait,
+            } => {
+                let Some(mc) = celsius
+                    .round_to_scale(3)
+                    .and_then(|v| i32::try_from(v).ok())
+                    .filter(|v| *v >= 0)
+                else {
+                    return Done::Refused(Refusal::with(
+                        &CommandError::BadValue { letter: b'S' },
+                        format_args!("S"),
+                    ));
+                };
+                if mc > 0 && state == MachineState::Alarm(Alarm::EmergencyStop) {
                     return Done::Refused(Refusal::new(&CommandError::Locked));
                 }
-                match self.peripherals.set_temperature(heater, mc) {
+                match devices.set_temperature(heater, mc) {
                     Ok(()) if wait => Done::Wait,
                     Ok(()) => Done::Ok,
-                    Err(e) => peripheral(e),
+                    Err(e) => Done::Refused(Refusal::new(&e)),
                 }
             }
-            Cmd::BadTemperature => Done::Refused(Refusal::with(
-                &CommandError::BadValue { letter: b'S' },
-                format_args!("S"),
-            )),
-            Cmd::WaitHeaters => Done::Wait,
-            Cmd::ReportTemperatures => Done::Temperatures,
-            Cmd::Fan { index, duty } => match self.peripherals.set_fan(index, duty) {
+            Effect::WaitForTemperatures => Done::Wait,
+            Effect::ReportTemperatures => Done::Temperatures,
+            Effect::Fan { index, duty } => match devices.set_fan(index, duty) {
                 Ok(()) => Done::Ok,
-                Err(e) => Done::Refused(Refusal::with(&e, format_args!("fan {index}"))),
+                Err(e) => device(e, format_args!("fan {index}")),
             },
-            Cmd::Spindle(s) => match self.peripherals.set_spindle(s) {
+            Effect::Spindle(s) => match devices.set_spindle(s) {
                 Ok(()) => Done::Ok,
-                Err(e) => Done::Refused(Refusal::with(&e, format_args!("spindle"))),
+                Err(e) => device(e, format_args!("spindle")),
             },
-            Cmd::Nothing | Cmd::Paused => Done::Ok,
-            // A board without a spindle has none to stop.
-            Cmd::ProgramEnd => match self.peripherals.set_spindle(Spindle::Off) {
-                Ok(()) | Err(super::PeripheralError::NoDevice) => Done::Ok,
-                Err(e) => Done::Refused(Refusal::with(&e, format_args!("spindle"))),
+            Effect::Coolant(c) => match devices.set_coolant(c) {
+                Ok(()) => Done::Ok,
+                Err(e) => device(e, format_args!("coolant")),
             },
-            Cmd::Firmware => Done::Firmware,
-            Cmd::Endstops => Done::Endstops,
-            Cmd::Unsupported(n) => Done::Refused(text::command_refusal(
+            Effect::SetLineNumber(_) | Effect::Paused => Done::Ok,
+            Effect::ProgramEnd => match devices.end_program() {
+                Ok(()) => Done::Ok,
+                Err((e, what)) => device(e, format_args!("{what}")),
+            },
+            Effect::ReportFirmware => Done::Firmware,
+            Effect::ReportEndstops => Done::Endstops,
+            Effect::Storage(s) => Done::Refused(text::command_refusal(
                 &CommandError::Unsupported {
                     letter: b'M',
-                    number: Some(n),
+                    number: Some(storage_number(&s)),
                 },
                 &[],
             )),
-            Cmd::Tool(t) if t < self.config.extruders.max(1) => Done::Ok,
-            Cmd::Tool(t) => Done::Refused(Refusal::with(
+            Effect::SelectTool(t) if t < config.extruders.max(1) => Done::Ok,
+            Effect::SelectTool(t) => Done::Refused(Refusal::with(
                 &CommandError::BadValue { letter: b'T' },
                 format_args!("T{t}"),
             )),
-            Cmd::Motors(enabled) => match self.peripherals.set_motors(enabled) {
-                Ok(()) => {
-                    self.motors_on = enabled;
-                    Done::Ok
-                }
-                Err(e) => peripheral(e),
+            Effect::Motors { enabled } => match devices.set_motors(enabled) {
+                Ok(()) => Done::Ok,
+                Err(e) => Done::Refused(Refusal::new(&e)),
             },
-            Cmd::Stop(kind) => {
-                if kind == StopKind::Emergency {
-                    self.job.stop(&mut self.kernel);
-                    self.reported_alarm = Some(Alarm::EmergencyStop);
-                    self.job_heat = false;
-                }
-                self.peripherals.shutdown();
-                if self.peripherals.set_motors(false).is_ok() {
-                    self.motors_on = false;
-                }
-                match kind {
-                    StopKind::Emergency => Done::Fault(Refusal::new(&Alarm::EmergencyStop)),
-                    StopKind::Program => Done::Ok,
-                }
-            }
+            Effect::Stopped(kind) => Done::Stop(kind),
         }
+    }
+
+    /// Stop on `M0` (program stop) or `M112` (emergency): the devices shut down and the
+    /// motors released; an emergency stop also ends the job and the heater waits, and is a
+    /// fault to report (returned).
+    fn stop(&mut self, kind: StopKind) -> Option<Refusal> {
+        if kind == StopKind::Emergency {
+            self.job.stop(&mut self.kernel);
+            self.reported_alarm = Some(Alarm::EmergencyStop);
+            self.job_heat = false;
+        }
+        self.devices.shutdown();
+        let _ = self.devices.set_motors(false);
+        (kind == StopKind::Emergency).then(|| Refusal::new(&Alarm::EmergencyStop))
     }
 
     /// The link's answer to an effect.
@@ -556,7 +533,7 @@ where
             Done::Ok => self.ok(out),
             Done::Refused(r) => self.refuse(&r, out),
             Done::Temperatures => {
-                let t = self.peripherals.temperatures();
+                let t = self.devices.temperatures();
                 let current = |r: Option<Reading>| r.map_or(ABSENT_C, |r| celsius(r.current_mc));
                 self.stats.oks = self.stats.oks.wrapping_add(1);
                 let _ = wire::reply(
@@ -570,7 +547,7 @@ where
             Done::Firmware => self.firmware_reply(out),
             Done::Endstops => self.endstops_reply(out),
             Done::Wait => {
-                if self.peripherals.heaters_at_target() {
+                if self.heaters_at_target() {
                     self.ok(out);
                 } else {
                     self.link.held = Some(Held::Heat {
@@ -581,12 +558,20 @@ where
                     });
                 }
             }
-            Done::Fault(r) => {
-                self.end_heat_wait(out);
-                self.report_fault(&r, out);
+            Done::Stop(kind) => {
+                if let Some(fault) = self.stop(kind) {
+                    self.end_heat_wait(out);
+                    self.report_fault(&fault, out);
+                }
                 self.ok(out);
             }
         }
+    }
+
+    /// Whether every heater with a target is within the tolerance of it.
+    pub(super) fn heaters_at_target(&mut self) -> bool {
+        self.devices
+            .heaters_at_target(self.config.heater_tolerance_mc)
     }
 
     fn position_reply<W: Write>(&mut self, p: &PositionReport<N>, out: &mut W) {
@@ -619,7 +604,7 @@ where
     }
 
     fn endstops_reply<W: Write>(&mut self, out: &mut W) {
-        let states = self.peripherals.endstops();
+        let states = self.devices.endstops();
         let mut t = Text::<120>::new();
         for (i, state) in states.iter().enumerate() {
             let Some(triggered) = state else { continue };
@@ -649,7 +634,7 @@ where
 
     /// `// T:<hot end> /<target> B:<bed> /<target>`, during a wait.
     pub(super) fn report_temperatures<W: Write>(&mut self, out: &mut W) {
-        let t = self.peripherals.temperatures();
+        let t = self.devices.temperatures();
         let mut line = Text::<64>::new();
         for (name, r) in [("T", t.hot_end), ("B", t.bed)] {
             if let Some(r) = r {
@@ -673,7 +658,7 @@ where
     /// program and line kept), latched heater faults, waits.
     pub(super) fn reset<W: Write>(&mut self, out: &mut W) {
         self.job.reset(&mut self.kernel);
-        self.peripherals.reset();
+        self.devices.reset();
         self.thermal = None;
         self.reported_alarm = None;
         self.job_heat = false;
@@ -687,8 +672,12 @@ where
                 return;
             }
             let before = self.job.next_line();
-            let cmd = match self.job.poll(&mut self.kernel, &mut self.program, self.now) {
-                Ok(e) => e.as_ref().map(Cmd::of),
+            // The effect borrows the job's line buffer: it is carried out on the devices now,
+            // and what it comes to settled once the job is free again.
+            let done = match self.job.poll(&mut self.kernel, &mut self.program, self.now) {
+                Ok(e) => {
+                    e.map(|e| Self::apply(&mut self.devices, self.kernel.state(), &self.config, &e))
+                }
                 Err(e) => {
                     let r = text::job_refusal(&e);
                     self.error_frame(&r, out);
@@ -700,18 +689,20 @@ where
                 self.stats.program_lines = self.stats.program_lines.wrapping_add(u32::from(fed));
                 self.taken = true;
             }
-            let Some(cmd) = cmd else { return };
-            match self.apply(cmd) {
+            let Some(done) = done else { return };
+            match done {
                 Done::Refused(r) => {
                     self.job.stop(&mut self.kernel);
                     self.error_frame(&r, out);
                     return;
                 }
-                Done::Wait => self.job_heat = !self.peripherals.heaters_at_target(),
-                Done::Fault(r) => {
-                    self.end_heat_wait(out);
-                    self.report_fault(&r, out);
-                    return;
+                Done::Wait => self.job_heat = !self.heaters_at_target(),
+                Done::Stop(kind) => {
+                    if let Some(fault) = self.stop(kind) {
+                        self.end_heat_wait(out);
+                        self.report_fault(&fault, out);
+                        return;
+                    }
                 }
                 Done::Ok | Done::Temperatures | Done::Firmware | Done::Endstops => {}
             }

@@ -2,10 +2,11 @@
 //!
 //! A [`Controller`] owns the thread side of a machine: the stream [`Decoder`] of the link, its
 //! [`LineNumbering`], the [`Kernel`], the [`Job`] with its [`ProgramStore`], the [`Settings`]
-//! and their [`RecordStorage`], and the board's [`Peripherals`] (heaters, fans, spindle, motor
-//! power, end-stops). It speaks both protocols of the link at once — RepRap G-code lines and
-//! the 53-byte frames — and answers every line and frame as `docs/protocol.md` ("Controller
-//! replies") describes.
+//! and their [`RecordStorage`], and the board's [`Peripherals`] (its description of its
+//! devices: heaters, fans, spindle, coolant, motor power, end-stops). It speaks both protocols
+//! of the link at once — RepRap G-code lines and the 53-byte frames — and answers every line
+//! and frame as `docs/protocol.md` ("Controller replies") describes. The kernel's effects go
+//! straight to the devices, with the G-code rules applied here (see [`peripherals`]).
 //!
 //! It is sans-IO and portable: `no_std`, no allocation, no panics, no clock. The board calls
 //! [`Controller::poll`] from its thread context (a task or the main loop) with the time and the
@@ -108,6 +109,8 @@ use forja_protocol::stream::{Decoder, Event, FeedResult};
 
 pub use gcode::{Realtime, realtime};
 pub use peripherals::{NoPeripherals, PeripheralError, Peripherals, Reading, Temperatures};
+
+use peripherals::Devices;
 pub use settings::{
     AXIS_RECORDS, AxisField, DEFAULT_KEEP_ALIVE_MS, GLOBAL_RECORDS, Key, LoadReport,
     MAX_PASSWORD_LEN, MAX_SSID_LEN, NoStorage, SettingError, Settings,
@@ -217,8 +220,13 @@ pub struct ControllerConfig {
     /// The drivers' step timing the kernel was split with: settings that would need faster
     /// steps than it allows are refused.
     pub timing: StepTiming,
-    /// How often [`Peripherals::poll`] runs (the temperature loops), ms.
+    /// How often the temperature loops run
+    /// ([`TemperatureControl::run`](forja_hal_abstraction::device::TemperatureControl::run)),
+    /// ms.
     pub peripheral_period_ms: u32,
+    /// How close to its target a heater must be for `M109` and `M116` to go on, millidegrees
+    /// (a heater that is off holds no wait).
+    pub heater_tolerance_mc: i32,
     /// How often an `M109`/`M116` wait reports the temperatures, ms.
     pub report_period_ms: u32,
     /// A frame that arrived without a terminator — or, from a host that numbers its lines, a
@@ -229,14 +237,16 @@ pub struct ControllerConfig {
 }
 
 impl ControllerConfig {
-    /// `machine_type`, no extruder, `timing`; heaters every 100 ms, temperature reports every
-    /// second, unterminated frames (and numbered lines) taken after 20 ms of quiet.
+    /// `machine_type`, no extruder, `timing`; heaters every 100 ms and within 2 °C of their
+    /// target for a wait to go on, temperature reports every second, unterminated frames (and
+    /// numbered lines) taken after 20 ms of quiet.
     pub const fn new(machine_type: &'static str, timing: StepTiming) -> Self {
         Self {
             machine_type,
             extruders: 0,
             timing,
             peripheral_period_ms: 100,
+            heater_tolerance_mc: 2_000,
             report_period_ms: 1000,
             frame_flush_ms: 20,
         }
@@ -691,7 +701,7 @@ struct Core<'q, const N: usize, const B: usize, const Q: usize, P, X, S> {
     kernel: Kernel<'q, N, B, Q>,
     job: Job,
     program: P,
-    peripherals: X,
+    devices: Devices<X, N>,
     storage: S,
     settings: Settings<N>,
     config: ControllerConfig,
@@ -700,7 +710,6 @@ struct Core<'q, const N: usize, const B: usize, const Q: usize, P, X, S> {
     now: Instant,
     reported_alarm: Option<Alarm>,
     thermal: Option<PeripheralError>,
-    motors_on: bool,
     job_heat: bool,
     next_peripherals_ms: u32,
     load_total: Option<u16>,
@@ -712,8 +721,8 @@ struct Core<'q, const N: usize, const B: usize, const Q: usize, P, X, S> {
 /// The portable controller. See the [module documentation](self).
 ///
 /// `N` axes, a planner of `B` blocks and a step queue of `Q` events (as the [`Kernel`]); `P`
-/// keeps the uploaded program, `X` drives the peripherals, `S` keeps the settings
-/// ([`NoStorage`] when the board has none).
+/// keeps the uploaded program, `X` is the board's description of its devices
+/// ([`Peripherals`]), `S` keeps the settings ([`NoStorage`] when the board has none).
 ///
 /// Context: thread. No method blocks, except where the program store or the settings storage
 /// block on a flash write (only on a frame 00 set or a frame 03, refused while the machine
@@ -748,7 +757,7 @@ where
                 kernel,
                 job: Job::new(),
                 program,
-                peripherals,
+                devices: Devices::new(peripherals),
                 storage: NoStorage,
                 settings,
                 config,
@@ -757,7 +766,6 @@ where
                 now: Instant::from_ticks(0),
                 reported_alarm: None,
                 thermal: None,
-                motors_on: false,
                 job_heat: false,
                 next_peripherals_ms: 0,
                 load_total: None,
@@ -789,7 +797,7 @@ where
                 kernel: c.kernel,
                 job: c.job,
                 program: c.program,
-                peripherals: c.peripherals,
+                devices: c.devices,
                 storage,
                 settings,
                 config: c.config,
@@ -798,7 +806,6 @@ where
                 now: c.now,
                 reported_alarm: c.reported_alarm,
                 thermal: c.thermal,
-                motors_on: c.motors_on,
                 job_heat: c.job_heat,
                 next_peripherals_ms: c.next_peripherals_ms,
                 load_total: c.load_total,
@@ -940,7 +947,7 @@ where
     /// settings storage (a board that restarts, a test that inspects the flash).
     pub fn release(self) -> (Kernel<'q, N, B, Q>, P, X, S) {
         let c = self.core;
-        (c.kernel, c.program, c.peripherals, c.storage)
+        (c.kernel, c.program, c.devices.parts, c.storage)
     }
 
     /// The kernel.
@@ -977,12 +984,12 @@ where
 
     /// The peripherals.
     pub fn peripherals(&self) -> &X {
-        &self.core.peripherals
+        &self.core.devices.parts
     }
 
     /// The peripherals, mutably.
     pub fn peripherals_mut(&mut self) -> &mut X {
-        &mut self.core.peripherals
+        &mut self.core.devices.parts
     }
 
     /// The settings.
@@ -1076,15 +1083,15 @@ where
 
     /// Energise the drivers before the kernel steps them.
     fn enable_motors_if_needed(&mut self) {
-        if self.motors_on {
+        if self.devices.motors_on {
             return;
         }
         let moving = matches!(
             self.kernel.state(),
             MachineState::Running | MachineState::Homing
         );
-        if moving && self.peripherals.set_motors(true).is_ok() {
-            self.motors_on = true;
+        if moving {
+            let _ = self.devices.set_motors(true);
         }
     }
 
@@ -1095,14 +1102,14 @@ where
                 .clock
                 .ms
                 .wrapping_add(self.config.peripheral_period_ms.max(1));
-            if let Err(e) = self.peripherals.poll(self.clock.ms)
+            if let Err(e) = self.devices.poll(self.clock.ms)
                 && self.thermal.is_none()
             {
                 self.thermal = Some(e);
                 self.kernel.emergency_stop();
                 self.reported_alarm = Some(Alarm::EmergencyStop);
                 self.job.stop(&mut self.kernel);
-                self.peripherals.shutdown();
+                self.devices.shutdown();
                 self.job_heat = false;
                 self.end_heat_wait(out);
                 self.report_fault(&text::Refusal::new(&e), out);
@@ -1112,7 +1119,7 @@ where
             MachineState::Alarm(a) => {
                 if self.reported_alarm != Some(a) {
                     self.reported_alarm = Some(a);
-                    self.peripherals.shutdown();
+                    self.devices.shutdown();
                     self.job_heat = false;
                     self.end_heat_wait(out);
                     let r = text::alarm_refusal(&a, &self.letters());
@@ -1121,7 +1128,7 @@ where
             }
             _ => self.reported_alarm = None,
         }
-        if self.job_heat && self.peripherals.heaters_at_target() {
+        if self.job_heat && self.heaters_at_target() {
             self.job_heat = false;
         }
         if matches!(self.link.held, Some(Held::Homing))
@@ -1131,7 +1138,7 @@ where
             self.ok(out);
         }
         if let Some(Held::Heat { next_report_ms }) = self.link.held {
-            if self.peripherals.heaters_at_target() {
+            if self.heaters_at_target() {
                 self.end_heat_wait(out);
             } else if self.clock.reached(next_report_ms) {
                 self.link.held = Some(Held::Heat {

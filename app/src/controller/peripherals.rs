@@ -1,16 +1,27 @@
-//! What a board gives the controller besides the motion kernel: heaters, fans, the spindle,
-//! motor power and the end-stops as the thread side sees them.
+//! What a board gives the controller besides the motion kernel — its devices (the hot end,
+//! the bed, fans, the spindle, coolant), motor power and the end-stops as the thread side reads
+//! them — and the G-code rules the controller applies to them.
 //!
-//! [`Peripherals`] is one small trait so that the controller stays free of drivers and chips.
-//! `forja-drivers` implements it once, generically, over its PID heater channels, fans,
-//! spindle, stepper enables and limit inputs (`forja_app::peripherals::DriverPeripherals`);
-//! a board builds that from its pins and hands it to the controller.
+//! [`Peripherals`] is the board's description of which devices it has: one small accessor
+//! each, answering the device as a trait object of `forja_hal_abstraction::device`, or `None`
+//! where the board has no such device. A board lists its parts in a
+//! [`Parts`](crate::peripherals::Parts), which implements it; a motion-only board's
+//! [`MotorPeripherals`](crate::peripherals::MotorPeripherals) and [`NoPeripherals`] do too.
+//!
+//! The rules of the G-code stream are the controller's, not the devices': an `M3`/`M4` without
+//! `S` runs at the last speed commanded, `M109`/`M116` wait until every heater with a target is
+//! within [`ControllerConfig::heater_tolerance_mc`](super::ControllerConfig::heater_tolerance_mc)
+//! of it, `M9` turns both coolant lines off, program end stops the spindle and the coolant, and
+//! alarms turn everything off.
 
 use core::fmt;
 
+use forja_hal_abstraction::device::{
+    CoolantControl, DeviceError, FanControl, Rotation, SpindleControl, TemperatureControl,
+};
 use forja_protocol::error::WireError;
 
-use forja_motion::effect::{Heater, Spindle};
+use forja_motion::effect::{Coolant, Heater, Spindle};
 
 /// Current and target temperature of one heater, in thousandths of a degree Celsius.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -39,10 +50,10 @@ pub struct Temperatures {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 #[non_exhaustive]
 pub enum PeripheralError {
-    /// The board has no such heater, fan or spindle. Code 194.
+    /// The board has no such heater, fan, spindle or coolant. Code 194.
     NoDevice,
     /// A value the device cannot take: a target above its maximum, a speed it cannot run, a
-    /// direction it cannot turn. Nothing changed. Code 195.
+    /// direction it cannot turn, a coolant line it does not have. Nothing changed. Code 195.
     OutOfRange,
     /// An output could not be driven. Code 196.
     Hardware,
@@ -54,6 +65,16 @@ pub enum PeripheralError {
         /// The driver's stable short name (kebab-case).
         name: &'static str,
     },
+}
+
+impl From<DeviceError> for PeripheralError {
+    fn from(e: DeviceError) -> Self {
+        match e {
+            DeviceError::OutOfRange => Self::OutOfRange,
+            DeviceError::Thermal { code, name } => Self::Thermal { code, name },
+            _ => Self::Hardware,
+        }
+    }
 }
 
 impl WireError for PeripheralError {
@@ -82,135 +103,290 @@ impl fmt::Display for PeripheralError {
     }
 }
 
-/// The board's peripherals as the controller drives them.
+/// The board's description of which devices it has, as the controller reaches them.
+///
+/// Each accessor answers one device, or `None` when the board has none (the default): the
+/// controller then refuses its commands with [`PeripheralError::NoDevice`]. The devices follow
+/// the contract of `forja_hal_abstraction::device`; the controller applies the G-code rules
+/// (see the [module documentation](self)).
 ///
 /// Context: every method is called from the controller's thread context (the task or main
-/// loop that runs `Controller::poll`), never from an interrupt. None may block for longer
-/// than a sensor conversion. Errors are reported to the host as the controller's reply policy
-/// says; [`Peripherals::poll`] errors raise an alarm.
+/// loop that runs `Controller::poll`), never from an interrupt. An accessor only answers the
+/// device: it never blocks.
 pub trait Peripherals<const N: usize> {
-    /// Set the target of `heater`, in thousandths of a degree Celsius; 0 turns it off.
-    ///
-    /// Errors: [`PeripheralError::NoDevice`] for a heater the board does not have,
-    /// [`PeripheralError::OutOfRange`] for a target above its maximum (the old target stays),
-    /// [`PeripheralError::Thermal`] while a fault is latched (until [`Peripherals::reset`]).
-    fn set_temperature(&mut self, heater: Heater, millicelsius: i32)
-    -> Result<(), PeripheralError>;
+    /// The hot end (of tool 0; `M104`, `M109`, `M105`).
+    fn hot_end(&mut self) -> Option<&mut dyn TemperatureControl> {
+        None
+    }
 
-    /// Current and target temperatures of the hot end and the bed (`M105`). Never fails: a
-    /// heater whose sensor cannot be read reports its last reading.
-    fn temperatures(&mut self) -> Temperatures;
+    /// The bed (`M140`, `M105`).
+    fn bed(&mut self) -> Option<&mut dyn TemperatureControl> {
+        None
+    }
 
-    /// Whether every heater with a target is within its tolerance of it (`M109`, `M116`).
-    /// `true` when no heater has a target.
-    fn heaters_at_target(&mut self) -> bool;
+    /// Fan `index`, the `P` word of `M106`/`M107` (0 to 255).
+    fn fan(&mut self, index: u8) -> Option<&mut dyn FanControl> {
+        let _ = index;
+        None
+    }
 
-    /// Run fan `index` at `duty` out of 255 (`M106`, `M107`).
-    ///
-    /// Errors: [`PeripheralError::NoDevice`], [`PeripheralError::Hardware`].
-    fn set_fan(&mut self, index: u8, duty: u8) -> Result<(), PeripheralError>;
+    /// The spindle (`M3`, `M4`, `M5`).
+    fn spindle(&mut self) -> Option<&mut dyn SpindleControl> {
+        None
+    }
 
-    /// Start, reverse or stop the spindle (`M3`, `M4`, `M5`). A speed of `None` keeps the last
-    /// one commanded.
-    ///
-    /// Errors: [`PeripheralError::NoDevice`], [`PeripheralError::OutOfRange`] (reverse on a
-    /// spindle without a direction line: nothing changed), [`PeripheralError::Hardware`].
-    fn set_spindle(&mut self, spindle: Spindle) -> Result<(), PeripheralError>;
+    /// The coolant (`M7`, `M8`, `M9`).
+    fn coolant(&mut self) -> Option<&mut dyn CoolantControl> {
+        None
+    }
 
     /// Energise (`true`) or release every stepper driver. The controller energises them
     /// before any motion and releases them on `M18`/`M84`, `M0` and `M112`.
     ///
-    /// Errors: [`PeripheralError::Hardware`].
-    fn set_motors(&mut self, enabled: bool) -> Result<(), PeripheralError>;
+    /// Errors: [`DeviceError::Hardware`] when an enable line could not be driven.
+    fn set_motors(&mut self, enabled: bool) -> Result<(), DeviceError>;
 
-    /// The end-stop of each axis as the thread side reads it (`M119`): `Some(true)` when
-    /// triggered, `None` for an axis without a switch.
-    fn endstops(&mut self) -> [Option<bool>; N];
-
-    /// Run the temperature loops. Called at the controller's peripheral period with a wrapping
-    /// millisecond clock.
-    ///
-    /// Errors: a thermal fault ([`PeripheralError::Thermal`]) that the heater has already
-    /// acted on (its output off); the controller then raises an alarm and calls
-    /// [`Peripherals::shutdown`]. A latched fault may be returned again on later calls.
-    fn poll(&mut self, now_ms: u32) -> Result<(), PeripheralError>;
-
-    /// Heaters, fans and spindle off, at once (`M112`, alarms, thermal faults). Never fails:
-    /// an output that does not obey is left as it is.
-    fn shutdown(&mut self);
-
-    /// Clear latched faults after an operator's reset (`M999`, frame `Reset`). Heaters stay
-    /// off until a new target is set.
-    fn reset(&mut self);
+    /// The end-stop of axis `axis` as the thread side reads it (`M119`): `Some(true)` when
+    /// triggered (a switch that cannot be read reads as triggered, as the kernel takes it),
+    /// `None` for an axis without a switch read here (the default).
+    fn endstop(&mut self, axis: usize) -> Option<bool> {
+        let _ = axis;
+        None
+    }
 }
 
 impl<const N: usize, T: Peripherals<N> + ?Sized> Peripherals<N> for &mut T {
-    fn set_temperature(
-        &mut self,
-        heater: Heater,
-        millicelsius: i32,
-    ) -> Result<(), PeripheralError> {
-        T::set_temperature(self, heater, millicelsius)
+    fn hot_end(&mut self) -> Option<&mut dyn TemperatureControl> {
+        T::hot_end(self)
     }
-    fn temperatures(&mut self) -> Temperatures {
-        T::temperatures(self)
+    fn bed(&mut self) -> Option<&mut dyn TemperatureControl> {
+        T::bed(self)
     }
-    fn heaters_at_target(&mut self) -> bool {
-        T::heaters_at_target(self)
+    fn fan(&mut self, index: u8) -> Option<&mut dyn FanControl> {
+        T::fan(self, index)
     }
-    fn set_fan(&mut self, index: u8, duty: u8) -> Result<(), PeripheralError> {
-        T::set_fan(self, index, duty)
+    fn spindle(&mut self) -> Option<&mut dyn SpindleControl> {
+        T::spindle(self)
     }
-    fn set_spindle(&mut self, spindle: Spindle) -> Result<(), PeripheralError> {
-        T::set_spindle(self, spindle)
+    fn coolant(&mut self) -> Option<&mut dyn CoolantControl> {
+        T::coolant(self)
     }
-    fn set_motors(&mut self, enabled: bool) -> Result<(), PeripheralError> {
+    fn set_motors(&mut self, enabled: bool) -> Result<(), DeviceError> {
         T::set_motors(self, enabled)
     }
-    fn endstops(&mut self) -> [Option<bool>; N] {
-        T::endstops(self)
-    }
-    fn poll(&mut self, now_ms: u32) -> Result<(), PeripheralError> {
-        T::poll(self, now_ms)
-    }
-    fn shutdown(&mut self) {
-        T::shutdown(self)
-    }
-    fn reset(&mut self) {
-        T::reset(self)
+    fn endstop(&mut self, axis: usize) -> Option<bool> {
+        T::endstop(self, axis)
     }
 }
 
-/// A board with no heaters, fans or spindle, and no switch reads on the thread side: every
-/// command to a device is [`PeripheralError::NoDevice`], motor power is accepted and ignored.
+/// A board with no heater, fan, spindle or coolant, and no switch reads on the thread side:
+/// every command to a device is [`PeripheralError::NoDevice`], motor power is accepted and
+/// ignored (the drivers are always energised).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct NoPeripherals;
 
 impl<const N: usize> Peripherals<N> for NoPeripherals {
-    fn set_temperature(&mut self, _: Heater, _: i32) -> Result<(), PeripheralError> {
-        Err(PeripheralError::NoDevice)
-    }
-    fn temperatures(&mut self) -> Temperatures {
-        Temperatures::default()
-    }
-    fn heaters_at_target(&mut self) -> bool {
-        true
-    }
-    fn set_fan(&mut self, _: u8, _: u8) -> Result<(), PeripheralError> {
-        Err(PeripheralError::NoDevice)
-    }
-    fn set_spindle(&mut self, _: Spindle) -> Result<(), PeripheralError> {
-        Err(PeripheralError::NoDevice)
-    }
-    fn set_motors(&mut self, _: bool) -> Result<(), PeripheralError> {
+    fn set_motors(&mut self, _: bool) -> Result<(), DeviceError> {
         Ok(())
     }
-    fn endstops(&mut self) -> [Option<bool>; N] {
-        [None; N]
+}
+
+/// The board's peripherals with the controller's G-code rules and what they remember.
+pub(crate) struct Devices<X, const N: usize> {
+    /// The board's description of its devices.
+    pub(crate) parts: X,
+    /// The speed of the last `M3`/`M4` that ran, rpm: an `M3`/`M4` without `S` runs at it.
+    rpm: u32,
+    /// Whether the motors were last energised.
+    pub(crate) motors_on: bool,
+    /// The time of the last temperature loop, ms.
+    now_ms: u32,
+}
+
+/// The reading of a zone: its last measurement (0 before the first) and its target.
+fn reading(zone: &dyn TemperatureControl) -> Reading {
+    Reading {
+        current_mc: zone.current_mc().unwrap_or(0),
+        target_mc: zone.target_mc(),
     }
-    fn poll(&mut self, _: u32) -> Result<(), PeripheralError> {
+}
+
+/// Whether `zone` holds up no wait: it is off, or its last measurement is within
+/// `tolerance_mc` of its target. A faulted zone, or one not measured yet, holds the wait (the
+/// fault stops the machine).
+fn at_target(zone: &dyn TemperatureControl, tolerance_mc: i32) -> bool {
+    if zone.fault().is_some() {
+        return false;
+    }
+    let target = zone.target_mc();
+    target == 0
+        || zone
+            .current_mc()
+            .is_some_and(|mc| (i64::from(mc) - i64::from(target)).abs() <= i64::from(tolerance_mc))
+}
+
+/// The speed of an `M3`/`M4`: its `S` word rounded to whole rpm, or `last` without one.
+fn rpm_or(word: Option<i64>, last: u32) -> u32 {
+    word.map_or(last, |v| v.clamp(0, i64::from(u32::MAX)) as u32)
+}
+
+impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
+    pub(crate) fn new(parts: X) -> Self {
+        Self {
+            parts,
+            rpm: 0,
+            motors_on: false,
+            now_ms: 0,
+        }
+    }
+
+    /// The zone a temperature command names: the hot end for the current tool (`T0`, or no
+    /// `T`) and the bed.
+    fn zone(&mut self, heater: Heater) -> Option<&mut dyn TemperatureControl> {
+        match heater {
+            Heater::Extruder(None | Some(0)) => self.parts.hot_end(),
+            Heater::Bed => self.parts.bed(),
+            Heater::Extruder(Some(_)) => None,
+        }
+    }
+
+    /// Set the target of `heater`, millidegrees; 0 turns it off.
+    ///
+    /// Errors: [`PeripheralError::NoDevice`], [`PeripheralError::OutOfRange`] (a target above
+    /// its maximum; the old target stays), [`PeripheralError::Thermal`] while a fault is
+    /// latched (until [`Devices::reset`]).
+    pub(crate) fn set_temperature(
+        &mut self,
+        heater: Heater,
+        mc: i32,
+    ) -> Result<(), PeripheralError> {
+        let zone = self.zone(heater).ok_or(PeripheralError::NoDevice)?;
+        Ok(zone.set_target_mc(mc)?)
+    }
+
+    /// Current and target temperatures of the hot end and the bed (`M105`).
+    pub(crate) fn temperatures(&mut self) -> Temperatures {
+        Temperatures {
+            hot_end: self.parts.hot_end().map(|z| reading(z)),
+            bed: self.parts.bed().map(|z| reading(z)),
+        }
+    }
+
+    /// Whether every heater with a target is within `tolerance_mc` of it (`M109`, `M116`).
+    pub(crate) fn heaters_at_target(&mut self, tolerance_mc: i32) -> bool {
+        let hot_end = self
+            .parts
+            .hot_end()
+            .is_none_or(|z| at_target(z, tolerance_mc));
+        hot_end && self.parts.bed().is_none_or(|z| at_target(z, tolerance_mc))
+    }
+
+    /// Run fan `index` at `duty` out of 255 (`M106`, `M107`).
+    pub(crate) fn set_fan(&mut self, index: u8, duty: u8) -> Result<(), PeripheralError> {
+        let fan = self.parts.fan(index).ok_or(PeripheralError::NoDevice)?;
+        Ok(fan.set_duty(duty)?)
+    }
+
+    /// Start, reverse or stop the spindle (`M3`, `M4`, `M5`); a speed of `None` is the last
+    /// one that ran.
+    pub(crate) fn set_spindle(&mut self, command: Spindle) -> Result<(), PeripheralError> {
+        let spindle = self.parts.spindle().ok_or(PeripheralError::NoDevice)?;
+        let (rotation, rpm) = match command {
+            Spindle::Clockwise { rpm } => (Rotation::Clockwise, rpm),
+            Spindle::CounterClockwise { rpm } => (Rotation::CounterClockwise, rpm),
+            Spindle::Off => return Ok(spindle.stop()?),
+        };
+        let rpm = rpm_or(rpm.and_then(|d| d.round_to_scale(0)), self.rpm);
+        spindle.run(rotation, rpm)?;
+        self.rpm = rpm;
         Ok(())
     }
-    fn shutdown(&mut self) {}
-    fn reset(&mut self) {}
+
+    /// Mist on (`M7`), flood on (`M8`), or both off (`M9`: both lines are written even when
+    /// one fails; the first error is returned).
+    pub(crate) fn set_coolant(&mut self, command: Coolant) -> Result<(), PeripheralError> {
+        let coolant = self.parts.coolant().ok_or(PeripheralError::NoDevice)?;
+        match command {
+            Coolant::Mist => coolant.set_mist(true)?,
+            Coolant::Flood => coolant.set_flood(true)?,
+            Coolant::Off => {
+                let mist = coolant.set_mist(false);
+                coolant.set_flood(false).and(mist)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// End of program (`M2`, `M30`): the spindle and the coolant off, those the board has.
+    ///
+    /// Errors: the first device that could not be stopped, with its name for the refusal
+    /// (`spindle`, `coolant`); both are stopped even when one fails.
+    pub(crate) fn end_program(&mut self) -> Result<(), (PeripheralError, &'static str)> {
+        let present = |r: Result<(), PeripheralError>, what| match r {
+            Ok(()) | Err(PeripheralError::NoDevice) => Ok(()),
+            Err(e) => Err((e, what)),
+        };
+        let spindle = present(self.set_spindle(Spindle::Off), "spindle");
+        let coolant = present(self.set_coolant(Coolant::Off), "coolant");
+        spindle.and(coolant)
+    }
+
+    /// Energise or release the motors.
+    pub(crate) fn set_motors(&mut self, enabled: bool) -> Result<(), PeripheralError> {
+        self.parts.set_motors(enabled)?;
+        self.motors_on = enabled;
+        Ok(())
+    }
+
+    /// The end-stop of each axis as the thread side reads it (`M119`).
+    pub(crate) fn endstops(&mut self) -> [Option<bool>; N] {
+        core::array::from_fn(|axis| self.parts.endstop(axis))
+    }
+
+    /// Call `f` on every temperature zone the board has: the hot end, then the bed.
+    fn each_zone(&mut self, mut f: impl FnMut(&mut dyn TemperatureControl)) {
+        if let Some(zone) = self.parts.hot_end() {
+            f(zone);
+        }
+        if let Some(zone) = self.parts.bed() {
+            f(zone);
+        }
+    }
+
+    /// Run the temperature loops at `now_ms`.
+    ///
+    /// Errors: the first thermal fault, found now or latched before; its zone has turned its
+    /// heater off.
+    pub(crate) fn poll(&mut self, now_ms: u32) -> Result<(), PeripheralError> {
+        self.now_ms = now_ms;
+        let mut first = Ok(());
+        self.each_zone(|zone| {
+            let run = zone.run(now_ms);
+            first = first.and(run);
+        });
+        Ok(first?)
+    }
+
+    /// Heaters, fans, spindle and coolant off, at once (`M112`, `M0`, alarms, thermal
+    /// faults). A device that does not obey is left as it is.
+    pub(crate) fn shutdown(&mut self) {
+        let now_ms = self.now_ms;
+        self.each_zone(|zone| {
+            let _ = zone.set_target_mc(0);
+            // Apply the zero power now rather than at the next period.
+            let _ = zone.run(now_ms);
+        });
+        for index in 0..=u8::MAX {
+            if let Some(fan) = self.parts.fan(index) {
+                let _ = fan.set_duty(0);
+            }
+        }
+        let _ = self.end_program();
+    }
+
+    /// Clear latched heater faults (`M999`, frame `Reset`). Heaters stay off until a new
+    /// target.
+    pub(crate) fn reset(&mut self) {
+        self.each_zone(|zone| zone.clear_fault());
+    }
 }

@@ -15,10 +15,12 @@ use forja_protocol::gcode::{Decimal, checksum, write_numbered};
 use super::settings::tests::VecStorage;
 use super::*;
 use crate::job::JobState;
+use forja_hal_abstraction::device::{
+    CoolantControl, DeviceError, FanControl, Rotation, SpindleControl, TemperatureControl,
+};
 use forja_hal_abstraction::program::{ProgramStore, RamStore};
 use forja_motion::StepQueue;
 use forja_motion::config::{AxisConfig, HomeDirection, HomingConfig, MachineConfig};
-use forja_motion::effect::{Heater, Spindle};
 use forja_motion::{MachineState, split};
 use forja_sim_hal::SimLimitSwitch;
 
@@ -70,119 +72,180 @@ impl embedded_io::Write for MemLink {
     }
 }
 
-/// Heaters that move 20 °C a second towards their target, fans and a spindle that record
-/// what they are told, end-stops read from the simulated switches.
+/// A heater that moves 20 °C a second towards its target (from 20 °C ambient) and latches a
+/// fault the test hands it at its next loop.
+struct FakeZone {
+    current_mc: i32,
+    target_mc: i32,
+    last_ms: Option<u32>,
+    /// A fault for the next loop to find.
+    pending: Option<DeviceError>,
+    latched: Option<DeviceError>,
+}
+
+impl FakeZone {
+    fn ambient() -> Self {
+        Self {
+            current_mc: 20_000,
+            target_mc: 0,
+            last_ms: None,
+            pending: None,
+            latched: None,
+        }
+    }
+}
+
+impl TemperatureControl for FakeZone {
+    fn set_target_mc(&mut self, mc: i32) -> Result<(), DeviceError> {
+        if let Some(e) = self.latched {
+            return Err(e);
+        }
+        if mc > 280_000 {
+            return Err(DeviceError::OutOfRange);
+        }
+        self.target_mc = mc.max(0);
+        Ok(())
+    }
+    fn target_mc(&self) -> i32 {
+        self.target_mc
+    }
+    fn current_mc(&self) -> Option<i32> {
+        Some(self.current_mc)
+    }
+    fn run(&mut self, now_ms: u32) -> Result<(), DeviceError> {
+        let dt = self.last_ms.map_or(0, |l| now_ms.wrapping_sub(l)) as i32;
+        self.last_ms = Some(now_ms);
+        let goal = self.target_mc.max(20_000);
+        let step = (20 * dt).min((goal - self.current_mc).abs());
+        self.current_mc += step * (goal - self.current_mc).signum();
+        if let Some(e) = self.pending.take() {
+            self.latched = Some(e);
+        }
+        match self.latched {
+            Some(e) => {
+                // A fault turns the heater off and clears the target.
+                self.target_mc = 0;
+                Err(e)
+            }
+            None => Ok(()),
+        }
+    }
+    fn fault(&self) -> Option<DeviceError> {
+        self.latched
+    }
+    fn clear_fault(&mut self) {
+        self.latched = None;
+    }
+}
+
+/// A fan that records its duty.
+struct FakeFan(u8);
+
+impl FanControl for FakeFan {
+    fn set_duty(&mut self, duty: u8) -> Result<(), DeviceError> {
+        self.0 = duty;
+        Ok(())
+    }
+}
+
+/// What the spindle was last told.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Turning {
+    At(Rotation, u32),
+    Stopped,
+}
+
+/// A spindle that records what it is told and counts its stops.
+#[derive(Default)]
+struct FakeSpindle {
+    last: Option<Turning>,
+    stops: u32,
+}
+
+impl SpindleControl for FakeSpindle {
+    fn run(&mut self, rotation: Rotation, rpm: u32) -> Result<(), DeviceError> {
+        self.last = Some(Turning::At(rotation, rpm));
+        Ok(())
+    }
+    fn stop(&mut self) -> Result<(), DeviceError> {
+        self.last = Some(Turning::Stopped);
+        self.stops += 1;
+        Ok(())
+    }
+}
+
+/// Coolant that records its two lines.
+#[derive(Default)]
+struct FakeCoolant {
+    mist: bool,
+    flood: bool,
+}
+
+impl CoolantControl for FakeCoolant {
+    fn set_mist(&mut self, on: bool) -> Result<(), DeviceError> {
+        self.mist = on;
+        Ok(())
+    }
+    fn set_flood(&mut self, on: bool) -> Result<(), DeviceError> {
+        self.flood = on;
+        Ok(())
+    }
+}
+
+/// The test board's devices: two heaters, two fans, a spindle and coolant that record what
+/// they are told, motor power, end-stops read from the simulated switches.
 struct Fake {
-    hot: Reading,
-    bed: Reading,
-    fans: [u8; 2],
-    spindle: Option<Spindle>,
+    hot: FakeZone,
+    bed: FakeZone,
+    fans: [FakeFan; 2],
+    spindle: FakeSpindle,
+    /// `None`: the board has no coolant.
+    coolant: Option<FakeCoolant>,
     motors: bool,
     motor_calls: u32,
     switches: Vec<SimLimitSwitch>,
-    fault: Option<PeripheralError>,
-    latched: Option<PeripheralError>,
-    last_ms: Option<u32>,
-    shutdowns: u32,
 }
 
 impl Fake {
     fn new(switches: Vec<SimLimitSwitch>) -> Self {
-        let ambient = Reading {
-            current_mc: 20_000,
-            target_mc: 0,
-        };
         Self {
-            hot: ambient,
-            bed: ambient,
-            fans: [0; 2],
-            spindle: None,
+            hot: FakeZone::ambient(),
+            bed: FakeZone::ambient(),
+            fans: [FakeFan(0), FakeFan(0)],
+            spindle: FakeSpindle::default(),
+            coolant: Some(FakeCoolant::default()),
             motors: false,
             motor_calls: 0,
             switches,
-            fault: None,
-            latched: None,
-            last_ms: None,
-            shutdowns: 0,
         }
     }
 }
 
 impl Peripherals<3> for Fake {
-    fn set_temperature(&mut self, heater: Heater, mc: i32) -> Result<(), PeripheralError> {
-        if let Some(e) = self.latched {
-            return Err(e);
-        }
-        if mc > 280_000 {
-            return Err(PeripheralError::OutOfRange);
-        }
-        match heater {
-            Heater::Extruder(None | Some(0)) => self.hot.target_mc = mc,
-            Heater::Bed => self.bed.target_mc = mc,
-            Heater::Extruder(_) => return Err(PeripheralError::NoDevice),
-        }
-        Ok(())
+    fn hot_end(&mut self) -> Option<&mut dyn TemperatureControl> {
+        Some(&mut self.hot)
     }
-    fn temperatures(&mut self) -> Temperatures {
-        Temperatures {
-            hot_end: Some(self.hot),
-            bed: Some(self.bed),
-        }
+    fn bed(&mut self) -> Option<&mut dyn TemperatureControl> {
+        Some(&mut self.bed)
     }
-    fn heaters_at_target(&mut self) -> bool {
-        [self.hot, self.bed]
-            .iter()
-            .all(|r| r.target_mc == 0 || (r.current_mc - r.target_mc).abs() <= 1_000)
+    fn fan(&mut self, index: u8) -> Option<&mut dyn FanControl> {
+        let fan = self.fans.get_mut(usize::from(index))?;
+        Some(fan)
     }
-    fn set_fan(&mut self, index: u8, duty: u8) -> Result<(), PeripheralError> {
-        let fan = self
-            .fans
-            .get_mut(usize::from(index))
-            .ok_or(PeripheralError::NoDevice)?;
-        *fan = duty;
-        Ok(())
+    fn spindle(&mut self) -> Option<&mut dyn SpindleControl> {
+        Some(&mut self.spindle)
     }
-    fn set_spindle(&mut self, spindle: Spindle) -> Result<(), PeripheralError> {
-        self.spindle = Some(spindle);
-        Ok(())
+    fn coolant(&mut self) -> Option<&mut dyn CoolantControl> {
+        let coolant = self.coolant.as_mut()?;
+        Some(coolant)
     }
-    fn set_motors(&mut self, enabled: bool) -> Result<(), PeripheralError> {
+    fn set_motors(&mut self, enabled: bool) -> Result<(), DeviceError> {
         self.motors = enabled;
         self.motor_calls += 1;
         Ok(())
     }
-    fn endstops(&mut self) -> [Option<bool>; 3] {
-        let mut s = [None; 3];
-        for (slot, sw) in s.iter_mut().zip(self.switches.iter_mut()) {
-            *slot = sw.is_triggered().ok();
-        }
-        s
-    }
-    fn poll(&mut self, now_ms: u32) -> Result<(), PeripheralError> {
-        let dt = self.last_ms.map_or(0, |l| now_ms.wrapping_sub(l)) as i32;
-        self.last_ms = Some(now_ms);
-        for r in [&mut self.hot, &mut self.bed] {
-            let goal = r.target_mc.max(20_000);
-            let step = (20 * dt).min((goal - r.current_mc).abs());
-            r.current_mc += step * (goal - r.current_mc).signum();
-        }
-        if let Some(e) = self.fault.take() {
-            self.latched = Some(e);
-        }
-        match self.latched {
-            Some(e) => Err(e),
-            None => Ok(()),
-        }
-    }
-    fn shutdown(&mut self) {
-        self.shutdowns += 1;
-        self.hot.target_mc = 0;
-        self.bed.target_mc = 0;
-        self.fans = [0; 2];
-        self.spindle = Some(Spindle::Off);
-    }
-    fn reset(&mut self) {
-        self.latched = None;
+    fn endstop(&mut self, axis: usize) -> Option<bool> {
+        self.switches.get_mut(axis)?.is_triggered().ok()
     }
 }
 
@@ -250,6 +313,7 @@ impl<P: ProgramStore> Bench<P> {
         let fake = Fake::new(wiring.switches().to_vec());
         let mut cfg = ControllerConfig::new("test-bench", timing);
         cfg.extruders = 1;
+        cfg.heater_tolerance_mc = 1_000;
         let (settings, _) = Settings::load(config, &mut storage);
         let ctl = Controller::new(kernel, program, fake, cfg).with_settings(settings, storage);
         let mut b = Self {
@@ -817,11 +881,11 @@ fn program_end_waits_for_the_motion_stops_the_spindle_and_resets_modes() {
     b.send("M2");
     b.run_ms(5);
     assert!(b.take().is_empty());
-    assert!(b.ctl.peripherals().spindle != Some(Spindle::Off));
+    assert_ne!(b.ctl.peripherals().spindle.last, Some(Turning::Stopped));
     b.run_until(10_000, |b| b.ctl.stats().oks == 4);
     assert_eq!(b.take(), ["ok"]);
     assert_eq!(b.position_mm()[0], 20.0);
-    assert_eq!(b.ctl.peripherals().spindle, Some(Spindle::Off));
+    assert_eq!(b.ctl.peripherals().spindle.last, Some(Turning::Stopped));
     // Absolute again: X5 goes to 5, not 25.
     assert_eq!(b.ask("X5"), ["ok"]);
     b.idle();
@@ -846,7 +910,7 @@ fn program_end_in_a_stored_program_ends_the_job() {
     b.run_until(10_000, |b| b.ctl.job().state() == JobState::Finished);
     b.idle();
     assert_eq!(b.position_mm()[0], 10.0, "the line after M30 does not run");
-    assert_eq!(b.ctl.peripherals().spindle, Some(Spindle::Off));
+    assert_eq!(b.ctl.peripherals().spindle.last, Some(Turning::Stopped));
     assert!(error_codes(&b.take()).is_empty());
     // Absolute again after the program's G91.
     assert_eq!(b.ask("G1 X3"), ["ok"]);
@@ -950,7 +1014,7 @@ fn a_hard_limit_is_reported_unsolicited_and_lines_in_alarm_are_refused() {
     b.run_ms(1000);
     let out = b.take();
     assert_eq!(out, ["!! E150 hard-limit X"]);
-    assert_eq!(b.ctl.peripherals().shutdowns, 1);
+    assert_eq!(b.ctl.peripherals().spindle.stops, 1, "shut down once");
     assert_eq!(b.ask("M119"), ["ok x_min:TRIGGERED y_min:open"]);
     assert_eq!(b.ask("G1 X5"), ["!! E125 alarm-locked", "ok"]);
     assert!(b.ask("M105")[0].starts_with("ok T:"));
@@ -979,7 +1043,7 @@ fn m112_stops_everything_until_a_reset() {
     let out = b.take();
     assert_eq!(out, ["ok", "ok", "!! E153 emergency-stop", "ok"]);
     assert!(!b.ctl.peripherals().motors);
-    assert_eq!(b.ctl.peripherals().spindle, Some(Spindle::Off));
+    assert_eq!(b.ctl.peripherals().spindle.last, Some(Turning::Stopped));
     let stopped = b.position_mm();
     b.run_ms(300);
     assert_eq!(b.position_mm(), stopped);
@@ -1021,7 +1085,7 @@ fn a_thermal_fault_raises_an_alarm_and_shuts_down() {
     );
     b.send("G1 X50 F3000");
     b.run_ms(50);
-    b.ctl.peripherals_mut().fault = Some(PeripheralError::Thermal {
+    b.ctl.peripherals_mut().hot.pending = Some(DeviceError::Thermal {
         code: 212,
         name: "thermal-runaway",
     });
@@ -1186,13 +1250,17 @@ fn effects_reach_the_peripherals_in_stream_order() {
     b.send("M4 S500");
     b.send("M84");
     b.run_ms(10);
-    assert_eq!(b.ctl.peripherals().fans[1], 0, "the fan waits for the move");
+    assert_eq!(
+        b.ctl.peripherals().fans[1].0,
+        0,
+        "the fan waits for the move"
+    );
     b.idle();
     b.run_ms(10);
-    assert_eq!(b.ctl.peripherals().fans[1], 128);
+    assert_eq!(b.ctl.peripherals().fans[1].0, 128);
     assert!(matches!(
-        b.ctl.peripherals().spindle,
-        Some(Spindle::CounterClockwise { .. })
+        b.ctl.peripherals().spindle.last,
+        Some(Turning::At(Rotation::CounterClockwise, _))
     ));
     assert!(!b.ctl.peripherals().motors);
     assert_eq!(b.take().len(), 4);
@@ -1201,6 +1269,69 @@ fn effects_reach_the_peripherals_in_stream_order() {
     b.idle();
     assert!(b.ctl.peripherals().motors);
     assert_eq!(b.position_mm()[0], 0.0);
+}
+
+/// The mist and flood lines of the test board's coolant.
+fn coolant(b: &Bench) -> (bool, bool) {
+    let c = b.ctl.peripherals().coolant.as_ref().unwrap();
+    (c.mist, c.flood)
+}
+
+#[test]
+fn coolant_follows_the_motion_and_goes_off_at_program_end_and_on_a_stop() {
+    let mut b = Bench::new();
+    b.take();
+    b.send("G1 X30 F3000");
+    b.send("M7");
+    b.send("M8");
+    b.run_ms(10);
+    assert_eq!(
+        coolant(&b),
+        (false, false),
+        "the coolant waits for the move"
+    );
+    b.idle();
+    b.run_ms(10);
+    assert_eq!(coolant(&b), (true, true), "mist and flood on together");
+    assert_eq!(b.take(), ["ok", "ok", "ok"]);
+    assert_eq!(b.ask("M9"), ["ok"]);
+    assert_eq!(coolant(&b), (false, false));
+    assert_eq!(b.ask("M8"), ["ok"]);
+    assert_eq!(coolant(&b), (false, true));
+    assert_eq!(b.ask("M2"), ["ok"]);
+    assert_eq!(coolant(&b), (false, false), "program end");
+    assert_eq!(b.ask("M7"), ["ok"]);
+    b.send("M112");
+    b.run_ms(5);
+    assert_eq!(b.take(), ["!! E153 emergency-stop", "ok"]);
+    assert_eq!(coolant(&b), (false, false), "an emergency stop");
+}
+
+#[test]
+fn coolant_on_a_board_without_it_is_refused_and_program_end_goes_on() {
+    let mut b = Bench::new();
+    b.take();
+    b.ctl.peripherals_mut().coolant = None;
+    assert_eq!(b.ask("M8"), ["!! E194 no-device coolant", "ok"]);
+    assert_eq!(b.ask("M3 S100"), ["ok"]);
+    assert_eq!(b.ask("M30"), ["ok"]);
+    assert_eq!(b.ctl.peripherals().spindle.last, Some(Turning::Stopped));
+}
+
+#[test]
+fn m3_without_s_runs_at_the_last_speed() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("M3"), ["ok"]);
+    let last = |b: &Bench| b.ctl.peripherals().spindle.last;
+    assert_eq!(last(&b), Some(Turning::At(Rotation::Clockwise, 0)));
+    assert_eq!(b.ask("M3 S1200"), ["ok"]);
+    assert_eq!(b.ask("M5"), ["ok"]);
+    assert_eq!(b.ask("M4"), ["ok"]);
+    assert_eq!(
+        last(&b),
+        Some(Turning::At(Rotation::CounterClockwise, 1200))
+    );
 }
 
 #[test]

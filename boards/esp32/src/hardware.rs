@@ -4,7 +4,7 @@
 //! | firmware part | on this board |
 //! |---|---|
 //! | step interrupt | `StepDir` drivers on the STEP/DIR outputs and debounced `LimitInput`s on the switch inputs, in the port's `StepContext` |
-//! | peripherals | `DriverPeripherals`: the shared enable line (released until the controller energises the motors), the switches read again for `M119`; no heater, fan or spindle |
+//! | peripherals | `MotorPeripherals`: the shared enable line (released until the controller energises the motors), the switches read again for `M119`; no heater, fan, spindle or coolant |
 //! | stores | the `forja` partition: the settings in a `FlashRecordStorage`, the uploaded program in a `SlotProgramStore` |
 //! | kernel | [`board::MACHINE`] with the stored settings over it, [`PLANNER_BLOCKS`] blocks, a step queue of [`QUEUE_EVENTS`] events |
 //! | host link | the WiFi link (`forja_port_esp32::link`) |
@@ -13,7 +13,7 @@ use esp_hal::gpio::{Io, Output};
 use esp_hal::interrupt::InterruptHandler;
 use forja_app::controller::ControllerConfig;
 use forja_app::firmware::{self, Firmware, SetupError};
-use forja_app::peripherals::{self, DriverPeripherals, MotorEnables, NoHeater, NoPwm, NoSpindle};
+use forja_app::peripherals::{MotorEnables, MotorPeripherals};
 use forja_drivers::pin::NoPin;
 use forja_drivers::stepper::StepDir;
 use forja_hal_abstraction::clock::Clock;
@@ -42,16 +42,7 @@ pub const PLANNER_BLOCKS: usize = 32;
 pub type EnableLine = StepDir<NoPin, NoPin, Output<'static>>;
 
 /// The board's peripherals: motor power and the switches for `M119`.
-pub type BoardPeripherals = DriverPeripherals<
-    NoHeater,
-    NoHeater,
-    NoPwm,
-    NoSpindle,
-    MotorEnables<EnableLine, 1>,
-    ThreadLimit,
-    AXES,
-    0,
->;
+pub type BoardPeripherals = MotorPeripherals<MotorEnables<EnableLine, 1>, AXES, ThreadLimit>;
 
 /// The firmware of this board, as the application layer assembles it.
 pub type BoardFirmware =
@@ -156,15 +147,7 @@ pub fn firmware(
     let queue = QUEUE
         .try_init(StepQueue::new())
         .ok_or(SetupError::Storage)?;
-    let peripherals = DriverPeripherals::new(peripherals::Parts {
-        hot_end: None,
-        bed: None,
-        fans: [],
-        spindle: None,
-        motors: MotorEnables([enable]),
-        limits: limits.map(Some),
-        tolerance_mc: 0,
-    });
+    let peripherals = MotorPeripherals::new(MotorEnables([enable]), limits.map(Some));
     let (generator, firmware, _) = firmware::assemble(firmware::Parts {
         machine: board::MACHINE,
         settings: stores.settings,

@@ -5,7 +5,7 @@
 //! |---|---|
 //! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`SimStepDirPins`](forja_sim_hal::SimStepDirPins), and `forja_drivers::limit::LimitInput`s on the homing switches' [`SimSwitchPin`]s; the switches' pin-change interrupt ([`SwitchEdges`]) reports their edges to it |
 //! | thread side | [`Firmware::poll`]: the ports' links, one controlling host across them and `Controller::poll` on its link, by [`forja_app::hosts::Arbiter`] (see [Links](#links)) |
-//! | peripherals | `forja_app::peripherals::DriverPeripherals`: PID `HeaterChannel`s over the simulated heaters, fans and the spindle on the PWM outputs, the drivers' enable lines, the switches read again for `M119` |
+//! | peripherals | `forja_app::peripherals::Parts`: PID `HeaterChannel`s over the simulated heaters, `Fan`s and the `Spindle` on the PWM outputs (kept in the board's static RAM beside the step queue, as a firmware board keeps its devices in statics), the drivers' enable lines, the switches read again for `M119`; no coolant (the simulated machine has no switched outputs) |
 //! | storage | the board's two flashes ([`BoardFlash`]): `FlashRecordStorage` for the settings, `RecordProgramStore` for the uploaded program; kept in a state file with `BoardFlash::open` |
 //! | read back | what tests and the `forja-sim` program read of the firmware, whatever its number of axes ([`SimBoard::status`], [`SimBoard::program_line`], [`SimBoard::settings`], [`SimBoard::load_report`]): the controller's own accessors (`Controller::status`, `Controller::read_program_line`, the settings' `Display`), adapted |
 //!
@@ -35,7 +35,7 @@ use std::io;
 use forja_app::controller::{LoadReport, Peripherals, RecordProgramStore, Status};
 use forja_app::firmware::{self, Parts as FirmwareParts};
 use forja_app::hosts::{Arbiter, Port, PortLink};
-use forja_app::peripherals::{DriverPeripherals, MotorEnables, Parts};
+use forja_app::peripherals::{LocalDevices, MotorEnables, Parts};
 use forja_drivers::heater::HeaterChannel;
 use forja_drivers::limit::LimitInput;
 use forja_drivers::pin::NoPin;
@@ -53,8 +53,8 @@ use forja_sim_hal::state::{
     BoardFlash, PROGRAM_FLASH_LEN, ProgramFlash, SETTINGS_FLASH_LEN, SettingsFlash,
 };
 use forja_sim_hal::{
-    Firmware, Flow, RunError, RunReport, SimAlarm, SimDriverPin, SimMachine, SimSwitchPin,
-    Simulation, SwitchEdges,
+    Firmware, Flow, RunError, RunReport, SimDriverPin, SimMachine, SimSwitchPin, Simulation,
+    SwitchEdges,
 };
 
 pub use forja_app::hosts::PortStats;
@@ -134,8 +134,8 @@ type SimFirmware<const N: usize, X> =
 type ProgramStore = RecordProgramStore<FlashRecordStorage<ProgramFlash>>;
 type SettingsStore = FlashRecordStorage<SettingsFlash>;
 
-/// The firmware of `N` axes with its peripherals `X`.
-struct Wired<const N: usize, X> {
+/// The firmware of `N` axes with its peripherals `X`, the queue and the devices in `R`.
+struct Wired<const N: usize, X, R> {
     firmware: SimFirmware<N, X>,
     isr: StepGenerator<'static, N, QUEUE_EVENTS>,
     /// The STEP/DIR drivers and the homing switches, for the step interrupt.
@@ -144,64 +144,68 @@ struct Wired<const N: usize, X> {
     /// The switch inputs' pin-change interrupt: reports edges to the step interrupt.
     switch_alert: SwitchAlert<'static>,
     switch_edges: SwitchEdges,
-    alarm: SimAlarm,
+    /// The machine: its clock, and the step alarm the thread side arms.
     machine: SimMachine,
-    /// The step queue: last, freed after everything that borrows it.
-    _queue: StaticRam<StepQueue<N, QUEUE_EVENTS>>,
+    /// The step queue and the thread side's devices: last, freed after everything that
+    /// borrows them.
+    _ram: StaticRam<R>,
 }
 
 fn storage_error(e: impl fmt::Debug) -> BoardError {
     BoardError::Storage(format!("{e:?}"))
 }
 
-/// Builds the firmware of one axis count on a machine, its flash and its program size.
-type Wire = fn(&SimMachine, BoardFlash, u16) -> Result<Box<dyn Wiring>, BoardError>;
+/// Builds the firmware of one axis count on a machine, as a board's configuration says.
+type Wire = fn(&SimMachine, BoardConfig) -> Result<Box<dyn Wiring>, BoardError>;
 
 /// The firmware of each axis count the kernel takes, 1 to 8.
 const WIRINGS: [Wire; 8] = [
     wire::<1>, wire::<2>, wire::<3>, wire::<4>, wire::<5>, wire::<6>, wire::<7>, wire::<8>,
 ];
 
-/// The firmware of `N` axes on `machine`, its flash and its parts.
+/// The firmware of `N` axes on `machine` and its parts, with the flash and the program size of
+/// `config`.
 fn wire<const N: usize>(
     machine: &SimMachine,
-    flash: BoardFlash,
-    program_lines: u16,
+    config: BoardConfig,
 ) -> Result<Box<dyn Wiring>, BoardError> {
     let pins = parts::pins::<N>(machine)?;
     let mut steppers = Vec::with_capacity(N);
     let mut enables = Vec::with_capacity(N);
-    for (p, config) in pins.drivers {
-        steppers.push(StepDir::new(p.step, p.dir, config).map_err(storage_error)?);
-        let enable = StepDir::with_enable(NoPin, NoPin, p.enable, config);
+    for (p, c) in pins.drivers {
+        steppers.push(StepDir::new(p.step, p.dir, c).map_err(storage_error)?);
+        let enable = StepDir::with_enable(NoPin, NoPin, p.enable, c);
         enables.push(enable.map_err(storage_error)?);
     }
     let switch = |s: &Option<(SimSwitchPin, _)>| s.clone().map(|(p, c)| LimitInput::new(p, c));
-    let heater =
-        |h: Option<parts::HeaterPins>| h.map(|h| HeaterChannel::new(h.sensor, h.heater, h.config));
-    let program = FlashRecordStorage::new(flash.program, 0..PROGRAM_FLASH_LEN as u32)
+    let heaters = [pins.hot_end, pins.bed]
+        .map(|h| h.map(|h| HeaterChannel::new(h.sensor, h.heater, h.config)));
+    let fans = pins.fans.map(|f| Fan::new(f?, FanConfig::DIRECT).ok());
+    let spindle = pins.spindle.and_then(|(p, c)| Spindle::new(p, c).ok());
+    let program = FlashRecordStorage::new(config.flash.program, 0..PROGRAM_FLASH_LEN as u32)
         .map_err(storage_error)?;
     #[allow(unsafe_code)]
-    // SAFETY: the queue is the last field of `Wired`: everything that borrows it (the kernel
-    // in the firmware, the step interrupt, the switch alert) drops before it.
-    let (queue_ram, queue) = unsafe { StaticRam::new(StepQueue::new()) };
+    // SAFETY: the RAM is the last field of `Wired`: everything that borrows the queue and the
+    // devices in it (the firmware, the step interrupt, the switch alert) drops before it.
+    let (ram, (queue, [hot_end, bed], fans, spindle)) =
+        unsafe { StaticRam::new((StepQueue::new(), heaters, fans, spindle)) };
     let (isr, firmware, _) = firmware::assemble(FirmwareParts {
         machine: parts::machine(machine.config())?,
-        settings: FlashRecordStorage::new(flash.settings, 0..SETTINGS_FLASH_LEN as u32)
+        settings: FlashRecordStorage::new(config.flash.settings, 0..SETTINGS_FLASH_LEN as u32)
             .map_err(storage_error)?,
         queue,
         tick_hz: machine.tick_hz(),
         config: parts::controller(machine.config()),
-        program: RecordProgramStore::open(program, program_lines).map_err(storage_error)?,
-        peripherals: DriverPeripherals::new(Parts {
-            hot_end: heater(pins.hot_end),
-            bed: heater(pins.bed),
-            fans: pins.fans.map(|f| Fan::new(f?, FanConfig::DIRECT).ok()),
-            spindle: pins.spindle.and_then(|(p, c)| Spindle::new(p, c).ok()),
+        program: RecordProgramStore::open(program, config.program_lines).map_err(storage_error)?,
+        peripherals: Parts::<_, _, N, MAX_FANS, LocalDevices> {
+            hot_end: hot_end.as_mut().map(|z| z as _),
+            bed: bed.as_mut().map(|z| z as _),
+            fans: fans.each_mut().map(|f| f.as_mut().map(|f| f as _)),
+            spindle: spindle.as_mut().map(|s| s as _),
+            coolant: None,
             motors: MotorEnables(array::<_, N>(enables)?),
-            limits: pins.homing_switches.each_ref().map(switch),
-            tolerance_mc: parts::HEATER_TOLERANCE_MC,
-        }),
+            endstops: pins.homing_switches.each_ref().map(switch),
+        },
     })
     .map_err(BoardError::Config)?;
     Ok(Box::new(Wired {
@@ -211,9 +215,8 @@ fn wire<const N: usize>(
         isr,
         drivers: array(steppers)?,
         limits: pins.homing_switches.iter().filter_map(switch).collect(),
-        alarm: machine.alarm(),
         machine: machine.clone(),
-        _queue: queue_ram,
+        _ram: ram,
     }))
 }
 
@@ -232,7 +235,7 @@ fn look_at_switches(edges: &mut SwitchEdges, alert: &SwitchAlert<'_>) {
     }
 }
 
-impl<const N: usize, X: Peripherals<N>> Wiring for Wired<N, X> {
+impl<const N: usize, X: Peripherals<N>, R> Wiring for Wired<N, X, R> {
     fn on_alarm(&mut self, now: Instant) -> Option<Instant> {
         let next = self.isr.on_alarm(now, &mut self.drivers, &mut self.limits);
         look_at_switches(&mut self.switch_edges, &self.switch_alert);
@@ -244,7 +247,7 @@ impl<const N: usize, X: Peripherals<N>> Wiring for Wired<N, X> {
         let now_ms = self.machine.now_ms() as u32;
         let controller = self.firmware.controller_mut();
         if let Some(at) = arbiter.poll(ports, controller, now, now_ms).arm_alarm {
-            let _ = self.alarm.set_alarm(at);
+            let _ = self.machine.alarm().set_alarm(at);
         }
     }
 
@@ -334,7 +337,7 @@ impl SimBoard {
             .get(n.wrapping_sub(1))
             .ok_or(BoardError::AxisCount(n))?;
         Ok(Self {
-            wiring: wire(machine, config.flash, config.program_lines)?,
+            wiring: wire(machine, config)?,
             ports: Vec::new(),
             arbiter: Arbiter::new(READ_BUDGET, RX_CAPACITY),
             machine: machine.clone(),

@@ -8,7 +8,7 @@
 //! | heaters | the hot end and the bed ([`MachineConfig::hot_end_heater`], [`MachineConfig::bed_heater`]): a simulated heater and its sensor, under PID control with Marlin's default gains |
 //! | PWM outputs | the spindle ([`MachineConfig::spindle_output`], [`SPINDLE_MAX_RPM`] at full duty), the fans 0, 1, … ([`MachineConfig::fan_outputs`], at most [`MAX_FANS`]) |
 //! | machine | [`machine`]: the machine file's axes for the kernel, the homing switches numbered in axis order, `Z` homing first and the others in file order, axes without travel limits (rotary, extruder) given ±[`UNLIMITED_TRAVEL_MM`] |
-//! | controller | [`controller`]: a `printer` when the file has heaters, else a `cnc`; one extruder when an axis is one; the steps scheduled for the slowest driver |
+//! | controller | [`controller`]: a `printer` when the file has heaters, else a `cnc`; one extruder when an axis is one; the steps scheduled for the slowest driver; heaters within [`HEATER_TOLERANCE_MC`] of their target for `M109`/`M116` |
 
 use forja_app::controller::ControllerConfig;
 use forja_drivers::heater::{HeaterConfig, PidGains};
@@ -190,6 +190,7 @@ pub fn controller(m: &MachineConfig) -> ControllerConfig {
     };
     let mut config = ControllerConfig::new(kind, m.slowest_step_timing());
     config.extruders = u8::from(m.axes.iter().any(|a| a.kind == AxisKind::Extruder));
+    config.heater_tolerance_mc = HEATER_TOLERANCE_MC;
     config
 }
 
