@@ -23,9 +23,6 @@ use forja_simulator::Job;
 use forja_simulator::plot::{self, Executed, ImageFormat, Toolpath};
 use forja_simulator::run::{JobOptions, ListenOptions};
 
-/// The line sent to a TCP client that connects while another one is in control.
-const BUSY_MESSAGE: &[u8] = b"error: busy: another host is in control of this machine\n";
-
 /// Exit code of a job that did not run cleanly (a refused line, lost or badly timed steps, a
 /// job that did not finish).
 const EXIT_NOT_CLEAN: u8 = 2;
@@ -214,7 +211,7 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
             time_limit_ticks,
             trace: cli.trace.clone(),
             state: cli.state.clone(),
-            busy_message: BUSY_MESSAGE.to_vec(),
+            busy_message: forja_simulator::run::busy_message(),
             idle_timeout_ms: Some(idle_timeout_ms(cli.idle_timeout)?),
         };
         let stop = Arc::new(AtomicBool::new(false));

@@ -394,6 +394,7 @@ pub struct ListenOptions {
     pub state: Option<PathBuf>,
     /// What a host that is not in control is sent: a TCP client that connects while another
     /// host is in control (it is then closed), and a terminal host whose input is refused.
+    /// Every board sends [`busy_message`].
     pub busy_message: Vec<u8>,
     /// Virtual time after which a silent controlling host loses control (a TCP client is
     /// closed), ms; `None`: never. See [`SimBoard::set_idle_timeout`].
@@ -548,4 +549,13 @@ fn summary<L: PortLink<Error = std::io::Error> + 'static>(
         );
     }
     println!();
+}
+
+/// The refusal of a host while another is in control, as every board sends it: the
+/// controller's `busy_refusal` (frame 56 `Error:E300 link-busy` for a frame client, then the
+/// notice line `// E300 link-busy` for a G-code host).
+pub fn busy_message() -> Vec<u8> {
+    let mut out = [0; forja_app::controller::BUSY_REFUSAL_LEN];
+    let len = forja_app::controller::busy_refusal(&mut out);
+    out.get(..len).unwrap_or_default().to_vec()
 }
