@@ -125,7 +125,11 @@ const PORTABLE: &[&str] = &[
 ];
 
 /// The firmware targets of the boards.
-const FIRMWARE_TARGETS: &[&str] = &["thumbv7em-none-eabihf", "riscv32imc-unknown-none-elf"];
+const FIRMWARE_TARGETS: &[&str] = &[
+    "thumbv7em-none-eabihf",
+    "thumbv6m-none-eabi",
+    "riscv32imc-unknown-none-elf",
+];
 
 /// Benchmarked crates.
 const BENCHED: &[&str] = &["forja-protocol", "forja-motion"];
