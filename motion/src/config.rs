@@ -31,6 +31,18 @@ pub enum HomeDirection {
     Max,
 }
 
+impl HomeDirection {
+    /// The sign of a move towards the switch: `-1.0` for [`HomeDirection::Min`], `1.0` for
+    /// [`HomeDirection::Max`].
+    #[inline]
+    pub fn sign(self) -> f32 {
+        match self {
+            Self::Min => -1.0,
+            Self::Max => 1.0,
+        }
+    }
+}
+
 /// Homing of one axis (the RepRap `G28` cycle).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct HomingConfig {
@@ -105,6 +117,16 @@ impl AxisConfig {
     /// The maximum rate in mm/s.
     pub fn max_rate_mm_s(&self) -> f32 {
         self.max_rate_mm_min / 60.0
+    }
+
+    /// The end of the travel a homing switch towards `direction` sits at, mm: what the axis's
+    /// position is set to when its switch is found.
+    #[inline]
+    pub fn end_mm(&self, direction: HomeDirection) -> f32 {
+        match direction {
+            HomeDirection::Min => self.min_mm,
+            HomeDirection::Max => self.max_mm,
+        }
     }
 }
 

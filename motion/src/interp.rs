@@ -30,8 +30,14 @@ use crate::config::{AxisKind, MachineConfig};
 use crate::effect::{Coolant, Effect, Heater, Spindle, StopKind, Storage};
 use crate::error::CommandError;
 
-/// Nanometres per millimetre.
-pub(crate) const NM_PER_MM: f64 = 1e6;
+/// Nanometres per millimetre: positions are kept in integer nanometres.
+pub const NM_PER_MM: f64 = 1e6;
+
+/// `mm` in nanometres, rounded.
+#[inline]
+pub(crate) fn mm_to_nm(mm: f32) -> Nm {
+    libm::round(f64::from(mm) * NM_PER_MM) as Nm
+}
 /// Largest position magnitude accepted, nm (100 m).
 const MAX_NM: i64 = 100_000_000_000;
 /// The slowest feed accepted, mm/min (grblHAL's `MINIMUM_FEED_RATE`): slower `F` words are

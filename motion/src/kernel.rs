@@ -8,10 +8,10 @@ use forja_hal_abstraction::time::{Duration, Instant};
 use forja_protocol::gcode::{Decimal, Line};
 
 use crate::arc::{ArcCutter, Nm};
-use crate::config::{AxisKind, HomeDirection, MachineConfig, SoftLimits};
+use crate::config::{AxisKind, MachineConfig, SoftLimits};
 use crate::effect::{Effect, StopKind};
 use crate::error::{Alarm, CommandError, ConfigError};
-use crate::interp::{Action, Interpreter, NM_PER_MM, nm_to_steps, steps_to_nm};
+use crate::interp::{Action, Interpreter, NM_PER_MM, mm_to_nm, nm_to_steps, steps_to_nm};
 use crate::planner::{MoveRequest, Planner};
 use crate::prep::Prep;
 use crate::queue::{MAX_DELTA, Producer, StepQueue, StopCause};
@@ -109,8 +109,8 @@ fn axis_bounds<const N: usize>(config: &MachineConfig<N>) -> [AxisBounds; N] {
             _ => MAX_POSITION_MM.min(counted),
         };
         AxisBounds {
-            min: libm::round(f64::from(a.min_mm) * NM_PER_MM) as Nm,
-            max: libm::round(f64::from(a.max_mm) * NM_PER_MM) as Nm,
+            min: mm_to_nm(a.min_mm),
+            max: mm_to_nm(a.max_mm),
             reach: libm::floor(reach_mm * NM_PER_MM) as Nm,
         }
     })
@@ -891,10 +891,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return self.homing_next(h);
         };
         let axis = h.axis;
-        let toward: f32 = match cfg.direction {
-            HomeDirection::Min => -1.0,
-            HomeDirection::Max => 1.0,
-        };
+        let toward = cfg.direction.sign();
         match h.phase {
             HomePhase::Next => return self.homing_next(h),
             HomePhase::Seek => match h.triggered.take() {
@@ -921,14 +918,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 }
                 Some(at) => {
                     let a = &self.config.axes[axis];
-                    let home_mm = match cfg.direction {
-                        HomeDirection::Min => a.min_mm,
-                        HomeDirection::Max => a.max_mm,
-                    };
-                    let home_steps = nm_to_steps(
-                        libm::round(f64::from(home_mm) * NM_PER_MM) as Nm,
-                        a.steps_per_mm,
-                    );
+                    let home_steps = nm_to_steps(mm_to_nm(a.end_mm(cfg.direction)), a.steps_per_mm);
                     self.origin[axis] = at.wrapping_sub(home_steps);
                     self.resync();
                     h.phase = HomePhase::PullOff;
@@ -972,10 +962,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         h.axis = axis;
         h.phase = HomePhase::Seek;
         h.triggered = None;
-        let toward: f32 = match cfg.direction {
-            HomeDirection::Min => -1.0,
-            HomeDirection::Max => 1.0,
-        };
+        let toward = cfg.direction.sign();
         let dist = self.config.axes[axis].travel_mm() + 2.0 * cfg.pull_off_mm;
         self.homing = Some(h);
         self.homing_move(axis, toward * dist, cfg.seek_mm_min, 1 << axis);
@@ -987,7 +974,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             .homing_mask
             .store(u32::from(switch_mask), Ordering::Relaxed);
         let mut target = self.interp.pos;
-        target[axis] += libm::round(f64::from(mm) * NM_PER_MM) as Nm;
+        target[axis] += mm_to_nm(mm);
         self.queue_move(&target, Some(feed_mm_min), false, switch_mask);
         self.interp.pos = target;
     }

@@ -74,6 +74,7 @@ pub use config::{AxisConfig, AxisKind, HomeDirection, HomingConfig, MachineConfi
 pub use effect::{Effect, Sync};
 pub use error::{Alarm, CommandError, ConfigError};
 pub use estimate::Estimate;
+pub use interp::NM_PER_MM;
 pub use kernel::{Kernel, MachineState, PositionReport, Reply, split};
 pub use preview::{Preview, Travel};
 pub use queue::{StepQueue, SwitchAlert};

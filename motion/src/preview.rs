@@ -18,9 +18,9 @@
 
 use forja_protocol::gcode::Line;
 
-use crate::config::{HomeDirection, MachineConfig};
+use crate::config::MachineConfig;
 use crate::error::CommandError;
-use crate::interp::{Action, Interpreter};
+use crate::interp::{Action, Interpreter, mm_to_nm};
 
 /// How a piece of the path is travelled.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -95,11 +95,9 @@ impl<const N: usize> Preview<N> {
                         continue;
                     }
                     if let Some(homing) = axis.homing {
-                        let mm = match homing.direction {
-                            HomeDirection::Min => axis.min_mm + homing.pull_off_mm,
-                            HomeDirection::Max => axis.max_mm - homing.pull_off_mm,
-                        };
-                        next.pos[i] = libm::round(f64::from(mm) * 1e6) as i64;
+                        // Where the kernel's cycle ends: the switch's end of travel, pulled off.
+                        let d = homing.direction;
+                        next.pos[i] = mm_to_nm(axis.end_mm(d) - d.sign() * homing.pull_off_mm);
                         homed |= 1 << i;
                     }
                 }
@@ -123,7 +121,7 @@ mod tests {
     use std::vec::Vec;
 
     use super::*;
-    use crate::config::{AxisConfig, HomingConfig};
+    use crate::config::{AxisConfig, HomeDirection, HomingConfig};
 
     fn machine() -> MachineConfig<3> {
         let axis = |letter: u8| AxisConfig::linear(letter, 80.0, 6000.0, 500.0, 200.0);

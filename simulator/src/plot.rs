@@ -21,7 +21,7 @@ use std::path::Path;
 use forja_hal_abstraction::stepper::Direction;
 use forja_host::codes::explain;
 use forja_host::program::{Program, ProgramError, describe_line_error};
-use forja_motion::{Preview, Travel};
+use forja_motion::{NM_PER_MM, Preview, Travel};
 use forja_protocol::gcode::Line;
 use forja_sim::board::BoardError;
 use forja_sim::board::parts;
@@ -65,9 +65,6 @@ impl fmt::Display for PlotError {
 }
 
 impl std::error::Error for PlotError {}
-
-/// Nanometres per millimetre, the kernel's unit of position.
-const NM_PER_MM: f64 = 1e6;
 
 impl Toolpath {
     /// Follow `job` on a machine of `machine` standing at its start position; `home_first`:
