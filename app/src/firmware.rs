@@ -44,7 +44,6 @@
 use core::fmt;
 use embedded_io::{Read, ReadReady, Write};
 
-use forja_drivers::session::SessionAction;
 use forja_hal_abstraction::limit::LimitSwitch;
 use forja_hal_abstraction::program::ProgramStore;
 use forja_hal_abstraction::stepper::{Stepper, StepperEnable};
@@ -56,6 +55,7 @@ use crate::controller::{
     Controller, ControllerConfig, LoadReport, Peripherals, PollOutcome, Settings,
 };
 use crate::peripherals::MotorPeripherals;
+use crate::session::SessionAction;
 
 /// What a board hands to [`assemble`]: its machine and its parts.
 pub struct Parts<'q, const N: usize, const Q: usize, P, X, S> {
@@ -170,15 +170,15 @@ where
         self.wake_at
     }
 
-    /// Act on a link session's decision (a board whose link has sessions: frames 54 and 55):
-    /// announce the new controlling client, or send the keep-alive. A second client is refused
-    /// by the link itself, where its connection is, with
+    /// Send what a link session asks of the controller (a board whose link has sessions:
+    /// frames 54 and 55): announce the new controlling client, or send the keep-alive. A
+    /// client the session refuses ([`Admit::Refuse`](crate::session::Admit::Refuse)) is
+    /// refused by the link itself, where its connection is, with
     /// [`busy_refusal`](crate::controller::busy_refusal): one refusal for every board.
     pub fn session<W: Write>(&mut self, action: SessionAction, link: &mut W) {
         match action {
             SessionAction::SendConnected => self.controller.on_connect(link),
             SessionAction::SendKeepAlive(n) => self.controller.keep_alive(n, link),
-            SessionAction::RefuseSecondClient => {}
         }
     }
 

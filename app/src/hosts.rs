@@ -43,7 +43,6 @@
 //!   report; the port is still polled.
 
 use embedded_io::{ErrorType, Read, ReadReady, Write};
-use forja_drivers::session::{LinkSession, SessionAction};
 use forja_hal_abstraction::link::LinkState;
 use forja_hal_abstraction::program::ProgramStore;
 use forja_hal_abstraction::storage::RecordStorage;
@@ -53,6 +52,7 @@ use forja_protocol::stream::{Decoder, Event};
 use crate::controller::{
     BUSY_REFUSAL_LEN, Controller, Peripherals, PollOutcome, Realtime, busy_refusal, realtime,
 };
+use crate::session::{Admission, LinkSession, SessionAction};
 
 /// What a link must do to be one of the ports: the drivers' link contract
 /// ([`forja_drivers::port_link`]).
@@ -646,11 +646,11 @@ mod tests {
         assert_eq!(arbiter.active(), Some(0));
         // The fault goes to the controlling host.
         assert!(
-            text(&ports[0].link().tx).contains("!!"),
+            text(&ports[0].link().tx).contains("Error:E153"),
             "{}",
             text(&ports[0].link().tx)
         );
-        assert!(!text(&ports[1].link().tx).contains("!!"));
+        assert!(!text(&ports[1].link().tx).contains("Error:E153"));
     }
 
     #[test]

@@ -38,6 +38,7 @@
 //! | [`controller`] | [`controller::Controller`]: the link, both protocols' replies, jobs, settings and peripherals around the kernel |
 //! | [`firmware`] | [`firmware::assemble`]: the firmware built from a board's parts, and its thread side |
 //! | [`hosts`] | [`hosts::Arbiter`]: one controlling host across a board's ports (sessions, the busy refusal, the read budget) |
+//! | [`session`] | [`session::LinkSession`]: the session rules of a connection-oriented link (one controlling client, refusal of the others, keep-alives, the idle time-out), which the drivers' links ask ([`session::Admission`]) |
 //! | [`job`] | the job runner over a program store: start, pause, stop, rewind, progress, checkpoints |
 //! | [`peripherals`] | [`peripherals::Parts`]: a board's list of its devices for the controller; [`peripherals::MotorPeripherals`] for a board whose parts are motion alone |
 //! | [`wifi`] | the network a WiFi board joins: credentials from the settings, and the watch on them |
@@ -55,4 +56,5 @@ pub mod firmware;
 pub mod hosts;
 pub mod job;
 pub mod peripherals;
+pub mod session;
 pub mod wifi;

@@ -288,7 +288,7 @@ impl StepperEnable for NoMotors {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::controller::peripherals::Devices;
+    use crate::controller::peripherals::{Devices, HeatWait};
     use crate::controller::{PeripheralError, Temperatures};
     use embedded_hal::digital::OutputPin;
     use embedded_hal::pwm::{self, SetDutyCycle};
@@ -466,14 +466,14 @@ mod tests {
             Err(PeripheralError::OutOfRange)
         );
         assert!(
-            p.heaters_at_target(TOLERANCE_MC),
+            p.heat_done(HeatWait::ALL, TOLERANCE_MC),
             "a heater that is off holds no wait"
         );
         p.set_temperature(Which::Extruder(Some(0)), 200_000)
             .unwrap();
-        assert!(!p.heaters_at_target(TOLERANCE_MC));
+        assert!(!p.heat_done(HeatWait::ALL, TOLERANCE_MC));
         let mut ms = 0;
-        while !p.heaters_at_target(TOLERANCE_MC) {
+        while !p.heat_done(HeatWait::ALL, TOLERANCE_MC) {
             p.poll(ms).unwrap();
             ms += 100;
             assert!(ms < 200_000, "never reached the target");
@@ -504,7 +504,7 @@ mod tests {
         fault.set(None);
         assert_eq!(p.poll(200), Err(e), "latched");
         assert!(
-            !p.heaters_at_target(i32::MAX),
+            !p.heat_done(HeatWait::ALL, i32::MAX),
             "a faulted heater holds the wait"
         );
         assert_eq!(p.set_temperature(Which::Extruder(None), 200_000), Err(e));
@@ -597,7 +597,7 @@ mod tests {
             Err(PeripheralError::NoDevice)
         );
         assert_eq!(p.temperatures(), Temperatures::default());
-        assert!(p.heaters_at_target(TOLERANCE_MC));
+        assert!(p.heat_done(HeatWait::ALL, TOLERANCE_MC));
         assert_eq!(p.endstops(), [None, None]);
         p.poll(0).unwrap();
         // With its switches read for `M119`.

@@ -432,6 +432,8 @@ pub struct HeaterChannel<S, H> {
     sensor: S,
     heater: H,
     pid: PidHeater,
+    /// The power applied last, 0 to [`FULL_POWER`].
+    power: u16,
 }
 
 impl<S: TemperatureSensor, H: Heater> HeaterChannel<S, H> {
@@ -447,6 +449,7 @@ impl<S: TemperatureSensor, H: Heater> HeaterChannel<S, H> {
             sensor,
             heater,
             pid,
+            power: 0,
         }
     }
 
@@ -471,10 +474,12 @@ impl<S: TemperatureSensor, H: Heater> HeaterChannel<S, H> {
             self.pid.trip(HeaterFault::Output);
             return Err(self.shut_off());
         }
+        self.power = power;
         Ok(HeaterReport { measured_mc, power })
     }
 
     fn shut_off(&mut self) -> HeaterFault {
+        self.power = 0;
         if self.heater.set_power(0).is_err() {
             self.pid.trip(HeaterFault::Output);
         }
@@ -508,6 +513,10 @@ impl<S: TemperatureSensor, H: Heater> TemperatureControl for HeaterChannel<S, H>
 
     fn current_mc(&self) -> Option<i32> {
         self.pid.measured_mc()
+    }
+
+    fn power(&self) -> u16 {
+        self.power
     }
 
     fn run(&mut self, now_ms: u32) -> Result<(), DeviceError> {

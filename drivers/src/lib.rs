@@ -16,8 +16,7 @@
 //! | [`stepper`] | [`StepDir`](stepper::StepDir) | `Stepper` (interrupt), `StepperEnable` (thread) | step edges in the step interrupt: one pin write each |
 //! | [`limit`] | [`LimitInput`](limit::LimitInput) | `LimitSwitch` | either: polled by the step interrupt, one pin read |
 //! | [`uart`] | [`UartBuffers`](uart::UartBuffers), [`UartLink`](uart::UartLink) | `embedded_io::{Read, ReadReady, Write, WriteReady}` | RX/TX interrupts push and pop; the protocol task reads and writes |
-//! | [`session`] | [`LinkSession`](session::LinkSession) | `LinkStatus` | thread: the network task |
-//! | [`port_link`] | [`PortLink`](port_link::PortLink): what a link a board serves as a port must do | (contract) `embedded_io::{Read, ReadReady, Write}`, `LinkStatus` | thread: the board's host task |
+//! | [`port_link`] | [`PortLink`](port_link::PortLink): what a link a board serves as a port must do; [`Admission`](port_link::Admission): the session rules a connection-oriented link asks about its clients (the application's) | (contract) `embedded_io::{Read, ReadReady, Write}`, `LinkStatus` | thread: the board's host task |
 //! | `tcp` (feature `embassy-net`) | `TcpServer`, `TcpLink` | `embedded_io::{Read, ReadReady, Write, WriteReady}`, `LinkStatus` | thread: listening tasks serve the sockets; the controller's task reads and writes |
 //! | [`thermistor`] | [`Thermistor`](thermistor::Thermistor) | `TemperatureSensor` | thread: may block for one ADC conversion |
 //! | [`max31855`] | [`Max31855`](max31855::Max31855) | `TemperatureSensor` | thread: one SPI transfer |
@@ -93,7 +92,6 @@ pub mod port_link;
 pub mod program_flash;
 pub mod pwm;
 pub mod ram_flash;
-pub mod session;
 pub mod shared_store;
 pub mod stepper;
 pub mod storage;

@@ -14,20 +14,21 @@
 //!
 //! # Session
 //!
-//! The session rules are [`LinkSession`]'s. The listening tasks report connections and
-//! disconnections to it; the controller's task polls it through [`TcpLink::poll_session`]
-//! and writes the messages itself, into the same outgoing stream as its replies, so that a 54
-//! or 55 never lands inside another line:
+//! Who controls is the session rules' decision: the server's [`Admission`] (the application's
+//! `forja_app::session::LinkSession`). The listening tasks report connections and
+//! disconnections to it and carry out its answer; the controller's task greets a new
+//! controlling client and keeps it alive itself, into the same outgoing stream as its replies,
+//! so that a 54 or 55 never lands inside another line:
 //!
-//! | `LinkSession` says | who | does |
+//! | when | who | does |
 //! |---|---|---|
-//! | `SendConnected` | controller's task | the client is the controller: `Controller::on_connect` (frame 54, a fresh decoder) |
-//! | `SendKeepAlive(n)` | controller's task | `Controller::keep_alive(n)` (frame 55), every `keep_alive_ms` |
-//! | `RefuseSecondClient` | listening task | sends the new client the refusal it was given (the application's `busy_refusal`) and closes it |
+//! | [`Admit::Control`] | listening task | serves the client as the controller; the controller's task finds [`TcpLink::take_greeting`] true and calls `Controller::on_connect` (frame 54, a fresh decoder) |
+//! | a keep-alive is due (the rules', through [`TcpLink::admission`]) | controller's task | `Controller::keep_alive(n)` (frame 55), counted with [`TcpLink::count_keep_alive`] |
+//! | [`Admit::Refuse`] | listening task | sends the new client the refusal it was given (the application's `busy_refusal`) and closes it |
 //!
 //! Give each stack at least two listening tasks: one can hold the controlling client while
-//! another is free to accept, and refuse, a second one. The session is shared by every task of
-//! the server, so the rule holds across all the board's stacks.
+//! another is free to accept, and refuse, a second one. The rules are shared by every task of
+//! the server, so they hold across all the board's stacks.
 //!
 //! A client that goes away (closes, resets, or stops acknowledging for [`CLIENT_TIMEOUT`]
 //! because its network dropped: the keep-alives make the loss visible) ends the session; the
@@ -62,7 +63,7 @@
 //!
 //! # Execution context
 //!
-//! Thread only: tasks of one executor. The queues and the session are shared through
+//! Thread only: tasks of one executor. The queues and the session rules are shared through
 //! critical sections of a few instructions; nothing here runs in an interrupt.
 
 use core::cell::RefCell;
@@ -79,7 +80,7 @@ use embassy_sync::signal::Signal;
 use embassy_time::{Duration, Instant, Timer, with_deadline, with_timeout};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 
-use crate::session::{LinkSession, SessionAction};
+use crate::port_link::{Admission, Admit};
 
 /// A client that acknowledges nothing for this long is gone.
 pub const CLIENT_TIMEOUT: Duration = Duration::from_secs(10);
@@ -88,9 +89,6 @@ pub const CLIENT_TIMEOUT: Duration = Duration::from_secs(10);
 /// the longest burst of replies one poll writes for 128 bytes of input (an `M115` answer, a
 /// status frame, a keep-alive).
 pub const TX_HEADROOM: usize = 512;
-
-/// The keep-alive period before [`TcpServer::configure`], ms (the controller's default).
-pub const DEFAULT_KEEP_ALIVE_MS: u32 = 1000;
 
 /// Bytes of each socket's receive and transmit buffers.
 const SOCKET_BUF: usize = 1536;
@@ -154,9 +152,9 @@ fn bump(counter: &AtomicU32, by: usize) {
     );
 }
 
-/// The session, and whether its controller was not yet greeted (54).
-struct Shared {
-    session: LinkSession,
+/// The session rules, and whether their controlling client was not yet greeted (54).
+struct Shared<A> {
+    admission: A,
     greet: bool,
 }
 
@@ -186,10 +184,10 @@ impl<const RX: usize, const TX: usize> Default for TcpQueues<RX, TX> {
     }
 }
 
-/// The server side of a TCP host link: its queues, the session, the counters. Put it in a
-/// `static`, run [`TcpServer::listen`] in each listening task and give the controller its
-/// [`TcpLink`] ([`TcpServer::take`]).
-pub struct TcpServer<const RX: usize, const TX: usize> {
+/// The server side of a TCP host link: its queues, the session rules `A` that admit its
+/// clients, the counters. Put it in a `static`, run [`TcpServer::listen`] in each listening
+/// task and give the controller its [`TcpLink`] ([`TcpServer::take`]).
+pub struct TcpServer<A, const RX: usize, const TX: usize> {
     rx: &'static Queue<RX>,
     tx: &'static Queue<TX>,
     /// Raised by the link's writes, so that the serving task sends at once.
@@ -197,22 +195,26 @@ pub struct TcpServer<const RX: usize, const TX: usize> {
     /// Raised when bytes reach the receive queue or a client comes or goes, to wake the
     /// controller's task ([`TcpLink::wait`]).
     wake: Signal<CriticalSectionRawMutex, ()>,
-    shared: Mutex<CriticalSectionRawMutex, RefCell<Shared>>,
+    shared: Mutex<CriticalSectionRawMutex, RefCell<Shared<A>>>,
     taken: AtomicBool,
     counters: &'static LinkCounters,
 }
 
-impl<const RX: usize, const TX: usize> TcpServer<RX, TX> {
-    /// No client, keep-alives every [`DEFAULT_KEEP_ALIVE_MS`]; bytes through `queues`, counted
-    /// in `counters`.
-    pub const fn new(queues: &'static TcpQueues<RX, TX>, counters: &'static LinkCounters) -> Self {
+impl<A: Admission, const RX: usize, const TX: usize> TcpServer<A, RX, TX> {
+    /// A server whose clients `admission` admits or refuses (give it with no client in
+    /// control); bytes through `queues`, counted in `counters`.
+    pub const fn new(
+        queues: &'static TcpQueues<RX, TX>,
+        counters: &'static LinkCounters,
+        admission: A,
+    ) -> Self {
         Self {
             rx: &queues.rx,
             tx: &queues.tx,
             tx_kick: Signal::new(),
             wake: Signal::new(),
             shared: Mutex::new(RefCell::new(Shared {
-                session: LinkSession::new(DEFAULT_KEEP_ALIVE_MS),
+                admission,
                 greet: false,
             })),
             taken: AtomicBool::new(false),
@@ -220,18 +222,19 @@ impl<const RX: usize, const TX: usize> TcpServer<RX, TX> {
         }
     }
 
-    /// Start the session with keep-alives every `keep_alive_ms` (the controller's
-    /// `keep_alive_ms` setting).
+    /// Run `f` on the session rules and return what it returns: at init, to set them up (the
+    /// keep-alive interval of the stored settings); later, to read them.
     ///
-    /// Context: init, before the listening tasks run.
-    pub fn configure(&self, keep_alive_ms: u32) {
-        self.session(|s| *s = LinkSession::new(keep_alive_ms));
+    /// Context: thread. `f` runs in a critical section: keep it to a few instructions, and do
+    /// not call back into the server from it.
+    pub fn admission<R>(&self, f: impl FnOnce(&mut A) -> R) -> R {
+        self.shared.lock(|s| f(&mut s.borrow_mut().admission))
     }
 
     /// The controller's end; `None` after the first call.
     ///
     /// Context: init. Takes a critical section for a few instructions.
-    pub fn take(&self) -> Option<TcpLink<'_, RX, TX>> {
+    pub fn take(&self) -> Option<TcpLink<'_, A, RX, TX>> {
         let first = critical_section::with(|_| {
             let first = !self.taken.load(Ordering::Relaxed);
             self.taken.store(true, Ordering::Relaxed);
@@ -245,39 +248,40 @@ impl<const RX: usize, const TX: usize> TcpServer<RX, TX> {
         self.counters
     }
 
-    fn session<R>(&self, f: impl FnOnce(&mut LinkSession) -> R) -> R {
-        self.shared.lock(|s| f(&mut s.borrow_mut().session))
+    /// Whether a client is in control, as the session rules say.
+    fn is_connected(&self) -> bool {
+        self.admission(|a| a.state() == LinkState::Connected)
     }
 
-    /// A client connected at `now_ms`: the session decides whether it is the controller.
+    /// A client connected at `now_ms`: the session rules decide whether it is the controller.
     /// A new controller finds the transmit queue empty (what was queued before it belongs to
     /// nobody) and is greeted by the controller's task.
-    fn connect(&self, now_ms: u32) -> SessionAction {
-        let action = self.shared.lock(|s| {
+    fn connect(&self, now_ms: u32) -> Admit {
+        let admit = self.shared.lock(|s| {
             let mut s = s.borrow_mut();
-            let action = s.session.on_connect(now_ms);
-            if action == SessionAction::SendConnected {
+            let admit = s.admission.on_connect(now_ms);
+            if admit == Admit::Control {
                 self.tx.clear();
                 s.greet = true;
             }
-            action
+            admit
         });
-        if action == SessionAction::SendConnected {
+        if admit == Admit::Control {
             bump(&self.counters.connections, 1);
             self.wake.signal(());
         }
-        action
+        admit
     }
 
     /// The controlling client went away: the session ends, its unsent replies are dropped.
     fn disconnect(&self) {
-        self.session(LinkSession::on_disconnect);
+        self.admission(A::on_disconnect);
         self.tx.clear();
         self.wake.signal(());
     }
 
     /// Serve one listening socket on `port` of `stack` for ever: accept a client, then either
-    /// serve it as the controller or refuse it and close it, as the session decides. A refused
+    /// serve it as the controller or refuse it and close it, as the session rules decide. A refused
     /// client is sent what `refusal` writes into a buffer of `R` bytes (it returns the length):
     /// the application's `busy_refusal`.
     ///
@@ -303,11 +307,11 @@ impl<const RX: usize, const TX: usize> TcpServer<RX, TX> {
             socket.set_timeout(Some(CLIENT_TIMEOUT));
             socket.set_nagle_enabled(false);
             match self.connect(now_ms()) {
-                SessionAction::SendConnected => {
+                Admit::Control => {
                     self.serve(&mut socket).await;
                     self.disconnect();
                 }
-                _ => self.refuse(&mut socket, refusal).await,
+                Admit::Refuse => self.refuse(&mut socket, refusal).await,
             }
             socket.close();
             let _ = with_timeout(REFUSAL_TIMEOUT, socket.flush()).await;
@@ -407,16 +411,17 @@ async fn send<S: embedded_io_async::Write>(socket: &mut S, mut bytes: &[u8]) -> 
 }
 
 /// The controller's end of a [`TcpServer`]: `embedded-io` reads and writes over the queues,
-/// and whether a client is in control. See the [module documentation](self) for the rules.
+/// whether a client is in control, its greeting and the session rules. See the
+/// [module documentation](self) for the rules.
 ///
 /// The blocking [`embedded_io::Read::read`] on an empty queue spins until a serving task has
 /// run: from a task, read only what [`embedded_io::ReadReady`] announces (as
 /// `Controller::poll` does), or use [`TcpLink::try_read`] or the async traits.
-pub struct TcpLink<'a, const RX: usize, const TX: usize> {
-    server: &'a TcpServer<RX, TX>,
+pub struct TcpLink<'a, A, const RX: usize, const TX: usize> {
+    server: &'a TcpServer<A, RX, TX>,
 }
 
-impl<const RX: usize, const TX: usize> TcpLink<'_, RX, TX> {
+impl<A: Admission, const RX: usize, const TX: usize> TcpLink<'_, A, RX, TX> {
     /// Copy received bytes into `buf`, as many as are there; `0` when none are waiting.
     ///
     /// Context: thread. Never blocks.
@@ -440,34 +445,35 @@ impl<const RX: usize, const TX: usize> TcpLink<'_, RX, TX> {
     }
 
     fn is_connected(&self) -> bool {
-        self.server.session(|s| s.is_connected())
+        self.server.is_connected()
     }
 
-    /// What the session asks of the controller at `now_ms` (see [`now_ms`]):
-    /// [`SessionAction::SendConnected`] once for each new controlling client, then
-    /// [`SessionAction::SendKeepAlive`] when one is due. Call it until it returns `None`, and
-    /// again at the latest at [`TcpLink::session_poll_at`].
+    /// Whether a new controlling client is waiting for its greeting: `true` once for each
+    /// client admitted since the last call and still connected. The caller greets it (frame
+    /// 54, `Controller::on_connect`) before anything else is written to it.
     ///
     /// Context: the controller's task. Never blocks.
-    pub fn poll_session(&mut self, now_ms: u32) -> Option<SessionAction> {
-        let action = self.server.shared.lock(|s| {
+    pub fn take_greeting(&mut self) -> bool {
+        self.server.shared.lock(|s| {
             let mut s = s.borrow_mut();
-            if core::mem::replace(&mut s.greet, false) && s.session.is_connected() {
-                Some(SessionAction::SendConnected)
-            } else {
-                s.session.poll(now_ms)
-            }
-        });
-        if let Some(SessionAction::SendKeepAlive(_)) = action {
-            bump(&self.server.counters.keep_alives, 1);
-        }
-        action
+            core::mem::replace(&mut s.greet, false) && s.admission.state() == LinkState::Connected
+        })
     }
 
-    /// When [`TcpLink::poll_session`] has something to do next; `None` while no client is in
-    /// control.
-    pub fn session_poll_at(&self) -> Option<u32> {
-        self.server.session(|s| s.poll_at())
+    /// Run `f` on the session rules and return what it returns (as [`TcpServer::admission`]):
+    /// the controller's task polls its keep-alives this way.
+    ///
+    /// Context: the controller's task. `f` runs in a critical section: keep it to a few
+    /// instructions.
+    pub fn admission<R>(&mut self, f: impl FnOnce(&mut A) -> R) -> R {
+        self.server.admission(f)
+    }
+
+    /// Count a keep-alive (frame 55) the controller sent ([`LinkCounters::keep_alives`]).
+    ///
+    /// Context: the controller's task, the counter's one writer. Never blocks.
+    pub fn count_keep_alive(&mut self) {
+        bump(&self.server.counters.keep_alives, 1);
     }
 
     /// Wait until bytes arrive, a client connects or leaves, or `deadline` (embassy time).
@@ -490,17 +496,21 @@ impl<const RX: usize, const TX: usize> TcpLink<'_, RX, TX> {
     }
 }
 
-impl<const RX: usize, const TX: usize> LinkStatus for TcpLink<'_, RX, TX> {
+impl<A: Admission, const RX: usize, const TX: usize> LinkStatus for TcpLink<'_, A, RX, TX> {
     fn state(&self) -> LinkState {
-        self.server.session(|s| s.state())
+        self.server.admission(|a| a.state())
     }
 }
 
-impl<const RX: usize, const TX: usize> embedded_io::ErrorType for TcpLink<'_, RX, TX> {
+impl<A: Admission, const RX: usize, const TX: usize> embedded_io::ErrorType
+    for TcpLink<'_, A, RX, TX>
+{
     type Error = Infallible;
 }
 
-impl<const RX: usize, const TX: usize> embedded_io::ReadReady for TcpLink<'_, RX, TX> {
+impl<A: Admission, const RX: usize, const TX: usize> embedded_io::ReadReady
+    for TcpLink<'_, A, RX, TX>
+{
     /// Bytes are waiting, and the transmit queue has room for their replies
     /// ([`TX_HEADROOM`]).
     fn read_ready(&mut self) -> Result<bool, Self::Error> {
@@ -508,19 +518,21 @@ impl<const RX: usize, const TX: usize> embedded_io::ReadReady for TcpLink<'_, RX
     }
 }
 
-impl<const RX: usize, const TX: usize> embedded_io::Read for TcpLink<'_, RX, TX> {
+impl<A: Admission, const RX: usize, const TX: usize> embedded_io::Read for TcpLink<'_, A, RX, TX> {
     fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
         Ok(crate::uart::read_blocking(buf, |b| self.try_read(b)))
     }
 }
 
-impl<const RX: usize, const TX: usize> embedded_io::WriteReady for TcpLink<'_, RX, TX> {
+impl<A: Admission, const RX: usize, const TX: usize> embedded_io::WriteReady
+    for TcpLink<'_, A, RX, TX>
+{
     fn write_ready(&mut self) -> Result<bool, Self::Error> {
         Ok(!self.is_connected() || !self.server.tx.is_full())
     }
 }
 
-impl<const RX: usize, const TX: usize> embedded_io::Write for TcpLink<'_, RX, TX> {
+impl<A: Admission, const RX: usize, const TX: usize> embedded_io::Write for TcpLink<'_, A, RX, TX> {
     /// Queue `buf` for the client; never waits. What does not fit is dropped (and counted).
     fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
         let n = self.try_write(buf);
@@ -536,7 +548,9 @@ impl<const RX: usize, const TX: usize> embedded_io::Write for TcpLink<'_, RX, TX
     }
 }
 
-impl<const RX: usize, const TX: usize> embedded_io_async::Read for TcpLink<'_, RX, TX> {
+impl<A: Admission, const RX: usize, const TX: usize> embedded_io_async::Read
+    for TcpLink<'_, A, RX, TX>
+{
     async fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
         if buf.is_empty() {
             return Ok(0);
@@ -545,7 +559,9 @@ impl<const RX: usize, const TX: usize> embedded_io_async::Read for TcpLink<'_, R
     }
 }
 
-impl<const RX: usize, const TX: usize> embedded_io_async::Write for TcpLink<'_, RX, TX> {
+impl<A: Admission, const RX: usize, const TX: usize> embedded_io_async::Write
+    for TcpLink<'_, A, RX, TX>
+{
     async fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
         if buf.is_empty() || !self.is_connected() {
             return Ok(buf.len());
@@ -566,15 +582,20 @@ impl<const RX: usize, const TX: usize> embedded_io_async::Write for TcpLink<'_, 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::port_link::SingleClient;
     use core::task::Poll;
     use embassy_futures::block_on;
     use embedded_io::{Read, ReadReady, Write, WriteReady};
     use std::vec::Vec;
 
-    fn server<const RX: usize, const TX: usize>() -> &'static TcpServer<RX, TX> {
+    fn server<const RX: usize, const TX: usize>() -> &'static TcpServer<SingleClient, RX, TX> {
         let queues = Box::leak(Box::new(TcpQueues::new()));
         let counters = Box::leak(Box::new(LinkCounters::new()));
-        Box::leak(Box::new(TcpServer::new(queues, counters)))
+        Box::leak(Box::new(TcpServer::new(
+            queues,
+            counters,
+            SingleClient::new(),
+        )))
     }
 
     /// A client on the other end of a socket: it sends `inbound`, one chunk per read, keeps
@@ -636,27 +657,31 @@ mod tests {
     }
 
     #[test]
-    fn the_first_client_is_greeted_then_kept_alive_and_a_second_is_refused() {
+    fn the_first_client_is_greeted_once_and_a_second_is_refused() {
         let s = server::<64, 1024>();
-        s.configure(500);
         let mut link = s.take().unwrap();
-        assert_eq!(link.session_poll_at(), None);
-        assert_eq!(s.connect(1_000), SessionAction::SendConnected);
-        assert_eq!(s.connect(1_010), SessionAction::RefuseSecondClient);
+        assert!(!link.take_greeting(), "nobody to greet");
+        assert_eq!(s.connect(1_000), Admit::Control);
+        assert_eq!(s.connect(1_010), Admit::Refuse);
         assert_eq!(link.state(), LinkState::Connected);
-        assert_eq!(link.poll_session(1_020), Some(SessionAction::SendConnected));
-        assert_eq!(link.poll_session(1_020), None, "greeted once");
-        assert_eq!(link.session_poll_at(), Some(1_500));
-        assert_eq!(
-            link.poll_session(1_500),
-            Some(SessionAction::SendKeepAlive(0))
+        assert!(
+            link.admission(|a| a.state() == LinkState::Connected),
+            "the rules were asked"
         );
+        assert!(link.take_greeting());
+        assert!(!link.take_greeting(), "greeted once");
         assert_eq!(link.connections(), 1);
+        link.count_keep_alive();
         assert_eq!(s.counters().keep_alives.load(Ordering::Relaxed), 1);
         s.disconnect();
         assert_eq!(link.state(), LinkState::Disconnected);
-        assert_eq!(link.poll_session(3_000), None);
-        assert_eq!(s.connect(3_000), SessionAction::SendConnected);
+        assert!(
+            !s.admission(|a| a.state() == LinkState::Connected),
+            "the rules heard of the close"
+        );
+        assert!(!link.take_greeting());
+        assert_eq!(s.connect(3_000), Admit::Control);
+        assert!(link.take_greeting(), "the next client is greeted");
         assert_eq!(link.connections(), 2);
     }
 
@@ -666,7 +691,7 @@ mod tests {
         let mut link = s.take().unwrap();
         s.connect(0);
         s.disconnect();
-        assert_eq!(link.poll_session(10), None);
+        assert!(!link.take_greeting());
     }
 
     #[test]
@@ -681,7 +706,7 @@ mod tests {
         s.connect(10);
         link.write_all(b"ok\n").unwrap();
         // The session ends before its serving task has cleared the queue.
-        s.shared.lock(|sh| sh.borrow_mut().session.on_disconnect());
+        s.admission(|a| a.on_disconnect());
         s.connect(30);
         assert!(s.tx.is_empty(), "dropped when the next client came");
     }

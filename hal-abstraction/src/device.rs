@@ -95,6 +95,12 @@ pub trait TemperatureControl {
     /// Context: thread. Never blocks: no sensor is read. Cannot fail.
     fn current_mc(&self) -> Option<i32>;
 
+    /// The heater power the last [`TemperatureControl::run`] applied, 0 (off) to
+    /// [`FULL_POWER`](crate::thermal::FULL_POWER) (the `@:` of a temperature report).
+    ///
+    /// Context: thread. Never blocks. Cannot fail.
+    fn power(&self) -> u16;
+
     /// Run the loop once at `now_ms` (a wrapping millisecond clock): read the sensor, drive
     /// the heater. The application calls it at a fixed period, and once more after a target
     /// of 0 to turn the heater off at once.
@@ -124,6 +130,9 @@ impl<T: TemperatureControl + ?Sized> TemperatureControl for &mut T {
     }
     fn current_mc(&self) -> Option<i32> {
         T::current_mc(self)
+    }
+    fn power(&self) -> u16 {
+        T::power(self)
     }
     fn run(&mut self, now_ms: u32) -> Result<(), DeviceError> {
         T::run(self, now_ms)

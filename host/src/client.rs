@@ -198,22 +198,31 @@ pub fn probe_line_check(conn: &mut Connection, limit: Duration) -> io::Result<Ch
     let end = Instant::now() + limit;
     for _ in 0..PROBE_ATTEMPTS {
         conn.send(b"\r\nM115\r\n")?;
+        // The firmware line, then `Cap:` lines, then the `ok` that ends the answer: read up
+        // to that `ok`, so that it is not taken for the answer to a later line.
+        let mut check = None;
         while let Some(wait) = end.checked_duration_since(Instant::now()) {
             let Some(Incoming::Line(line)) = conn.receive(wait)? else {
                 continue;
             };
             match Reply::parse(&line) {
-                Ok(Reply::Capabilities(kv)) => {
+                Ok(Reply::Firmware(kv)) => {
                     let (key, value) = LINE_CHECK;
-                    return Ok(if kv.get(key) == Some(value) {
+                    check = Some(if kv.get(key) == Some(value) {
                         Check::Crc16
                     } else {
                         Check::Xor
                     });
                 }
-                Ok(Reply::Ok | Reply::OkWith(_)) => break,
+                Ok(Reply::Ok | Reply::OkWith(_)) => match check {
+                    Some(check) => return Ok(check),
+                    None => break,
+                },
                 _ => {}
             }
+        }
+        if let Some(check) = check {
+            return Ok(check);
         }
     }
     Ok(Check::Xor)
@@ -494,12 +503,12 @@ mod tests {
         (check, asked)
     }
 
-    const CAPS: &[u8] = b"ok FIRMWARE_NAME:Forja LINE_CHECK:CRC16\n";
+    const CAPS: &[u8] = b"FIRMWARE_NAME:Forja LINE_CHECK:CRC16\nCap:ARCS:1\nok\n";
 
     #[test]
     fn a_damaged_m115_answer_is_asked_again_not_taken_for_the_xor() {
         assert_eq!(
-            probe(&[b"!! E8 bad-character\nok\n", CAPS]),
+            probe(&[b"echo:E8 bad-character\nok\n", CAPS]),
             (Check::Crc16, 2)
         );
         assert_eq!(probe(&[b"ok\n", b"ok\n", CAPS]), (Check::Crc16, 3));
@@ -508,7 +517,7 @@ mod tests {
     #[test]
     fn a_firmware_without_the_crc_gets_the_xor() {
         assert_eq!(
-            probe(&[b"ok FIRMWARE_NAME:Marlin PROTOCOL_VERSION:1.0\n"]),
+            probe(&[b"FIRMWARE_NAME:Marlin PROTOCOL_VERSION:1.0\nok\n"]),
             (Check::Xor, 1)
         );
         assert_eq!(

@@ -174,7 +174,7 @@ pub struct UploadReport {
 pub struct FrameClient<'c> {
     conn: &'c mut Connection,
     timeout: Duration,
-    /// 56s received outside of an exchange, and text lines (`!! …` alarms).
+    /// 56s received outside of an exchange, and text lines (`Error:…` alarms).
     notices: Vec<String>,
     /// Frames the controller reported damaged on the link.
     damaged: u64,
@@ -217,7 +217,7 @@ impl<'c> FrameClient<'c> {
         Ok(self.conn.send(&out)?)
     }
 
-    /// The next message, or `None` after `timeout`. G-code lines (an alarm's `!! …`) are kept
+    /// The next message, or `None` after `timeout`. G-code lines (an alarm's `Error:…`) are kept
     /// as notices.
     fn next_message(&mut self, deadline: Instant) -> Result<Option<Message>, FrameError> {
         loop {
@@ -229,7 +229,7 @@ impl<'c> FrameClient<'c> {
                     }
                 }
                 Some(Incoming::Line(line)) => {
-                    if line.starts_with(b"!!") {
+                    if line.starts_with(b"Error:") || line.starts_with(b"!!") {
                         self.notices
                             .push(String::from_utf8_lossy(&line).into_owned());
                     }

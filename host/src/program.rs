@@ -146,7 +146,10 @@ impl Program {
                 line: n,
                 reason,
             };
-            let line = Line::parse(raw).map_err(|e| err(describe_line_error(&e)))?;
+            // A `;` comment is the file's, never sent: a slicer's long settings comments
+            // must not count against the length of a line.
+            let code = raw.split(|&b| b == b';').next().unwrap_or(raw);
+            let line = Line::parse(code).map_err(|e| err(describe_line_error(&e)))?;
             if line.is_empty() {
                 continue;
             }
@@ -276,6 +279,14 @@ mod tests {
         assert_eq!(texts, ["G21", "G1X2.0Y2.0F3000.0", "M117 Hello there"]);
         assert_eq!(p.lines[1].source_line, 4);
         assert_eq!(p.source_lines, 6);
+        // A slicer's settings comment longer than a line is left out with its line.
+        let long = format!(
+            "G1 X1 ; {}\n; {}\nG1 X2\n",
+            "x".repeat(400),
+            "y".repeat(600)
+        );
+        let p = Program::parse(long.as_bytes()).unwrap();
+        assert_eq!(p.texts().collect::<Vec<_>>(), ["G1X1", "G1X2"]);
     }
 
     #[test]

@@ -8,7 +8,7 @@
 //!     streamer.transmit(now, &mut out);      // bytes to write, as the window allows
 //!     link.write_all(&out);
 //!     for each reply line received:
-//!         streamer.receive(now, line);       // `ok`, `rs N`, `!! …`, `// …`, `start`
+//!         streamer.receive(now, line);       // `ok`, `rs N`, `echo:…`, `Error:…`, `start`
 //!     streamer.poll(now);                    // time-outs; call again at `poll_at()`
 //!     while let Some(event) = streamer.next_event() { … }
 //! }
@@ -31,10 +31,13 @@
 //! buffer; the controller delays its `ok` while its planner is full, which holds the sender back
 //! without ever letting the link idle while there is room.
 //!
-//! **Replies.** Every terminal reply (`ok…` or `rs N`) answers the oldest line in flight.
+//! **Replies.** Every terminal reply (`ok…` or `rs N`) answers the oldest line in flight; the
+//! `ok` that follows an `rs N` (Marlin's form) belongs to it, and report lines (positions,
+//! temperatures, `Cap:` lines, `echo:busy: processing`) answer nothing.
 //! - `ok`: the line the controller expected was accepted; it is line `accepted + 1`.
-//!   Preceded by `!! E<code> …` or `// E<code> …`, that line was refused (it had no effect)
-//!   and is reported with its number; the alarm codes (125, 126, 150–155) stop the job.
+//!   Preceded by `echo:E<code> …`, `echo:Unknown command: …` or `// E<code> …`, that line was
+//!   refused (it had no effect) and is reported with its number; the alarm codes (125, 126,
+//!   150–155) stop the job.
 //! - `rs N`: the controller expects line `N`: every line before `N` is accepted, and from `N`
 //!   on everything must be sent again, unless a copy of line `N` is already in flight behind
 //!   the line this reply answers. That test does both jobs the rewind needs: the first `rs N`
@@ -79,8 +82,10 @@
 //! **Time-outs.** If lines are in flight and nothing is answered for
 //! [`Config::reply_timeout`], the streamer assumes replies were lost, forgets the in-flight
 //! accounting and sends the first line not known to be accepted again (a copy is harmless).
-//! An unsolicited `!!` (one not followed by a line's `ok` within [`Config::alarm_grace`], or
-//! with nothing in flight) is an alarm: the streamer stops sending.
+//! An `echo:busy: processing` while lines are in flight restarts that time: a command still
+//! runs (a homing, a long dwell). An unsolicited `Error:` (one not followed by a line's `ok`
+//! within [`Config::alarm_grace`], or with nothing in flight) is an alarm: the streamer stops
+//! sending.
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -299,6 +304,8 @@ pub struct Streamer {
     last_activity: Option<Instant>,
     pending_fault: Option<(u16, String, Instant)>,
     pending_notice: Option<(u16, String)>,
+    /// An `rs` came: the `ok` after it belongs to it.
+    resend_ok_due: bool,
     /// `ok`s after a protocol-level refusal notice (codes below 20), not counted as accepted
     /// lines: the refusal of a damaged scrap of a line, or of a line damaged in a way the
     /// checksum could not see. The next `rs` tells which: the first line concerned, and how
@@ -326,6 +333,10 @@ pub struct Streamer {
 /// that did not parse), codes from it on concern a line that arrived intact.
 pub const FIRST_COMMAND_CODE: u16 = 100;
 
+/// The code of the kernel's `unsupported-command`, under which an `echo:Unknown command` is
+/// reported.
+pub const UNKNOWN_COMMAND_CODE: u16 = 120;
+
 /// The codes after which a job cannot go on: the machine is locked in alarm or halted.
 pub fn is_alarm_code(code: u16) -> bool {
     matches!(code, 125 | 126 | 150..=155)
@@ -349,6 +360,7 @@ impl Streamer {
             last_activity: None,
             pending_fault: None,
             pending_notice: None,
+            resend_ok_due: false,
             uncounted: None,
             out_of_step: 0,
             cap: config.window.lines.max(1),
@@ -540,13 +552,35 @@ impl Streamer {
         let Ok(reply) = Reply::parse(line) else {
             return;
         };
+        if matches!(reply, Reply::Ok) && std::mem::take(&mut self.resend_ok_due) {
+            // The `ok` that follows an `rs`: the `rs` was the answer.
+            return;
+        }
+        self.resend_ok_due = false;
         match reply {
             Reply::Start => self.on_start(),
-            Reply::Debug(_) => {}
-            Reply::Notice { code, text } => self.pending_notice = Some((code, text.to_string())),
+            Reply::Notice { code, text } | Reply::Refused { code, text } => {
+                self.pending_notice = Some((code, text.to_string()));
+            }
+            Reply::Unknown(command) => {
+                self.pending_notice = Some((
+                    UNKNOWN_COMMAND_CODE,
+                    format!("unsupported-command {command}"),
+                ));
+            }
             Reply::Fault { code, text } => self.on_fault(now, code, text),
-            Reply::Resend(n) => self.on_resend(now, n),
-            _ => self.on_ok(now),
+            Reply::Resend(n) => {
+                self.resend_ok_due = true;
+                self.on_resend(now, n);
+            }
+            // A command still runs: its answer is not lost.
+            Reply::Busy if !self.in_flight.is_empty() => {
+                self.last_activity = Some(now);
+                self.nudged = false;
+            }
+            Reply::Ok | Reply::OkWith(_) | Reply::Temperatures { ok: true, .. } => self.on_ok(now),
+            // Reports and lines an `ok` follows.
+            _ => {}
         }
     }
 
@@ -862,13 +896,16 @@ mod tests {
         s.receive(now, b"ok"); // 1
         s.receive(now, b"// E2 checksum-mismatch");
         s.receive(now, b"rs 2"); // 2 damaged
+        s.receive(now, b"ok");
         assert_eq!(s.next_event(), Some(Event::Rewound { from: 2 }));
         out.clear();
         // Until a line is accepted, only the line asked for goes, alone.
         assert_eq!(s.transmit(now, &mut out), 1);
         assert_eq!(lines_of(&out), ["N2 G1 X2*96"]);
         s.receive(now, b"rs 2"); // 3, out of order
+        s.receive(now, b"ok");
         s.receive(now, b"rs 2"); // 4, out of order
+        s.receive(now, b"ok");
         out.clear();
         assert_eq!(s.transmit(now, &mut out), 0);
         assert_eq!(s.next_event(), None, "no second rewind");
@@ -898,7 +935,7 @@ mod tests {
         let mut out = Vec::new();
         s.transmit(now, &mut out);
         s.receive(now, b"ok");
-        s.receive(now, b"!! E124 soft-limit X");
+        s.receive(now, b"echo:E124 soft-limit X");
         s.receive(now, b"ok");
         assert_eq!(
             s.next_event(),
@@ -909,8 +946,8 @@ mod tests {
             })
         );
         assert_eq!(s.phase(), Phase::Streaming);
-        // An unsolicited `!!`: no `ok` follows within the grace time.
-        s.receive(now, b"!! E150 hard-limit X");
+        // An unsolicited `Error:`: no `ok` follows within the grace time.
+        s.receive(now, b"Error:E150 hard-limit X");
         assert_eq!(s.phase(), Phase::Streaming);
         s.poll(now + Duration::from_secs(1));
         assert_eq!(
@@ -930,7 +967,7 @@ mod tests {
         let (mut s, now) = synced(Config::default(), &["G1 X1", "G1 X2"]);
         let mut out = Vec::new();
         s.transmit(now, &mut out);
-        s.receive(now, b"!! E125 alarm-locked");
+        s.receive(now, b"echo:E125 alarm-locked");
         s.receive(now, b"ok");
         assert!(matches!(
             s.next_event(),
@@ -958,6 +995,7 @@ mod tests {
         assert_eq!(s.transmit(t0, &mut out), 0);
         assert_eq!(s.poll_at(), Some(t0 + config.handshake_interval));
         s.receive(t0, b"rs 57");
+        s.receive(t0, b"ok");
         assert_eq!(s.transmit(t0, &mut out), 1, "resent at once after an rs");
         let t1 = t0 + config.handshake_interval;
         assert_eq!(s.transmit(t1, &mut out), 1);
@@ -1002,6 +1040,7 @@ mod tests {
         s.receive(now, b"ok");
         assert_eq!(s.phase(), Phase::Streaming);
         s.receive(now, b"rs 3");
+        s.receive(now, b"ok");
         assert_eq!(s.phase(), Phase::Done);
         assert_eq!(s.accepted(), 1);
     }
@@ -1030,8 +1069,11 @@ mod tests {
         };
         turn(&mut s, b""); // 1 2
         turn(&mut s, b"rs 1"); // 1 cut in two: its first part
+        turn(&mut s, b"ok");
         turn(&mut s, b"rs 1"); // its second part: the surplus
+        turn(&mut s, b"ok");
         turn(&mut s, b"rs 1"); // 2, out of order
+        turn(&mut s, b"ok");
         turn(&mut s, b"ok"); // the copy of 1
         assert_eq!(s.accepted(), 1);
         turn(&mut s, b"ok"); // 2
@@ -1074,6 +1116,7 @@ mod tests {
         let mut out = Vec::new();
         s.transmit(now, &mut out);
         s.receive(now, b"rs 1");
+        s.receive(now, b"ok");
         assert_eq!(s.next_event(), Some(Event::Rewound { from: 1 }));
         s.receive(now, b"ok");
         s.receive(now, b"ok");
@@ -1140,10 +1183,13 @@ mod tests {
                     _ => None,
                 };
                 match recovery {
-                    Some(Recovery::Resend(n)) => replies.push(format!("rs {n}")),
+                    Some(Recovery::Resend(n)) => {
+                        replies.push(format!("rs {n}"));
+                        replies.push("ok".into());
+                    }
                     Some(Recovery::Drop) => {}
                     Some(_) => {
-                        replies.push("// E8 refused".into());
+                        replies.push("echo:E8 refused".into());
                         replies.push("ok".into());
                     }
                     None => {}
@@ -1253,7 +1299,10 @@ mod tests {
                             _ => "ok".into(),
                         },
                     };
-                    if !r.is_empty() {
+                    if r.starts_with("rs ") {
+                        replies.push_back(r);
+                        replies.push_back("ok".into());
+                    } else if !r.is_empty() {
                         replies.push_back(r);
                     }
                 }

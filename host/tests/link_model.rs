@@ -80,7 +80,7 @@ fn run(model: &Model, window: Window, lines: &[String]) -> Outcome {
             let reply = match numbering.accept(&line) {
                 Ok(()) => "ok".to_string(),
                 Err(e) => match numbering.recover(&e) {
-                    forja_protocol::gcode::Recovery::Resend(n) => format!("rs {n}"),
+                    forja_protocol::gcode::Recovery::Resend(n) => format!("rs {n}\nok"),
                     _ => "ok".to_string(),
                 },
             };
@@ -92,7 +92,9 @@ fn run(model: &Model, window: Window, lines: &[String]) -> Outcome {
         }
         let (when, reply) = replies.pop_front().expect("a reply is due");
         t = t.max(when);
-        s.receive(at(t), reply.as_bytes());
+        for line in reply.lines() {
+            s.receive(at(t), line.as_bytes());
+        }
         assert!(matches!(
             s.phase(),
             Phase::Streaming | Phase::Done | Phase::Handshake

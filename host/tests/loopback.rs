@@ -90,7 +90,7 @@ fn serve(listener: TcpListener, damage: Damage, seen: Arc<Mutex<Seen>>) {
                                 seen.ran.push(n);
                             }
                             let reply: &[u8] = if line.is_command(b'M', 114) {
-                                b"ok C: X:1.0 Y:2.0\n"
+                                b"X:1.0 Y:2.0 Count X:80 Y:160\nok\n"
                             } else {
                                 b"ok\n"
                             };
@@ -147,8 +147,10 @@ fn serve(listener: TcpListener, damage: Damage, seen: Arc<Mutex<Seen>>) {
                 _ => None,
             };
             match recovery {
-                Some(Recovery::Resend(n)) => out.extend_from_slice(format!("rs {n}\n").as_bytes()),
-                Some(_) => out.extend_from_slice(b"// E8 bad-character\nok\n"),
+                Some(Recovery::Resend(n)) => {
+                    out.extend_from_slice(format!("rs {n}\nok\n").as_bytes());
+                }
+                Some(_) => out.extend_from_slice(b"echo:E8 bad-character\nok\n"),
                 None => {}
             }
         });
@@ -261,7 +263,7 @@ fn console_shows_replies_and_explains_what_it_does_not_send() {
     let mut out = Vec::new();
     client::console(&mut conn, &rx, &mut out, Config::default()).unwrap();
     let out = String::from_utf8(out).unwrap();
-    assert!(out.contains("ok C: X:1.0 Y:2.0"), "{out}");
+    assert!(out.contains("X:1.0 Y:2.0 Count"), "{out}");
     assert!(out.contains("not sent: a letter without a number"), "{out}");
     assert!(
         out.contains("not sent: forja numbers the lines itself"),
@@ -319,7 +321,7 @@ fn an_idle_console_keeps_its_session_with_lone_line_ends() {
     assert!(seen.keep_alives >= 3, "{} keep-alives", seen.keep_alives);
     assert_eq!(seen.ran, [1, 2]);
     let out = String::from_utf8(out).unwrap();
-    assert!(out.contains("ok C: X:1.0 Y:2.0"), "{out}");
+    assert!(out.contains("X:1.0 Y:2.0 Count"), "{out}");
     assert!(!out.lines().any(str::is_empty), "{out:?}");
 }
 

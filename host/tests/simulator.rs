@@ -214,7 +214,7 @@ fn console_sends_lines_and_shows_replies() {
         );
         assert!(out.status.success(), "{}", text(&out));
         let stdout = String::from_utf8_lossy(&out.stdout);
-        assert!(stdout.contains("ok C:"), "{}", text(&out));
+        assert!(stdout.contains(" Count X:"), "{}", text(&out));
         assert!(stdout.contains("not sent:"), "{}", text(&out));
         assert!(!stdout.contains("rs "), "{}", text(&out));
     }

@@ -38,6 +38,18 @@ pub enum Heater {
     Bed,
 }
 
+/// Whether and how a heater command holds further lines (`M109`, `M190`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TemperatureWait {
+    /// `M104`, `M140`: set the target and go on.
+    No,
+    /// `M109 S`, `M190 S`: wait while the heater heats up to the target; a heater above it
+    /// does not hold the lines (Marlin's rule).
+    Heating,
+    /// `M109 R`, `M190 R`: wait until the heater is at the target, heating or cooling.
+    Reach,
+}
+
 /// Spindle state (`M3`/`M4`/`M5`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Spindle {
@@ -107,14 +119,15 @@ pub enum StopKind {
 /// that a new effect does not compile until it is.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Effect<'l> {
-    /// `M104`, `M109` (`wait`), `M140`: set a heater's target, °C (`S`, 0 = off).
+    /// `M104`, `M109` (`wait`), `M140`, `M190` (`wait`): set a heater's target, °C (`S` or
+    /// `R`, 0 = off).
     SetTemperature {
         /// Which heater.
         heater: Heater,
         /// Target temperature in °C.
         celsius: Decimal,
-        /// Hold further lines until it is reached (`M109`).
-        wait: bool,
+        /// Whether to hold further lines until this heater reaches it.
+        wait: TemperatureWait,
     },
     /// `M116`: hold further lines until every heater is at its target.
     WaitForTemperatures,
@@ -141,14 +154,45 @@ pub enum Effect<'l> {
     Storage(Storage<'l>),
     /// `T<n>`: select tool `n`.
     SelectTool(u8),
-    /// `M17` (on), `M18`/`M84` (off): stepper driver power. Turning them off loses the homed
+    /// `M17` (on), `M18`/`M84` (off): stepper driver power. Releasing an axis loses its homed
     /// state (the kernel forgets it).
     Motors {
         /// Energise (`true`) or release the motors.
         enabled: bool,
+        /// The axes concerned, bit `i` for axis `i`: every axis for `M17` and a bare `M84`,
+        /// the named ones for `M84 X Y E`.
+        axes: u8,
     },
     /// `M0` or `M112`: motion stopped; the controller turns heaters and motors off.
     Stopped(StopKind),
+    /// `M400`: every move before it has finished (returned once they have).
+    MotionDone,
+    /// `M410`: stop every move now and drop those queued (Marlin's quick stop); the machine
+    /// keeps its position and homing. The controller stops the motion as a stop frame does.
+    QuickStop,
+    /// `M73`: the host's progress of its job, for the operator (`P` percent done, `R` minutes
+    /// left, `L` the layer being printed).
+    Progress {
+        /// `P`, percent done (0–100).
+        percent: Option<u8>,
+        /// `R`, minutes left.
+        remaining_min: Option<u32>,
+        /// `L`, the current layer.
+        layer: Option<u32>,
+    },
+    /// `M117 <text>`: a message for the operator's display (empty: clear it).
+    Message(&'l [u8]),
+    /// `M118 [A1] [E1] [Pn] <text>`: a line to the host, as given after the command.
+    HostMessage(&'l [u8]),
+    /// `M155 S<seconds>`: report the temperatures every so many seconds without being asked
+    /// (0: stop).
+    AutoReport {
+        /// The period, s.
+        seconds: u8,
+    },
+    /// `M113 S<seconds>`: the period of `busy: processing` while a command blocks (0: never);
+    /// `None` (no `S`) asks for the period.
+    BusyInterval(Option<u8>),
     /// `M226`: the program pauses here (motion before it is done); [`crate::Kernel::resume`]
     /// continues.
     Paused,
@@ -166,9 +210,10 @@ impl Effect<'_> {
             | Self::Coolant(_)
             | Self::Fan { .. }
             | Self::SelectTool(_)
-            | Self::Motors { enabled: false }
+            | Self::Motors { enabled: false, .. }
             | Self::Stopped(StopKind::Program)
             | Self::Paused
+            | Self::MotionDone
             | Self::ProgramEnd => Sync::AfterMotion,
             _ => Sync::Now,
         }
@@ -216,10 +261,25 @@ impl Effect<'_> {
             Effect::ReportFirmware => Effect::ReportFirmware,
             Effect::ReportEndstops => Effect::ReportEndstops,
             Effect::SelectTool(t) => Effect::SelectTool(t),
-            Effect::Motors { enabled } => Effect::Motors { enabled },
+            Effect::Motors { enabled, axes } => Effect::Motors { enabled, axes },
             Effect::Stopped(k) => Effect::Stopped(k),
             Effect::Paused => Effect::Paused,
             Effect::ProgramEnd => Effect::ProgramEnd,
+            Effect::MotionDone => Effect::MotionDone,
+            Effect::QuickStop => Effect::QuickStop,
+            Effect::Progress {
+                percent,
+                remaining_min,
+                layer,
+            } => Effect::Progress {
+                percent,
+                remaining_min,
+                layer,
+            },
+            Effect::Message(t) => Effect::Message(r(t)),
+            Effect::HostMessage(t) => Effect::HostMessage(r(t)),
+            Effect::AutoReport { seconds } => Effect::AutoReport { seconds },
+            Effect::BusyInterval(s) => Effect::BusyInterval(s),
         }
     }
 }

@@ -27,7 +27,7 @@ use forja_protocol::gcode::{Decimal, Line};
 
 use crate::arc::{ArcCenter, ArcCutter, Nm};
 use crate::config::{AxisKind, MachineConfig};
-use crate::effect::{Coolant, Effect, Heater, Spindle, StopKind, Storage};
+use crate::effect::{Coolant, Effect, Heater, Spindle, StopKind, Storage, TemperatureWait};
 use crate::error::CommandError;
 
 /// Nanometres per millimetre: positions are kept in integer nanometres.
@@ -159,17 +159,29 @@ fn spindle_speed(s: Option<Decimal>) -> Result<Option<Decimal>, CommandError> {
     }
 }
 
-/// Refuse a word that is neither an axis of the machine nor `G`/`F` (for `G28`, `G92`).
+/// The `G28` flags that are not axes and change nothing here: Prusa's `W` (home without mesh
+/// levelling; there is no mesh).
+const HOMING_FLAGS: &[u8] = b"W";
+
+/// Refuse a word that is neither an axis of the machine, `G`/`F`, nor one of `flags` (for
+/// `G28`, `G92`).
 fn only_axis_words<const N: usize>(
     line: &Line<'_>,
     config: &MachineConfig<N>,
+    flags: &[u8],
 ) -> Result<(), CommandError> {
     for w in line.words() {
-        if !matches!(w.letter, b'G' | b'F') && config.axis_index(w.letter).is_none() {
+        let flag = w.bare && flags.contains(&w.letter);
+        if !matches!(w.letter, b'G' | b'F') && !flag && config.axis_index(w.letter).is_none() {
             return Err(CommandError::UnknownAxis { letter: w.letter });
         }
     }
     Ok(())
+}
+
+/// The mask of every axis of an `N`-axis machine (`N` ≤ 8).
+fn all_axes<const N: usize>() -> u8 {
+    ((1u16 << N.min(8)) - 1) as u8
 }
 
 fn small_int(v: Decimal, letter: u8, max: u32) -> Result<u32, CommandError> {
@@ -237,8 +249,10 @@ impl<const N: usize> Interpreter<N> {
                 return Err(CommandError::RepeatedWord { letter: w.letter });
             }
         }
+        // `T` beside an `M` word is that command's tool (`M104 T0 S0`, `M204 P R T`).
+        let has_m = line.words().iter().any(|w| w.letter == b'M');
         for w in line.words() {
-            if !matches!(w.letter, b'G' | b'M' | b'T') {
+            if !matches!(w.letter, b'G' | b'M' | b'T') || (w.letter == b'T' && has_m) {
                 continue;
             }
             let number = w.value.as_u32().filter(|_| w.value.as_integer().is_some());
@@ -277,12 +291,21 @@ impl<const N: usize> Interpreter<N> {
         if motion.is_some() && command.is_some() {
             return Err(CommandError::ModalConflict);
         }
+        // A letter alone is a flag only to the commands that take flags.
+        if let Some(letter) = line.bare_letter()
+            && !matches!(command, Some((b'G', 28) | (b'M', 18 | 84)))
+        {
+            return Err(CommandError::MissingValue { letter });
+        }
         // Modal settings take effect first, for the whole line.
         if let Some(u) = units {
             self.inches = u;
         }
         if let Some(d) = distance {
+            // Marlin's rule: `G90`/`G91` set every axis, the extruder's included; an `M82`/`M83`
+            // after them sets the extruder alone.
             self.absolute = d;
+            self.extruder_relative = None;
         }
         if let Some(p) = plane {
             self.plane = p;
@@ -437,11 +460,11 @@ impl<const N: usize> Interpreter<N> {
                 }
             }
             (b'G', 28) => {
-                only_axis_words(line, config)?;
+                only_axis_words(line, config, HOMING_FLAGS)?;
                 let mut mask = 0u8;
-                let named = config.axes.iter().any(|a| line.has(a.letter));
+                let named = config.axes.iter().any(|a| line.mentions(a.letter));
                 for (i, a) in config.axes.iter().enumerate() {
-                    if named && !line.has(a.letter) {
+                    if named && !line.mentions(a.letter) {
                         continue;
                     }
                     match a.homing {
@@ -456,7 +479,7 @@ impl<const N: usize> Interpreter<N> {
             }
             (b'G', 92) => {
                 // `G92 E0` on a machine without E must not act as a bare `G92` (all axes to 0).
-                only_axis_words(line, config)?;
+                only_axis_words(line, config, b"")?;
                 let named = config.axes.iter().any(|a| line.has(a.letter));
                 for (i, a) in config.axes.iter().enumerate() {
                     let value = match line.get(a.letter) {
@@ -488,8 +511,30 @@ impl<const N: usize> Interpreter<N> {
                 self.extruder_relative = Some(true);
                 Action::None
             }
-            (b'M', 17) => Action::Effect(Effect::Motors { enabled: true }),
-            (b'M', 18 | 84) => Action::Effect(Effect::Motors { enabled: false }),
+            (b'M', 17) => Action::Effect(Effect::Motors {
+                enabled: true,
+                axes: all_axes::<N>(),
+            }),
+            (b'M', 18 | 84) => {
+                // `M84 X Y E`: those axes; `M84` alone: all. (`S`, Marlin's idle time-out, is
+                // not a setting here: the motors stay energised until released.)
+                let named = config.axes.iter().any(|a| line.mentions(a.letter));
+                let mut axes = 0u8;
+                for (i, a) in config.axes.iter().enumerate() {
+                    if !named || line.mentions(a.letter) {
+                        axes |= 1 << i;
+                    }
+                }
+                for w in line.words() {
+                    if w.letter != b'M' && config.axis_index(w.letter).is_none() {
+                        return Err(CommandError::UnknownAxis { letter: w.letter });
+                    }
+                }
+                Action::Effect(Effect::Motors {
+                    enabled: false,
+                    axes,
+                })
+            }
             (b'M', 92) => {
                 let mut out = [None; N];
                 for (i, a) in config.axes.iter().enumerate() {
@@ -514,9 +559,15 @@ impl<const N: usize> Interpreter<N> {
             (b'M', 7) => Action::Effect(Effect::Coolant(Coolant::Mist)),
             (b'M', 8) => Action::Effect(Effect::Coolant(Coolant::Flood)),
             (b'M', 9) => Action::Effect(Effect::Coolant(Coolant::Off)),
-            (b'M', 104 | 109 | 140) => {
-                let celsius = s.ok_or(CommandError::MissingValue { letter: b'S' })?;
-                let heater = if n == 140 {
+            (b'M', 104 | 109 | 140 | 190) => {
+                let waits = matches!(n, 109 | 190);
+                let (celsius, wait) = match (s, line.get(b'R')) {
+                    (Some(s), _) if waits => (s, TemperatureWait::Heating),
+                    (Some(s), _) => (s, TemperatureWait::No),
+                    (None, Some(r)) if waits => (r, TemperatureWait::Reach),
+                    _ => return Err(CommandError::MissingValue { letter: b'S' }),
+                };
+                let heater = if matches!(n, 140 | 190) {
                     Heater::Bed
                 } else {
                     let t = match line.get(b'T') {
@@ -528,10 +579,43 @@ impl<const N: usize> Interpreter<N> {
                 Action::Effect(Effect::SetTemperature {
                     heater,
                     celsius,
-                    wait: n == 109,
+                    wait,
                 })
             }
             (b'M', 105) => Action::Effect(Effect::ReportTemperatures),
+            (b'M', 400) => Action::Effect(Effect::MotionDone),
+            (b'M', 410) => Action::Effect(Effect::QuickStop),
+            (b'M', 73) => {
+                let word = |l: u8, max: u32| line.get(l).map(|v| small_int(v, l, max)).transpose();
+                Action::Effect(Effect::Progress {
+                    percent: word(b'P', 100)?.map(|p| p as u8),
+                    remaining_min: word(b'R', u32::MAX)?,
+                    layer: word(b'L', u32::MAX)?,
+                })
+            }
+            (b'M', 117) => Action::Effect(Effect::Message(line.text_arg().unwrap_or(&[]))),
+            (b'M', 118) => Action::Effect(Effect::HostMessage(line.text_arg().unwrap_or(&[]))),
+            (b'M', 155) => {
+                let seconds = small_int(
+                    s.ok_or(CommandError::MissingValue { letter: b'S' })?,
+                    b'S',
+                    60,
+                )?;
+                Action::Effect(Effect::AutoReport {
+                    seconds: seconds as u8,
+                })
+            }
+            (b'M', 113) => {
+                let seconds = s.map(|v| small_int(v, b'S', 60)).transpose()?;
+                Action::Effect(Effect::BusyInterval(seconds.map(|v| v as u8)))
+            }
+            // Linear advance: `K0` (off) is what this planner does; a factor is refused.
+            (b'M', 900) => match line.get(b'K') {
+                Some(k) if k.mantissa() != 0 => {
+                    return Err(CommandError::BadValue { letter: b'K' });
+                }
+                _ => Action::None,
+            },
             (b'M', 106) => {
                 let duty = match s {
                     Some(v) => {
@@ -632,9 +716,17 @@ mod tests {
     }
 
     fn run<'l>(it: &mut Interpreter<4>, text: &'l [u8]) -> Result<Action<'l, 4>, CommandError> {
+        run_on(&cfg(), it, text)
+    }
+
+    fn run_on<'l>(
+        c: &MachineConfig<4>,
+        it: &mut Interpreter<4>,
+        text: &'l [u8],
+    ) -> Result<Action<'l, 4>, CommandError> {
         let line = Line::parse(text).expect("parses");
         let mut next = *it;
-        let a = next.interpret(&line, &cfg())?;
+        let a = next.interpret(&line, c)?;
         *it = next;
         Ok(a)
     }
@@ -693,6 +785,123 @@ mod tests {
     }
 
     #[test]
+    fn g90_and_g91_set_the_extruder_too_and_m82_m83_after_them_the_extruder_alone() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        run(&mut it, b"G1 X10 E5").expect("ok");
+        // Cura's end code: `M82`, then `G91` and a retraction of 2 mm.
+        run(&mut it, b"M82").expect("ok");
+        run(&mut it, b"G91").expect("ok");
+        let a = run(&mut it, b"G1 E-2").expect("ok");
+        assert!(matches!(
+            a,
+            Action::Move {
+                target: [10_000_000, 0, 0, 3_000_000],
+                ..
+            }
+        ));
+        // `G90` then `M83` (PrusaSlicer's start): X absolute, E relative.
+        run(&mut it, b"G90").expect("ok");
+        run(&mut it, b"M83").expect("ok");
+        let a = run(&mut it, b"G1 X1 E1").expect("ok");
+        assert!(matches!(
+            a,
+            Action::Move {
+                target: [1_000_000, 0, 0, 4_000_000],
+                ..
+            }
+        ));
+        // A later `G90` makes E absolute again.
+        run(&mut it, b"G90").expect("ok");
+        let a = run(&mut it, b"G1 E1").expect("ok");
+        assert!(matches!(
+            a,
+            Action::Move {
+                target: [1_000_000, 0, 0, 1_000_000],
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn letters_alone_are_flags_for_homing_and_motor_release_only() {
+        let mut c = cfg();
+        for (i, a) in c.axes.iter_mut().take(3).enumerate() {
+            a.homing = Some(crate::config::HomingConfig {
+                direction: crate::config::HomeDirection::Min,
+                seek_mm_min: 1500.0,
+                locate_mm_min: 100.0,
+                pull_off_mm: 1.0,
+                switch: i as u8,
+                order: 0,
+            });
+        }
+        let mut it = Interpreter::new(&c);
+        assert_eq!(
+            run_on(&c, &mut it, b"G28 X Y"),
+            Ok(Action::Home { mask: 0b0011 })
+        );
+        // Prusa's `W` (no mesh levelling) changes nothing: every axis with homing.
+        assert_eq!(
+            run_on(&c, &mut it, b"G28 W"),
+            Ok(Action::Home { mask: 0b0111 })
+        );
+        assert_eq!(
+            run_on(&c, &mut it, b"G28 Z W"),
+            Ok(Action::Home { mask: 0b0100 })
+        );
+        assert_eq!(
+            run_on(&c, &mut it, b"M84 X Y E"),
+            Ok(Action::Effect(Effect::Motors {
+                enabled: false,
+                axes: 0b1011
+            }))
+        );
+        assert_eq!(
+            run_on(&c, &mut it, b"M18"),
+            Ok(Action::Effect(Effect::Motors {
+                enabled: false,
+                axes: 0b1111
+            }))
+        );
+        assert_eq!(
+            run_on(&c, &mut it, b"M84 Q"),
+            Err(CommandError::UnknownAxis { letter: b'Q' })
+        );
+        // Anywhere else a letter needs its number: `G1 X` is not a move to 0.
+        assert_eq!(
+            run_on(&c, &mut it, b"G1 X"),
+            Err(CommandError::MissingValue { letter: b'X' })
+        );
+        assert_eq!(
+            run_on(&c, &mut it, b"M104 S"),
+            Err(CommandError::MissingValue { letter: b'S' })
+        );
+        assert_eq!(
+            run_on(&c, &mut it, b"G92 X"),
+            Err(CommandError::MissingValue { letter: b'X' })
+        );
+    }
+
+    #[test]
+    fn t_beside_an_m_word_is_its_tool_not_a_tool_change() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        assert!(matches!(
+            run(&mut it, b"M104 T0 S0"),
+            Ok(Action::Effect(Effect::SetTemperature {
+                heater: Heater::Extruder(Some(0)),
+                ..
+            }))
+        ));
+        assert_eq!(
+            run(&mut it, b"T1"),
+            Ok(Action::Effect(Effect::SelectTool(1)))
+        );
+        assert_eq!(run(&mut it, b"T1 M104 S0").map(|_| ()), Ok(()));
+    }
+
+    #[test]
     fn unsupported_and_unknown_are_named() {
         let c = cfg();
         let mut it = Interpreter::new(&c);
@@ -730,8 +939,57 @@ mod tests {
             Ok(Action::Effect(Effect::SetTemperature {
                 heater: Heater::Extruder(None),
                 celsius: Decimal::new(210, 0),
-                wait: true
+                wait: TemperatureWait::Heating
             }))
+        );
+        assert_eq!(
+            run(&mut it, b"M190 R40"),
+            Ok(Action::Effect(Effect::SetTemperature {
+                heater: Heater::Bed,
+                celsius: Decimal::new(40, 0),
+                wait: TemperatureWait::Reach
+            }))
+        );
+        assert_eq!(
+            run(&mut it, b"M140 R40"),
+            Err(CommandError::MissingValue { letter: b'S' })
+        );
+        assert_eq!(
+            run(&mut it, b"M400"),
+            Ok(Action::Effect(Effect::MotionDone))
+        );
+        assert_eq!(
+            run(&mut it, b"M73 P42 R7"),
+            Ok(Action::Effect(Effect::Progress {
+                percent: Some(42),
+                remaining_min: Some(7),
+                layer: None
+            }))
+        );
+        assert_eq!(
+            run(&mut it, b"M73 P101"),
+            Err(CommandError::BadValue { letter: b'P' })
+        );
+        assert_eq!(
+            run(&mut it, b"M117 Hello; c"),
+            Ok(Action::Effect(Effect::Message(b"Hello")))
+        );
+        assert_eq!(
+            run(&mut it, b"M118 E1 Hi"),
+            Ok(Action::Effect(Effect::HostMessage(b"E1 Hi")))
+        );
+        assert_eq!(
+            run(&mut it, b"M155 S2"),
+            Ok(Action::Effect(Effect::AutoReport { seconds: 2 }))
+        );
+        assert_eq!(
+            run(&mut it, b"M113"),
+            Ok(Action::Effect(Effect::BusyInterval(None)))
+        );
+        assert_eq!(run(&mut it, b"M900 K0"), Ok(Action::None));
+        assert_eq!(
+            run(&mut it, b"M900 K0.05"),
+            Err(CommandError::BadValue { letter: b'K' })
         );
         assert_eq!(
             run(&mut it, b"M106 S127"),

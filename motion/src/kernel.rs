@@ -492,8 +492,12 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 if !idle {
                     return Ok(Reply::Busy);
                 }
-                if e == (Effect::Motors { enabled: false }) {
-                    self.homed = 0;
+                if let Effect::Motors {
+                    enabled: false,
+                    axes,
+                } = e
+                {
+                    self.homed &= !axes;
                 }
                 Reply::Effect(e)
             }
@@ -679,7 +683,14 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             .map_err(|_| CommandError::BadValue { letter: b'M' })?;
         self.bounds = axis_bounds(&c);
         self.config = c;
-        self.resync();
+        // Marlin's rule: the machine stays at the same millimetres, which are now other step
+        // counts (the motors do not move). Idle, so the interrupt's count is the planner's.
+        let isr = self.tx.shared().positions();
+        for (i, a) in self.config.axes.iter().enumerate() {
+            let steps = nm_to_steps(self.interp.pos[i], a.steps_per_mm);
+            self.origin[i] = isr[i].wrapping_sub(steps);
+            self.steps[i] = steps;
+        }
         Ok(())
     }
 

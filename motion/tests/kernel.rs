@@ -4,7 +4,7 @@
 mod common;
 
 use common::{check_axis, machine, sim};
-use forja_motion::effect::{Effect, StopKind};
+use forja_motion::effect::{Effect, StopKind, TemperatureWait};
 use forja_motion::{Alarm, CommandError, MachineState, Reply, StepQueue};
 use forja_protocol::gcode::{Decimal, Line};
 
@@ -255,7 +255,10 @@ fn effects_come_back_in_stream_order() {
     let line = Line::parse(b"M104 S210").expect("parse");
     assert!(matches!(
         s.kernel.execute(&line),
-        Ok(Reply::Effect(Effect::SetTemperature { wait: false, .. }))
+        Ok(Reply::Effect(Effect::SetTemperature {
+            wait: TemperatureWait::No,
+            ..
+        }))
     ));
     assert!(!s.kernel.is_idle());
     // A fan change waits for the move before it.
@@ -428,16 +431,25 @@ fn long_moves_survive_clock_wrap_at_168_mhz() {
 }
 
 #[test]
-fn steps_per_unit_change_keeps_the_machine_where_it_is() {
+fn steps_per_unit_change_keeps_the_millimetres_and_rescales_the_steps() {
+    // Marlin's `M92`: the machine stays at X10, now 1600 steps; the motors do not move.
     let mut q = StepQueue::<3, 256>::new();
     let mut s = sim(&mut q, machine(), HZ);
     s.send("G1 X10 F3000").expect("ok");
     s.send("M92 X160").expect("ok");
     assert!(s.run_until_idle(10 * u64::from(HZ)));
-    // 800 steps are now 5 mm; X10 is 1600 steps.
-    s.send("G1 X10").expect("ok");
+    assert_eq!(s.positions()[0], 800, "no step for the change itself");
+    assert_eq!(s.kernel.machine_steps()[0], 1600);
+    assert!((s.kernel.position().work_mm[0] - 10.0).abs() < 1e-9);
+    // A job goes on from where it was: X20 is 10 mm further (1600 steps), X15 5 mm back.
+    s.send("G1 X20").expect("ok");
     assert!(s.run_until_idle(10 * u64::from(HZ)));
-    assert_eq!(s.positions()[0], 1600);
+    assert_eq!(s.positions()[0], 800 + 1600);
+    s.send("G1 X15").expect("ok");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(s.positions()[0], 800 + 800);
+    assert!((s.kernel.position().work_mm[0] - 15.0).abs() < 1e-9);
+    assert!((s.kernel.position().machine_mm[0] - 15.0).abs() < 1e-9);
 }
 
 #[test]

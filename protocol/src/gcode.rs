@@ -33,8 +33,8 @@ pub const MAX_LINE_LEN: usize = 256;
 pub const MAX_WORDS: usize = 32;
 
 /// The M-codes whose argument is free text rather than words: `M23`, `M28`, `M29`, `M30`
-/// (file names) and `M117` (a message). See [`Line::text_arg`].
-pub const TEXT_COMMANDS: [i64; 5] = [23, 28, 29, 30, 117];
+/// (file names), `M117` (a message) and `M118` (a line for the host). See [`Line::text_arg`].
+pub const TEXT_COMMANDS: [i64; 6] = [23, 28, 29, 30, 117, 118];
 
 /// The checksum of a line: the XOR of every byte of `bytes` up to, not including, the first `*`
 /// (the seed's C snippet, byte for byte).
@@ -84,31 +84,59 @@ pub enum Check {
     Crc16,
 }
 
-/// One word: a letter and its number, such as `G1`, `X-2.5` or `F3000.0`.
+/// One word: a letter and its number, such as `G1`, `X-2.5` or `F3000.0`, or a parameter
+/// letter alone (`X` in `G28 X Y`, a [bare](Self::bare) word).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Word {
     /// The letter, ASCII upper case (lower case input is folded).
     pub letter: u8,
-    /// The number, exactly as written.
+    /// The number, exactly as written; zero, and not to be read, for a bare word.
     pub value: Decimal,
+    /// The letter was written without a number: a flag such as the axes of `G28 X Y` or
+    /// `M84 X Y E`. [`Line::get`] does not see it; [`Line::mentions`] does.
+    pub bare: bool,
 }
 
 impl Word {
     /// A word from its parts (`letter` should be an upper-case ASCII letter).
     pub const fn new(letter: u8, value: Decimal) -> Self {
-        Self { letter, value }
+        Self {
+            letter,
+            value,
+            bare: false,
+        }
+    }
+
+    /// A parameter letter without a number (`letter` should be an upper-case ASCII letter other
+    /// than `G`, `M`, `N` and `T`, which always take one).
+    pub const fn bare(letter: u8) -> Self {
+        Self {
+            letter,
+            value: Decimal::new(0, 0),
+            bare: true,
+        }
     }
 
     /// Whether this word is `letter` followed by the integer `number` (`G1`, `M110`, `G1.0`).
     pub fn is(&self, letter: u8, number: i64) -> bool {
-        self.letter == letter.to_ascii_uppercase() && self.value.as_integer() == Some(number)
+        self.letter == letter.to_ascii_uppercase()
+            && !self.bare
+            && self.value.as_integer() == Some(number)
     }
 
     fn write<S: Sink>(&self, out: &mut S) -> Result<(), EncodeError> {
         out.put(self.letter)?;
+        if self.bare {
+            return Ok(());
+        }
         self.value.write_checked(out)
     }
+}
+
+/// Letters that never stand alone: a command (`G`, `M`, `T`) or the line number (`N`).
+fn takes_a_number(letter: u8) -> bool {
+    matches!(letter, b'G' | b'M' | b'N' | b'T')
 }
 
 /// One G-code line, parsed.
@@ -129,7 +157,10 @@ impl<'a> Line<'a> {
     /// Parse one line without its terminator (a trailing CR or LF is tolerated and ignored).
     ///
     /// - Words are a letter and a number (`[+-]digits[.digits]`); spaces between words are
-    ///   optional, letters are folded to upper case.
+    ///   optional, letters are folded to upper case. A parameter letter followed by a blank,
+    ///   another letter, a comment or the end is a [bare](Word::bare) word (`G28 X Y`); `G`,
+    ///   `M`, `N` and `T` always need a number ([`LineError::MissingValue`]), as does a letter
+    ///   followed by anything else (`X-`).
     /// - `;` comments run to the end of the line, `(…)` comments to the next `)`.
     /// - The checksum marker is the first `*` (in a `;` comment, only when a checksum follows
     ///   it). One to three digits after it are the XOR [`checksum`], exactly five the [`crc16`].
@@ -205,7 +236,9 @@ impl<'a> Line<'a> {
         let takes_text = words.first().is_some_and(is_text_command);
         let misplaced =
             words.first().is_some_and(|w| w.letter == b'N') || (takes_text && words.len() > 1);
-        if misplaced || words.iter().any(|w| !w.letter.is_ascii_uppercase()) {
+        let malformed =
+            |w: &Word| !w.letter.is_ascii_uppercase() || (w.bare && takes_a_number(w.letter));
+        if misplaced || words.iter().any(malformed) {
             return Err(EncodeError::OutOfRange);
         }
         let text = text.filter(|t| !t.is_empty());
@@ -259,16 +292,27 @@ impl<'a> Line<'a> {
         &self.words
     }
 
-    /// The number of the first word with `letter` (upper or lower case).
+    /// The number of the first word with `letter` (upper or lower case) that has one.
     pub fn get(&self, letter: u8) -> Option<Decimal> {
         let letter = letter.to_ascii_uppercase();
         self.words
             .iter()
-            .find(|w| w.letter == letter)
+            .find(|w| w.letter == letter && !w.bare)
             .map(|w| w.value)
     }
 
-    /// Whether a word with `letter` is present.
+    /// Whether `letter` is on the line, with a number or [bare](Word::bare) (`G28 X`).
+    pub fn mentions(&self, letter: u8) -> bool {
+        let letter = letter.to_ascii_uppercase();
+        self.words.iter().any(|w| w.letter == letter)
+    }
+
+    /// The first [bare](Word::bare) word's letter, if any.
+    pub fn bare_letter(&self) -> Option<u8> {
+        self.words.iter().find(|w| w.bare).map(|w| w.letter)
+    }
+
+    /// Whether a word with `letter` and a number is present.
     pub fn has(&self, letter: u8) -> bool {
         self.get(letter).is_some()
     }
@@ -558,12 +602,19 @@ fn parse_body(body: &[u8], line: Option<u32>) -> Result<(Words, Option<&[u8]>), 
                 i += close + 1;
             }
             b'A'..=b'Z' | b'a'..=b'z' => {
-                let (value, used) =
-                    parse_prefix(body.get(i + 1..).unwrap_or(&[])).map_err(|e| match e {
-                        NumberError::NoDigits => LineError::MissingValue { line },
-                        NumberError::OutOfRange => LineError::NumberOutOfRange { line },
-                    })?;
-                let word = Word::new(b.to_ascii_uppercase(), value);
+                let letter = b.to_ascii_uppercase();
+                let rest = body.get(i + 1..).unwrap_or(&[]);
+                let (word, used) = match parse_prefix(rest) {
+                    Ok((value, used)) => (Word::new(letter, value), used),
+                    // A parameter letter that ends where it starts: a flag (`G28 X Y`).
+                    Err(NumberError::NoDigits) if !takes_a_number(letter) && ends_a_word(rest) => {
+                        (Word::bare(letter), 0)
+                    }
+                    Err(NumberError::NoDigits) => return Err(LineError::MissingValue { line }),
+                    Err(NumberError::OutOfRange) => {
+                        return Err(LineError::NumberOutOfRange { line });
+                    }
+                };
                 words
                     .push(word)
                     .map_err(|_| LineError::TooManyWords { line })?;
@@ -577,6 +628,15 @@ fn parse_body(body: &[u8], line: Option<u32>) -> Result<(Words, Option<&[u8]>), 
         }
     }
     Ok((words, None))
+}
+
+/// Whether `rest` (what follows a letter) starts where a word may end: nothing, a blank,
+/// another letter or a comment.
+fn ends_a_word(rest: &[u8]) -> bool {
+    match rest.first() {
+        None => true,
+        Some(&b) => is_blank(b) || b.is_ascii_alphabetic() || matches!(b, b'(' | b';'),
+    }
 }
 
 fn is_text_command(word: &Word) -> bool {
@@ -959,9 +1019,36 @@ mod tests {
 
     #[test]
     fn words_and_errors() {
+        // A parameter letter alone is a flag; a command letter alone is an error.
+        let line = Line::parse(b"g28 x Y(home)E;").unwrap();
         assert_eq!(
-            Line::parse(b"G1 X"),
-            Err(LineError::MissingValue { line: None })
+            line.words(),
+            &[
+                w(b'G', 28, 0),
+                Word::bare(b'X'),
+                Word::bare(b'Y'),
+                Word::bare(b'E')
+            ]
+        );
+        assert_eq!((line.get(b'X'), line.has(b'X')), (None, false));
+        assert!(line.mentions(b'x') && !line.mentions(b'Z'));
+        assert_eq!(line.bare_letter(), Some(b'X'));
+        assert_eq!(Line::parse(b"G1 X").unwrap().bare_letter(), Some(b'X'));
+        let mut buf = [0u8; 32];
+        let n = line.encode(&mut buf).unwrap();
+        assert_eq!(&buf[..n], b"G28 X Y E");
+        assert_eq!(Line::parse(&buf[..n]), Ok(line));
+        for text in [&b"G"[..], b"G1 M", b"T", b"X1 N"] {
+            assert_eq!(
+                Line::parse(text),
+                Err(LineError::MissingValue { line: None }),
+                "{:?}",
+                std::str::from_utf8(text)
+            );
+        }
+        assert_eq!(
+            Line::from_parts(None, &[Word::bare(b'G')], None),
+            Err(EncodeError::OutOfRange)
         );
         assert_eq!(
             Line::parse(b"G1 X-"),

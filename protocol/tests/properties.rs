@@ -6,7 +6,7 @@ use forja_protocol::frame::{
     MAX_POSITION_TENTH_UM, MAX_PROGRESS_LINES, MAX_PROGRESS_S, Positions, Progress, is_frame,
 };
 use forja_protocol::gcode::{Decimal, EncodeError, Line, MAX_LINE_LEN, Word};
-use forja_protocol::reply::{Axes, KeyValues, Reply};
+use forja_protocol::reply::{Axes, Counts, Heat, KeyValues, Reply};
 use forja_protocol::stream::{Decoder, Event};
 use proptest::prelude::*;
 
@@ -204,11 +204,16 @@ enum ReplySpec {
     OkWith(String),
     Resend(u32),
     Fault(u16, String),
+    Refused(u16, String),
+    Unknown(String),
+    Busy,
+    Echo(String),
     Notice(u16, String),
     Debug(String),
-    Temperatures(Decimal, Decimal),
-    Position(Vec<(u8, Decimal)>),
-    Capabilities(Vec<(String, String)>),
+    Temperatures(Option<Heat>, Option<Heat>, bool),
+    Position(Vec<(u8, Decimal)>, Vec<(u8, i32)>),
+    Firmware(Vec<(String, String)>),
+    Capability(String, bool),
 }
 
 fn reply_spec() -> impl Strategy<Value = ReplySpec> {
@@ -223,15 +228,36 @@ fn reply_spec() -> impl Strategy<Value = ReplySpec> {
         printable().prop_map(ReplySpec::OkWith),
         any::<u32>().prop_map(ReplySpec::Resend),
         (any::<u16>(), printable()).prop_map(|(c, t)| ReplySpec::Fault(c, t)),
+        (1..=u16::MAX, printable()).prop_map(|(c, t)| ReplySpec::Refused(c, t)),
+        printable().prop_map(ReplySpec::Unknown),
+        Just(ReplySpec::Busy),
+        printable().prop_map(ReplySpec::Echo),
         (1..=u16::MAX, printable()).prop_map(|(c, t)| ReplySpec::Notice(c, t)),
         printable().prop_map(ReplySpec::Debug),
-        (decimal(), decimal()).prop_map(|(t, b)| ReplySpec::Temperatures(t, b)),
-        prop::collection::vec((letter(), decimal()), 0..=8).prop_map(ReplySpec::Position),
+        (heat(), heat(), any::<bool>())
+            .prop_filter("a heater", |(t, b, _)| t.is_some() || b.is_some())
+            .prop_map(|(t, b, ok)| ReplySpec::Temperatures(t, b, ok)),
+        (
+            prop::collection::vec((letter(), decimal()), 1..=8),
+            prop::collection::vec((letter(), any::<i32>()), 0..=8)
+        )
+            .prop_map(|(axes, counts)| ReplySpec::Position(axes, counts)),
         prop::collection::vec(pair, 0..5).prop_map(|mut pairs| {
             pairs.insert(0, ("FIRMWARE_NAME".into(), "Forja".into()));
-            ReplySpec::Capabilities(pairs)
+            ReplySpec::Firmware(pairs)
         }),
+        ("[A-Z0-9_]{1,20}", any::<bool>()).prop_map(|(n, e)| ReplySpec::Capability(n, e)),
     ]
+}
+
+fn heat() -> impl Strategy<Value = Option<Heat>> {
+    prop::option::of(
+        (decimal(), decimal(), 0u8..=127).prop_map(|(current, target, power)| Heat {
+            current,
+            target,
+            power,
+        }),
+    )
 }
 
 fn with_reply<R>(spec: &ReplySpec, f: impl FnOnce(Reply<'_>) -> R) -> R {
@@ -241,22 +267,32 @@ fn with_reply<R>(spec: &ReplySpec, f: impl FnOnce(Reply<'_>) -> R) -> R {
         ReplySpec::OkWith(t) => f(Reply::OkWith(t)),
         ReplySpec::Resend(n) => f(Reply::Resend(*n)),
         ReplySpec::Fault(code, text) => f(Reply::Fault { code: *code, text }),
+        ReplySpec::Refused(code, text) => f(Reply::Refused { code: *code, text }),
+        ReplySpec::Unknown(t) => f(Reply::Unknown(t)),
+        ReplySpec::Busy => f(Reply::Busy),
+        ReplySpec::Echo(t) => f(Reply::Echo(t)),
         ReplySpec::Notice(code, text) => f(Reply::Notice { code: *code, text }),
         ReplySpec::Debug(t) => f(Reply::Debug(t)),
-        ReplySpec::Temperatures(t, b) => f(Reply::Temperatures {
-            extruder: *t,
-            bed: *b,
+        ReplySpec::Temperatures(hot_end, bed, ok) => f(Reply::Temperatures {
+            hot_end: *hot_end,
+            bed: *bed,
+            ok: *ok,
         }),
-        ReplySpec::Position(axes) => f(Reply::Position(
-            axes.iter().map(|&(l, v)| Word::new(l, v)).collect::<Axes>(),
-        )),
-        ReplySpec::Capabilities(pairs) => {
+        ReplySpec::Position(axes, counts) => f(Reply::Position {
+            axes: axes.iter().map(|&(l, v)| Word::new(l, v)).collect::<Axes>(),
+            counts: counts.iter().copied().collect::<Counts>(),
+        }),
+        ReplySpec::Firmware(pairs) => {
             let pairs: Vec<(&str, &str)> = pairs
                 .iter()
                 .map(|(k, v)| (k.as_str(), v.as_str()))
                 .collect();
-            f(Reply::Capabilities(KeyValues::Pairs(&pairs)))
+            f(Reply::Firmware(KeyValues::Pairs(&pairs)))
         }
+        ReplySpec::Capability(name, enabled) => f(Reply::Capability {
+            name,
+            enabled: *enabled,
+        }),
     }
 }
 

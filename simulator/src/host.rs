@@ -9,6 +9,7 @@
 use std::time::{Duration, Instant};
 
 use forja_host::streamer::{Config, Event, Phase, PushError, Stats, Streamer};
+use forja_protocol::reply::Reply;
 
 /// Streams a job through the client's [`Streamer`]. See the [module documentation](self).
 #[derive(Debug)]
@@ -95,12 +96,15 @@ impl StreamHost {
         &self.replies
     }
 
-    /// The `!!` lines among the replies (refused lines and faults), in order.
+    /// The refusals (`echo:E…`, `echo:Unknown command: …`) and faults (`Error:…`) among the
+    /// replies, in order.
     pub fn faults(&self) -> impl Iterator<Item = &str> {
-        self.replies
-            .iter()
-            .map(String::as_str)
-            .filter(|l| l.starts_with("!!"))
+        self.replies.iter().map(String::as_str).filter(|l| {
+            matches!(
+                Reply::parse(l.as_bytes()),
+                Ok(Reply::Refused { .. } | Reply::Unknown(_) | Reply::Fault { .. })
+            )
+        })
     }
 
     /// Every event of the streamer so far, in order.
@@ -137,7 +141,7 @@ mod tests {
         assert!(h.exchange(b"", quiet + 1).is_empty());
         assert_eq!(text(&h.exchange(b"ok\n", quiet + 2)), "N2 G1 X1*99\r\n");
         assert_eq!(
-            text(&h.exchange(b"!! E120 unsupported-command M1\nok\n", quiet + 3)),
+            text(&h.exchange(b"echo:Unknown command: \"M1\"\nok\n", quiet + 3)),
             "N3*125\r\n"
         );
         assert!(!h.is_done());
@@ -145,7 +149,7 @@ mod tests {
         assert!(h.is_done() && h.is_over());
         assert_eq!(
             h.faults().collect::<Vec<_>>(),
-            ["!! E120 unsupported-command M1"]
+            ["echo:Unknown command: \"M1\""]
         );
         assert_eq!(h.replies().len(), 6);
         assert!(matches!(

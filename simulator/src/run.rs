@@ -11,7 +11,7 @@ use std::time::Duration;
 
 use embedded_io::{Read, ReadReady, Write, WriteReady};
 use forja_app::controller::Stats as ControllerStats;
-use forja_drivers::session::LinkSession;
+use forja_drivers::port_link::Admission;
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use forja_host::program::Program;
 use forja_host::streamer::{Config, Stats};
@@ -359,8 +359,8 @@ impl<L: PortLink> PortLink for Watched<L> {
         self.link.connections()
     }
 
-    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
-        let admitted = self.link.admit(session, now_ms)?;
+    fn admit(&mut self, gate: &mut dyn Admission, now_ms: u32) -> Result<bool, Self::Error> {
+        let admitted = self.link.admit(gate, now_ms)?;
         self.watch();
         Ok(admitted)
     }

@@ -105,7 +105,7 @@ fn running_the_sample_job_prints_the_result() {
     std::fs::remove_file(&path).unwrap();
     assert_eq!(out.status.code(), Some(2));
     let text = String::from_utf8(out.stdout).unwrap();
-    assert!(text.contains("!! E127 unknown-axis Q"), "{text}");
+    assert!(text.contains("echo:E127 unknown-axis Q"), "{text}");
     assert!(text.contains("final position: X 156.000"), "{text}");
 }
 

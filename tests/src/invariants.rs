@@ -32,6 +32,7 @@ use std::time::Duration;
 use forja_motion::MachineState;
 use forja_protocol::frame::{Action, ClientMessage, ControllerMessage};
 use forja_protocol::gcode::{Decimal, MAX_LINE_LEN, write_numbered};
+use forja_protocol::reply::Reply;
 use forja_sim::board::{BoardConfig, BoardStatus, SimBoard};
 use forja_sim_hal::link::{MemoryHost, MemoryLink};
 use forja_sim_hal::{MachineConfig, SimMachine};
@@ -428,8 +429,12 @@ impl Host {
             );
             let bytes = sent.bytes.clone();
             self.send_raw(&bytes);
-        } else if (line.starts_with("!!") || line.starts_with("Error:"))
-            && let Some(sent) = self.in_flight.as_mut()
+            // The `ok` that follows an `rs` is the `rs`'s, not the line's.
+            self.owed_oks += 1;
+        } else if matches!(
+            Reply::parse(line.as_bytes()),
+            Ok(Reply::Refused { .. } | Reply::Unknown(_) | Reply::Fault { .. })
+        ) && let Some(sent) = self.in_flight.as_mut()
         {
             sent.refused = true;
         }
@@ -669,7 +674,7 @@ impl Session {
         self.drain();
         let report = self.host.replies.lines[before..]
             .iter()
-            .find(|l| l.starts_with("ok C:"))
+            .find(|l| l.starts_with("X:"))
             .cloned()
             .unwrap_or_else(|| panic!("no M114 report\n{}", self.host.log.tail()));
         for (axis, letter) in ["X:", "Y:", "Z:"].iter().enumerate() {

@@ -69,30 +69,39 @@ fn bad_input_gets_an_error_reply_and_changes_nothing() {
             vec![
                 "N56Error:E21 frame**********************************F",
                 "rs 0",
+                "ok",
             ],
         ),
         (
             "over-long numbered line",
             numbered(0, &format!("G1 X5 ({})", "x".repeat(300))),
-            vec!["rs 0"],
+            vec!["rs 0", "ok"],
         ),
-        ("wrong line number", numbered(7, "G1 X5"), vec!["rs 0"]),
-        ("wrong checksum", b"N0 G1 X5*99\n".to_vec(), vec!["rs 0"]),
+        (
+            "wrong line number",
+            numbered(7, "G1 X5"),
+            vec!["rs 0", "ok"],
+        ),
+        (
+            "wrong checksum",
+            b"N0 G1 X5*99\n".to_vec(),
+            vec!["rs 0", "ok"],
+        ),
         (
             "number without checksum",
             b"N0 G1 X5\n".to_vec(),
-            vec!["rs 0"],
+            vec!["rs 0", "ok"],
         ),
         (
             // The host numbers its lines: a lost line end is the likely cause.
             "over-long unnumbered line",
             format!("G1 X5 ({})\n", "y".repeat(400)).into_bytes(),
-            vec!["rs 0"],
+            vec!["rs 0", "ok"],
         ),
         (
             "unnumbered line that is not G-code",
             b"G1 X=5\n".to_vec(),
-            vec!["!! E9 no-value", "ok"],
+            vec!["echo:E9 no-value", "ok"],
         ),
         (
             "broken action mirror",

@@ -261,8 +261,8 @@ fn the_operators_client_over_tcp() {
     rig.exchange(&mut host, &mut replies, 3_000);
     host.send(b"G1 X100\nM114\n");
     rig.exchange(&mut host, &mut replies, 20);
-    assert!(replies.lines.contains(&"!! E182 job-busy".to_string()));
-    assert!(replies.lines.iter().any(|l| l.starts_with("ok C: X:")));
+    assert!(replies.lines.contains(&"echo:E182 job-busy".to_string()));
+    assert!(replies.lines.iter().any(|l| l.starts_with("X:")));
     ask(
         &mut rig,
         &mut host,

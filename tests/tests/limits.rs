@@ -34,10 +34,12 @@ fn a_move_through_the_switch_trips_the_hard_limit_within_one_step() {
     let alarms: Vec<&String> = replies
         .lines
         .iter()
-        .filter(|l| l.starts_with("!!"))
+        .filter(|l| l.starts_with("Error:"))
         .collect();
     assert!(
-        alarms.iter().any(|l| l.starts_with("!! E150 hard-limit X")),
+        alarms
+            .iter()
+            .any(|l| l.starts_with("Error:E150 hard-limit X")),
         "a hard-limit alarm: {:?}",
         replies.lines
     );
@@ -51,7 +53,7 @@ fn a_move_through_the_switch_trips_the_hard_limit_within_one_step() {
     host.send(b"G1 X10\n");
     rig.exchange(&mut host, &mut replies, 100);
     assert!(
-        replies.lines.iter().any(|l| l.starts_with("!!")),
+        replies.lines.iter().any(|l| l.starts_with("echo:E125")),
         "refused while in alarm: {:?}",
         replies.lines
     );
@@ -76,7 +78,7 @@ fn a_switch_hit_during_a_move_of_its_axis_stops_it_at_once() {
         replies
             .lines
             .iter()
-            .any(|l| l.starts_with("!! E150 hard-limit X")),
+            .any(|l| l.starts_with("Error:E150 hard-limit X")),
         "a hard-limit alarm: {:?}",
         replies.lines
     );

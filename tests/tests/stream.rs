@@ -124,20 +124,26 @@ fn a_printer_job_over_the_pseudo_terminal() {
         .iter()
         .filter_map(|l| Reply::parse(l.as_bytes()).ok())
         .collect();
-    let Some((extruder, bed)) = oks.iter().find_map(|r| match r {
-        Reply::Temperatures { extruder, bed } => Some((extruder, bed)),
+    let Some((Some(hot_end), Some(bed))) = oks.iter().find_map(|r| match r {
+        Reply::Temperatures {
+            hot_end,
+            bed,
+            ok: true,
+        } => Some((*hot_end, *bed)),
         _ => None,
     }) else {
         panic!("no M105 answer: {replies:?}");
     };
+    let (extruder, bed) = (hot_end.current, bed.current);
     assert!((extruder.to_f64() - 200.0).abs() <= 2.0, "{extruder}");
     assert!((bed.to_f64() - 60.0).abs() <= 2.0, "{bed}");
+    assert_eq!((hot_end.target.to_f64(), 60.0), (200.0, 60.0));
     let positions: Vec<&Reply<'_>> = oks
         .iter()
-        .filter(|r| matches!(r, Reply::Position(_)))
+        .filter(|r| matches!(r, Reply::Position { .. }))
         .collect();
     assert_eq!(positions.len(), 2);
-    let Reply::Position(last) = positions[1] else {
+    let Reply::Position { axes: last, .. } = positions[1] else {
         unreachable!()
     };
     let letters: String = last.iter().map(|w| char::from(w.letter)).collect();
@@ -208,10 +214,13 @@ mod damaged {
         // `X` damaged into `Q`, the checksum still matching: asked again, not refused.
         let damaged = numbered(0, "G1 Q5 F600");
         send(&mut rig, &mut host, &mut replies, &format!("{damaged}\n"));
-        assert_eq!(replies.lines, ["rs 0"]);
+        assert_eq!(replies.lines, ["rs 0", "ok"]);
         // The same line again: refused, its number used up.
         send(&mut rig, &mut host, &mut replies, &format!("{damaged}\n"));
-        assert_eq!(replies.lines, ["rs 0", "!! E127 unknown-axis Q", "ok"]);
+        assert_eq!(
+            replies.lines,
+            ["rs 0", "ok", "echo:E127 unknown-axis Q", "ok"]
+        );
         replies.clear();
         // The resent line is taken in order the first time it is intact.
         let line = numbered(2, "G1 Z1 F600");
@@ -227,11 +236,11 @@ mod damaged {
             &mut replies,
             &format!("{}\n", numbered(2, "G1 M3 Q")),
         );
-        assert_eq!(replies.lines, ["ok", "rs 2"]);
+        assert_eq!(replies.lines, ["ok", "rs 2", "ok"]);
         let z = rig.machine.positions_mm()[2];
         send(&mut rig, &mut host, &mut replies, &format!("{line}\n"));
         rig.settle(&mut host, &mut replies);
-        assert_eq!(replies.lines, ["ok", "rs 2", "ok"]);
+        assert_eq!(replies.lines, ["ok", "rs 2", "ok", "ok"]);
         assert!((rig.machine.positions_mm()[2] - z - 1.0).abs() < 1e-3);
     }
 
@@ -242,7 +251,7 @@ mod damaged {
         for line in [numbered(0, "G1 X5 F600"), strong(0, "G1 X5 F600")] {
             let cut = line.replacen('*', "\n", 1);
             send(&mut rig, &mut host, &mut replies, &format!("{cut}\r\n"));
-            assert_eq!(replies.lines, ["rs 0"], "{cut:?}");
+            assert_eq!(replies.lines, ["rs 0", "ok"], "{cut:?}");
             replies.clear();
         }
         assert_eq!(rig.machine.positions_mm(), before);
@@ -252,7 +261,7 @@ mod damaged {
         rig.board.add_port(link, false);
         let mut replies = Replies::default();
         send(&mut rig, &mut host, &mut replies, "71\n");
-        assert_eq!(replies.lines, ["start", "!! E15 line-fragment", "ok"]);
+        assert_eq!(replies.lines, ["start", "echo:E15 line-fragment", "ok"]);
     }
 
     #[test]
@@ -278,8 +287,9 @@ mod damaged {
             host.send(&[*b]);
             rig.exchange(&mut host, &mut replies, 60);
         }
-        assert_eq!(replies.lines.len(), 1, "{:?}", replies.lines);
-        assert!(replies.lines[0].contains(" X:"), "{:?}", replies.lines);
+        assert_eq!(replies.lines.len(), 2, "{:?}", replies.lines);
+        assert!(replies.lines[0].starts_with("X:"), "{:?}", replies.lines);
+        assert_eq!(replies.lines[1], "ok");
         // A numbered line whose terminator was lost is still taken once the link is quiet.
         replies.clear();
         host.send(numbered(1, "G1 X-10").as_bytes());
@@ -328,7 +338,7 @@ mod damaged {
         send(&mut rig, &mut host, &mut replies, "M105\n");
         replies.clear();
         send(&mut rig, &mut host, &mut replies, "M114\x00\n");
-        assert_eq!(replies.lines, ["!! E8 bad-character", "ok"]);
+        assert_eq!(replies.lines, ["echo:E8 bad-character", "ok"]);
         assert!(replies.frames().is_empty());
         // Control bytes alone between lines cost no line: no reply.
         replies.clear();
@@ -337,7 +347,7 @@ mod damaged {
         // A host that numbers its lines is asked to resend.
         let (mut rig, mut host, mut replies) = numbered_rig();
         send(&mut rig, &mut host, &mut replies, "N0 M1\x0014*99\n");
-        assert_eq!(replies.lines, ["rs 0"]);
+        assert_eq!(replies.lines, ["rs 0", "ok"]);
     }
 
     #[test]
@@ -354,9 +364,9 @@ mod damaged {
         // Two digits swapped in the body: the XOR could not see it.
         let damaged = line.replacen("G91", "G19", 1);
         send(&mut rig, &mut host, &mut replies, &format!("{damaged}\n"));
-        assert_eq!(replies.lines, ["rs 0"]);
-        send(&mut rig, &mut host, &mut replies, &format!("{line}\n"));
         assert_eq!(replies.lines, ["rs 0", "ok"]);
+        send(&mut rig, &mut host, &mut replies, &format!("{line}\n"));
+        assert_eq!(replies.lines, ["rs 0", "ok", "ok"]);
         // Once the CRC is used, a numbered line with the XOR alone is asked again.
         send(
             &mut rig,
@@ -364,6 +374,6 @@ mod damaged {
             &mut replies,
             &format!("{}\n", numbered(1, "G90")),
         );
-        assert_eq!(replies.lines, ["rs 0", "ok", "rs 1"]);
+        assert_eq!(replies.lines, ["rs 0", "ok", "ok", "rs 1", "ok"]);
     }
 }

@@ -454,10 +454,11 @@ impl Observer for Notices {
 /// Positions read from `M114` or frame 51, in [`AXES`] order, mm.
 type Position = [f64; 4];
 
-/// The positions of an `ok C: X:… Y:… Z:… A:…` reply.
+/// The positions of an `X:… Y:… Z:… A:… Count …` reply (the counts are not read).
 fn parse_m114(reply: &str) -> Result<Position, Error> {
     let mut out = [f64::NAN; 4];
-    for word in reply.split_whitespace() {
+    let positions = reply.split(" Count").next().unwrap_or(reply);
+    for word in positions.split_whitespace() {
         if let Some((letter, value)) = word.split_once(':')
             && let Some(i) = AXES.iter().position(|a| a.to_string() == letter)
         {
@@ -501,13 +502,17 @@ fn show(p: &Position) -> String {
 }
 
 impl QemuBoard {
-    /// The next reply line that is not a comment (`//`) or an unsolicited frame; a `!!` fails.
+    /// The next reply line that is not a comment (`//`) or an unsolicited frame; a refusal
+    /// (`echo:E…`, `echo:Unknown command`) or a fault (`Error:`) fails.
     fn reply(&mut self, timeout: Duration) -> Result<String, Error> {
         let deadline = Instant::now() + timeout;
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
             let line = self.read_line(left.max(Duration::from_millis(1)))?;
-            if line.starts_with("!!") {
+            if line.starts_with("Error:")
+                || line.starts_with("echo:E")
+                || line.starts_with("echo:Unknown")
+            {
                 return Err(Error(format!("the firmware refused or faulted: {line}")));
             }
             if line.starts_with("//") || line.starts_with("N55") || line.is_empty() {
@@ -517,13 +522,32 @@ impl QemuBoard {
         }
     }
 
-    /// Send `text` as an unnumbered line and expect `ok …`.
+    /// Send `text` as an unnumbered line that reports (`M114`): the report line, then its `ok`.
+    fn query(&mut self, text: &str) -> Result<String, Error> {
+        let report = self.command(text)?;
+        if report.starts_with("ok") {
+            return Err(Error(format!(
+                "`{text}`: expected a report, got {report:?}"
+            )));
+        }
+        let ok = self
+            .reply(REPLY_TIMEOUT)
+            .map_err(|e| Error(format!("`{text}`: {e}")))?;
+        if ok == "ok" {
+            Ok(report)
+        } else {
+            Err(Error(format!("`{text}`: expected ok, got {ok:?}")))
+        }
+    }
+
+    /// Send `text` as an unnumbered line and expect `ok …`, or a report line (which an `ok`
+    /// follows: [`QemuBoard::query`]).
     fn command(&mut self, text: &str) -> Result<String, Error> {
         self.send(format!("{text}\n").as_bytes())?;
         let reply = self
             .reply(REPLY_TIMEOUT)
             .map_err(|e| Error(format!("`{text}`: {e}")))?;
-        if reply.starts_with("ok") {
+        if reply.starts_with("ok") || reply.starts_with("X:") {
             Ok(reply)
         } else {
             Err(Error(format!("`{text}`: expected ok, got {reply:?}")))
@@ -704,7 +728,7 @@ pub fn end_to_end(elf: &Path) -> Result<EndToEnd, Error> {
             report.refused
         )));
     }
-    let m114 = parse_m114(&board.command("M114")?)?;
+    let m114 = parse_m114(&board.query("M114")?)?;
     let streamed = board.wait_at(&m114, "streamed job")?;
     let stream_time = started.elapsed();
     eprintln!(
@@ -772,7 +796,7 @@ pub fn end_to_end(elf: &Path) -> Result<EndToEnd, Error> {
         }
         std::thread::sleep(Duration::from_millis(100));
     };
-    let m114 = parse_m114(&board.command("M114")?)?;
+    let m114 = parse_m114(&board.query("M114")?)?;
     let positions = board.wait_at(&m114, "program")?;
     let run_time = started.elapsed();
     eprintln!(

@@ -155,14 +155,7 @@ where
                 Ok(())
             }
             Action::Stop => {
-                if self.job_active() {
-                    self.job.stop(&mut self.kernel);
-                } else {
-                    self.kernel.stop();
-                }
-                self.job_heat = false;
-                self.end_heat_wait(out);
-                self.drop_waiting(&Refusal::new(&ControllerError::Stopped), out);
+                self.quick_stop(out);
                 Ok(())
             }
             Action::Rewind => self.job.rewind().map_err(|e| Refusal::new(&e)),

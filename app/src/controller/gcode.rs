@@ -4,31 +4,58 @@ use core::fmt::Write as _;
 
 use embedded_io::Write;
 use forja_hal_abstraction::storage::RecordStorage;
-use forja_protocol::gcode::{Decimal, Line, LineError, Recovery};
-use forja_protocol::reply::{Axes, FORJA_CAPABILITIES, KeyValues, LINE_CHECK, Reply, Word};
+use forja_hal_abstraction::thermal::FULL_POWER;
+use forja_protocol::gcode::{Decimal, Line, LineError, MAX_LINE_LEN, Recovery};
+use forja_protocol::reply::{
+    Axes, Counts, FORJA_CAPABILITIES, Heat, KeyValues, LINE_CHECK, Reply, Word,
+};
 
-use super::peripherals::{Devices, PeripheralError, Peripherals, Reading};
+use super::host::{HostProgress, MESSAGE_LEN};
+use super::peripherals::{Devices, HeatWait, HeatZones, PeripheralError, Peripherals, Reading};
 use super::text::{self, Refusal, Text};
 use super::{
     ControllerConfig, ControllerError, Core, Dropped, Held, JobState, LineBuf, Queued, wire,
 };
 use crate::error::JobError;
 use forja_hal_abstraction::program::ProgramStore;
-use forja_motion::config::HomeDirection;
-use forja_motion::effect::{Effect, StopKind, Storage};
+use forja_motion::config::{AxisKind, HomeDirection};
+use forja_motion::effect::{Effect, Heater, StopKind, Storage, TemperatureWait};
 use forja_motion::error::{Alarm, CommandError};
 use forja_motion::{MachineState, PositionReport, Reply as KernelReply};
 
 /// What carrying out an effect came to.
+#[derive(Clone, Copy)]
 enum Done {
     Ok,
     Refused(Refusal),
+    /// `M<n>`, a command the board does not have.
+    Unknown(u32),
     Temperatures,
     Firmware,
     Endstops,
-    Wait,
+    /// `M109`, `M190`, `M116`: hold the lines until the heaters are there.
+    Wait(HeatWait),
     /// `M0`, `M112`: the controller stops ([`Core::stop`]) once the effect is done with.
     Stop(StopKind),
+    /// `M410`: motion stops, the waiting lines are answered without running.
+    QuickStop,
+    /// `M73`.
+    Progress(HostProgress),
+    /// `M117`: the message, as far as it is kept.
+    Message(Text<MESSAGE_LEN>),
+    /// `M118`: the text after the command.
+    HostMessage(Text<MAX_LINE_LEN>),
+    /// `M155`.
+    AutoReport(u8),
+    /// `M113`.
+    BusyInterval(Option<u8>),
+}
+
+/// `bytes` as far as they fit `C` bytes of printable ASCII.
+fn copied<const C: usize>(bytes: &[u8]) -> Text<C> {
+    let mut t = Text::new();
+    let _ = t.write_str(core::str::from_utf8(bytes).unwrap_or("?"));
+    t
 }
 
 /// The `M` number of a storage command (`M20`–`M29`).
@@ -69,6 +96,8 @@ pub enum Realtime {
     EmergencyStop,
     /// `M108`: end a heater wait.
     CancelWait,
+    /// `M410`: stop the motion, answer the waiting lines without running them.
+    QuickStop,
 }
 
 /// The realtime command of a line (its bytes without the terminator), as Marlin's emergency
@@ -81,6 +110,7 @@ pub fn realtime(bytes: &[u8]) -> Option<Realtime> {
     let of = |n: i64| match n {
         112 => Some(Realtime::EmergencyStop),
         108 => Some(Realtime::CancelWait),
+        410 => Some(Realtime::QuickStop),
         _ => None,
     };
     if let Ok(line) = Line::parse(bytes)
@@ -113,14 +143,31 @@ pub fn realtime(bytes: &[u8]) -> Option<Realtime> {
     of(n)
 }
 
+/// The `Cap:` lines of `M115`, each with whether it needs a heater: what this firmware does,
+/// under the names Marlin gives it and OctoPrint and CNCjs look for.
+///
+/// | name | what |
+/// |---|---|
+/// | `EMERGENCY_PARSER` | `M112`, `M108` and `M410` act as they arrive, ahead of waiting lines |
+/// | `ARCS` | `G2`/`G3` |
+/// | `BUILD_PERCENT` | `M73` |
+/// | `HOST_ACTION_COMMANDS` | `// action:notification …` when a halted machine is connected to |
+/// | `AUTOREPORT_TEMP` | `M155` |
+/// | `THERMAL_PROTECTION` | heater runaway and sensor faults stop the machine |
+const CAPABILITIES: &[(&str, bool)] = &[
+    ("EMERGENCY_PARSER", false),
+    ("ARCS", false),
+    ("BUILD_PERCENT", false),
+    ("HOST_ACTION_COMMANDS", false),
+    ("AUTOREPORT_TEMP", true),
+    ("THERMAL_PROTECTION", true),
+];
+
 /// A temperature in tenths of a degree, for replies.
 fn celsius(mc: i32) -> Decimal {
     let mc = i64::from(mc);
     Decimal::new((mc + 50 * mc.signum()) / 100, 1)
 }
-
-/// What `M105` says of a heater the board does not have: below absolute zero (the seed).
-const ABSENT_C: Decimal = Decimal::from_integer(-300);
 
 /// A position in mm with three decimals.
 fn millimetres(v: f64) -> Decimal {
@@ -138,10 +185,27 @@ where
         wire::ok(out);
     }
 
-    /// `!! E<code> <text>` then `ok`: the line had no effect, the host goes on.
+    /// `echo:E<code> <text>` then `ok`: the line had no effect, the host goes on.
     pub(super) fn refuse<W: Write>(&mut self, r: &Refusal, out: &mut W) {
         self.stats.refused = self.stats.refused.wrapping_add(1);
-        wire::fault(out, r);
+        wire::refused(out, r);
+        self.ok(out);
+    }
+
+    /// A command this firmware does not have: Marlin's `echo:Unknown command: "<command>"`
+    /// then `ok`. Nothing changed; hosts pass over it.
+    fn unknown<W: Write>(&mut self, line: &Line<'_>, letter: u8, out: &mut W) {
+        self.stats.refused = self.stats.refused.wrapping_add(1);
+        let mut command = Text::<24>::new();
+        match line.words().iter().find(|w| w.letter == letter && !w.bare) {
+            Some(w) => {
+                let _ = write!(command, "{}{}", text::letter(w.letter), w.value);
+            }
+            None => {
+                let _ = write!(command, "{}", text::letter(letter));
+            }
+        }
+        let _ = wire::reply(out, &Reply::Unknown(command.as_str()));
         self.ok(out);
     }
 
@@ -153,6 +217,7 @@ where
             match realtime(bytes) {
                 Some(Realtime::EmergencyStop) => return self.emergency(bytes, out),
                 Some(Realtime::CancelWait) => self.cancel_waits(out),
+                Some(Realtime::QuickStop) => self.quick_stop(out),
                 None => {}
             }
         }
@@ -242,7 +307,9 @@ where
         if let Err(e) = self.accept_number(&line) {
             return self.drop_damaged(&e, why, out);
         }
-        if line.is_empty() || line.is_command(b'M', 110) || line.is_command(b'M', 108) {
+        // `M108` and `M410` acted when they arrived.
+        let acted = line.is_command(b'M', 108) || line.is_command(b'M', 410);
+        if line.is_empty() || line.is_command(b'M', 110) || acted {
             self.executed();
             return self.ok(out);
         }
@@ -289,7 +356,7 @@ where
     /// `M108`: end the heater waits, of the link's `M109`/`M116` (its `ok` goes out) and of the
     /// stored program. The targets stay.
     fn cancel_waits<W: Write>(&mut self, out: &mut W) {
-        self.job_heat = false;
+        self.job_heat = None;
         self.end_heat_wait(out);
     }
 
@@ -341,7 +408,9 @@ where
             return self.ok(out);
         }
         if line.is_command(b'M', 110) {
-            // The numbering took it already (`N-1 M110 N-1` included).
+            // The numbering took it already (`N-1 M110 N-1` included). A host connecting
+            // sends it first: a halted machine says so.
+            self.halted_notice(out);
             self.executed();
             return self.ok(out);
         }
@@ -398,6 +467,9 @@ where
                     self.link.asked_again = Some(n);
                     self.stats.resends = self.stats.resends.wrapping_add(1);
                     return wire::resend(out, n);
+                }
+                if let CommandError::Unsupported { letter, .. } = e {
+                    return self.unknown(line, letter, out);
                 }
                 let r = text::command_refusal(&e, &self.letters());
                 self.refuse(&r, out);
@@ -466,13 +538,24 @@ where
                 if mc > 0 && state == MachineState::Alarm(Alarm::EmergencyStop) {
                     return Done::Refused(Refusal::new(&CommandError::Locked));
                 }
-                match devices.set_temperature(heater, mc) {
-                    Ok(()) if wait => Done::Wait,
-                    Ok(()) => Done::Ok,
-                    Err(e) => Done::Refused(Refusal::new(&e)),
+                let zones = match heater {
+                    Heater::Bed => HeatZones::Bed,
+                    Heater::Extruder(_) => HeatZones::HotEnd,
+                };
+                match (devices.set_temperature(heater, mc), wait) {
+                    (Err(e), _) => Done::Refused(Refusal::new(&e)),
+                    (Ok(()), TemperatureWait::No) => Done::Ok,
+                    (Ok(()), TemperatureWait::Heating) => Done::Wait(HeatWait {
+                        zones,
+                        heating_only: true,
+                    }),
+                    (Ok(()), TemperatureWait::Reach) => Done::Wait(HeatWait {
+                        zones,
+                        heating_only: false,
+                    }),
                 }
             }
-            Effect::WaitForTemperatures => Done::Wait,
+            Effect::WaitForTemperatures => Done::Wait(HeatWait::ALL),
             Effect::ReportTemperatures => Done::Temperatures,
             Effect::Fan { index, duty } => match devices.set_fan(index, duty) {
                 Ok(()) => Done::Ok,
@@ -493,23 +576,32 @@ where
             },
             Effect::ReportFirmware => Done::Firmware,
             Effect::ReportEndstops => Done::Endstops,
-            Effect::Storage(s) => Done::Refused(text::command_refusal(
-                &CommandError::Unsupported {
-                    letter: b'M',
-                    number: Some(storage_number(&s)),
-                },
-                &[],
-            )),
+            Effect::Storage(s) => Done::Unknown(storage_number(&s)),
             Effect::SelectTool(t) if t < config.extruders.max(1) => Done::Ok,
             Effect::SelectTool(t) => Done::Refused(Refusal::with(
                 &CommandError::BadValue { letter: b'T' },
                 format_args!("T{t}"),
             )),
-            Effect::Motors { enabled } => match devices.set_motors(enabled) {
+            Effect::Motors { enabled, axes } => match devices.set_axis_motors(enabled, axes) {
                 Ok(()) => Done::Ok,
                 Err(e) => Done::Refused(Refusal::new(&e)),
             },
             Effect::Stopped(kind) => Done::Stop(kind),
+            Effect::MotionDone => Done::Ok,
+            Effect::QuickStop => Done::QuickStop,
+            Effect::Progress {
+                percent,
+                remaining_min,
+                layer,
+            } => Done::Progress(HostProgress {
+                percent,
+                remaining_min,
+                layer,
+            }),
+            Effect::Message(text) => Done::Message(copied(text)),
+            Effect::HostMessage(text) => Done::HostMessage(copied(text)),
+            Effect::AutoReport { seconds } => Done::AutoReport(seconds),
+            Effect::BusyInterval(seconds) => Done::BusyInterval(seconds),
         }
     }
 
@@ -520,7 +612,7 @@ where
         if kind == StopKind::Emergency {
             self.job.stop(&mut self.kernel);
             self.reported_alarm = Some(Alarm::EmergencyStop);
-            self.job_heat = false;
+            self.job_heat = None;
         }
         self.devices.shutdown();
         let _ = self.devices.set_motors(false);
@@ -532,25 +624,27 @@ where
         match done {
             Done::Ok => self.ok(out),
             Done::Refused(r) => self.refuse(&r, out),
+            Done::Unknown(n) => {
+                self.stats.refused = self.stats.refused.wrapping_add(1);
+                let mut command = Text::<12>::new();
+                let _ = write!(command, "M{n}");
+                let _ = wire::reply(out, &Reply::Unknown(command.as_str()));
+                self.ok(out);
+            }
             Done::Temperatures => {
-                let t = self.devices.temperatures();
-                let current = |r: Option<Reading>| r.map_or(ABSENT_C, |r| celsius(r.current_mc));
                 self.stats.oks = self.stats.oks.wrapping_add(1);
-                let _ = wire::reply(
-                    out,
-                    &Reply::Temperatures {
-                        extruder: current(t.hot_end),
-                        bed: current(t.bed),
-                    },
-                );
+                if !self.write_temperatures(true, out) {
+                    wire::ok(out);
+                }
             }
             Done::Firmware => self.firmware_reply(out),
             Done::Endstops => self.endstops_reply(out),
-            Done::Wait => {
-                if self.heaters_at_target() {
+            Done::Wait(wait) => {
+                if self.heat_done(wait) {
                     self.ok(out);
                 } else {
                     self.link.held = Some(Held::Heat {
+                        wait,
                         next_report_ms: self
                             .clock
                             .ms
@@ -565,22 +659,87 @@ where
                 }
                 self.ok(out);
             }
+            other => {
+                self.carry_out(other, out);
+                self.ok(out);
+            }
         }
     }
 
-    /// Whether every heater with a target is within the tolerance of it.
-    pub(super) fn heaters_at_target(&mut self) -> bool {
-        self.devices
-            .heaters_at_target(self.config.heater_tolerance_mc)
+    /// When the machine is locked by an alarm or halted: `// action:notification Machine
+    /// halted: E<code> <name>. Send M999 to clear.` (OctoPrint shows it to its user; other
+    /// hosts show or pass over a `//` line). Written at a host's connection (`M110`, `M115`);
+    /// every line refused meanwhile says `E125 alarm-locked` or `E126 halted`.
+    fn halted_notice<W: Write>(&mut self, out: &mut W) {
+        let mut line = Text::<96>::new();
+        let _ = match self.kernel.state() {
+            MachineState::Alarm(a) => {
+                let r = text::alarm_refusal(&a, &self.letters());
+                write!(
+                    line,
+                    "action:notification Machine halted: E{} {}",
+                    r.code,
+                    r.text()
+                )
+            }
+            MachineState::Halted => write!(line, "action:notification Machine halted by M0"),
+            _ => return,
+        };
+        let _ = line.write_str(". Send M999 to clear.");
+        let _ = wire::reply(out, &Reply::Debug(line.as_str()));
     }
 
+    /// Carry out what an effect left to the controller (from the link or the stored program);
+    /// whether it was one of those. The answer is the caller's.
+    fn carry_out<W: Write>(&mut self, done: Done, out: &mut W) -> bool {
+        match done {
+            Done::QuickStop => self.quick_stop(out),
+            Done::Progress(p) => self.set_host_progress(p),
+            Done::Message(t) => self.set_message(t.as_bytes()),
+            Done::HostMessage(t) => self.host_message(t.as_bytes(), out),
+            Done::AutoReport(s) => self.set_auto_report(s),
+            Done::BusyInterval(s) => self.busy_interval(s, out),
+            _ => return false,
+        }
+        true
+    }
+
+    /// `M410` and the stop frame: the motion stops (the stored program with it) and the heater
+    /// waits end; the lines received before it and not yet answered are answered without
+    /// running. The machine keeps its position and homing.
+    pub(super) fn quick_stop<W: Write>(&mut self, out: &mut W) {
+        if self.job_active() {
+            self.job.stop(&mut self.kernel);
+        } else {
+            self.kernel.stop();
+        }
+        self.job_heat = None;
+        self.end_heat_wait(out);
+        self.drop_waiting(&Refusal::new(&ControllerError::Stopped), out);
+    }
+
+    /// Whether every heater with a target is within the tolerance of it.
+    pub(super) fn heat_done(&mut self, wait: HeatWait) -> bool {
+        self.devices
+            .heat_done(wait, self.config.heater_tolerance_mc)
+    }
+
+    /// `X:… Y:… Z:… E:… Count X:… Y:… Z:…` then `ok`: the work positions, then the step counts
+    /// of the axes that are not extruders, as Marlin reports them.
     fn position_reply<W: Write>(&mut self, p: &PositionReport<N>, out: &mut W) {
         let mut axes = Axes::new();
         for (letter, mm) in p.letters.iter().zip(p.work_mm.iter()) {
             let _ = axes.push(Word::new(*letter, millimetres(*mm)));
         }
-        self.stats.oks = self.stats.oks.wrapping_add(1);
-        let _ = wire::reply(out, &Reply::Position(axes));
+        let steps = self.kernel.machine_steps();
+        let mut counts = Counts::new();
+        for (axis, steps) in self.kernel.config().axes.iter().zip(steps) {
+            if axis.kind != AxisKind::Extruder {
+                let _ = counts.push((axis.letter, steps));
+            }
+        }
+        let _ = wire::reply(out, &Reply::Position { axes, counts });
+        self.ok(out);
     }
 
     fn firmware_reply<W: Write>(&mut self, out: &mut W) {
@@ -597,10 +756,19 @@ where
             LINE_CHECK,
         ];
         let base = [a, b, c, d, ("EXTRUDER_COUNT", count.as_str()), LINE_CHECK];
-        self.stats.oks = self.stats.oks.wrapping_add(1);
-        if !wire::reply(out, &Reply::Capabilities(KeyValues::Pairs(&full))) {
-            let _ = wire::reply(out, &Reply::Capabilities(KeyValues::Pairs(&base)));
+        if !wire::reply(out, &Reply::Firmware(KeyValues::Pairs(&full))) {
+            let _ = wire::reply(out, &Reply::Firmware(KeyValues::Pairs(&base)));
         }
+        self.halted_notice(out);
+        let heaters = self.devices.temperatures();
+        let has_heaters = heaters.hot_end.is_some() || heaters.bed.is_some();
+        for &(name, needs_heaters) in CAPABILITIES {
+            if has_heaters || !needs_heaters {
+                let enabled = true;
+                let _ = wire::reply(out, &Reply::Capability { name, enabled });
+            }
+        }
+        self.ok(out);
     }
 
     fn endstops_reply<W: Write>(&mut self, out: &mut W) {
@@ -632,26 +800,31 @@ where
         }
     }
 
-    /// `// T:<hot end> /<target> B:<bed> /<target>`, during a wait.
+    /// ` T:<hot end> /<target> B:<bed> /<target> @:<power> B@:<power>`, during a wait and for
+    /// `M155`.
     pub(super) fn report_temperatures<W: Write>(&mut self, out: &mut W) {
+        self.write_temperatures(false, out);
+    }
+
+    /// The temperature report, `M105`'s answer (`ok` first) or a report; `false` (nothing
+    /// written) on a board without heaters.
+    fn write_temperatures<W: Write>(&mut self, ok: bool, out: &mut W) -> bool {
         let t = self.devices.temperatures();
-        let mut line = Text::<64>::new();
-        for (name, r) in [("T", t.hot_end), ("B", t.bed)] {
-            if let Some(r) = r {
-                if !line.as_bytes().is_empty() {
-                    let _ = line.write_str(" ");
-                }
-                let _ = write!(
-                    line,
-                    "{name}:{} /{}",
-                    celsius(r.current_mc),
-                    celsius(r.target_mc)
-                );
-            }
-        }
-        if !line.as_bytes().is_empty() {
-            let _ = wire::reply(out, &Reply::Debug(line.as_str()));
-        }
+        let heat = |r: Reading| Heat {
+            current: celsius(r.current_mc),
+            target: celsius(r.target_mc),
+            // Marlin's scale: 0 to 127.
+            power: ((u32::from(r.power) * 127 + u32::from(FULL_POWER) / 2) / u32::from(FULL_POWER))
+                as u8,
+        };
+        wire::reply(
+            out,
+            &Reply::Temperatures {
+                hot_end: t.hot_end.map(heat),
+                bed: t.bed.map(heat),
+                ok,
+            },
+        )
     }
 
     /// Soft reset (`M999`, frame `Reset`): the kernel's alarms and modal state, the job (its
@@ -661,14 +834,14 @@ where
         self.devices.reset();
         self.thermal = None;
         self.reported_alarm = None;
-        self.job_heat = false;
+        self.job_heat = None;
         self.end_heat_wait(out);
     }
 
     /// Feed the stored program to the kernel, carrying out its effects.
     pub(super) fn feed_job<W: Write>(&mut self, out: &mut W) {
         for _ in 0..64 {
-            if !self.job_active() || self.job_heat {
+            if !self.job_active() || self.job_heat.is_some() {
                 return;
             }
             let before = self.job.next_line();
@@ -696,7 +869,18 @@ where
                     self.error_frame(&r, out);
                     return;
                 }
-                Done::Wait => self.job_heat = !self.heaters_at_target(),
+                Done::Unknown(n) => {
+                    let e = CommandError::Unsupported {
+                        letter: b'M',
+                        number: Some(n),
+                    };
+                    self.job.stop(&mut self.kernel);
+                    self.error_frame(&text::command_refusal(&e, &[]), out);
+                    return;
+                }
+                Done::Wait(wait) => {
+                    self.job_heat = (!self.heat_done(wait)).then_some(wait);
+                }
                 Done::Stop(kind) => {
                     if let Some(fault) = self.stop(kind) {
                         self.end_heat_wait(out);
@@ -704,7 +888,13 @@ where
                         return;
                     }
                 }
-                Done::Ok | Done::Temperatures | Done::Firmware | Done::Endstops => {}
+                Done::QuickStop => {
+                    self.quick_stop(out);
+                    return;
+                }
+                other => {
+                    self.carry_out(other, out);
+                }
             }
             if self.job.state() != JobState::Running {
                 return;

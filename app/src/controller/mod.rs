@@ -19,7 +19,7 @@
 //!  ───────────                                     ──────────
 //!  boot(link)                                  ──► "start"
 //!  on_connect(link)   (links with a session)   ──► frame 54
-//!  keep_alive(n, link) (LinkSession)           ──► frame 55
+//!  keep_alive(n, link) (session::LinkSession)  ──► frame 55
 //!  loop {
 //!    out = poll(clock.now(), link)              ──► kernel.poll, job, heaters, waits,
 //!    if let Some(at) = out.arm_alarm {              read the link, answer lines and frames
@@ -86,6 +86,7 @@
 
 mod frames;
 mod gcode;
+mod host;
 pub mod peripherals;
 pub mod settings;
 pub mod store;
@@ -108,9 +109,11 @@ use forja_protocol::reply::Reply;
 use forja_protocol::stream::{Decoder, Event, FeedResult};
 
 pub use gcode::{Realtime, realtime};
+pub use host::{BUSY_INTERVAL_MS, HostProgress, MESSAGE_LEN};
 pub use peripherals::{NoPeripherals, PeripheralError, Peripherals, Reading, Temperatures};
 
-use peripherals::Devices;
+use host::HostReports;
+use peripherals::{Devices, HeatWait};
 pub use settings::{
     AXIS_RECORDS, AxisField, DEFAULT_KEEP_ALIVE_MS, GLOBAL_RECORDS, Key, LoadReport,
     MAX_PASSWORD_LEN, MAX_SSID_LEN, NoStorage, SettingError, Settings,
@@ -645,9 +648,11 @@ enum Held {
     /// A `G28` runs the homing cycle; its `ok` is sent when the cycle ends, as a RepRap host
     /// expects (an `M114` after it then reports the homed position).
     Homing,
-    /// An `M109`/`M116` waits for the heaters; its `ok` is sent when they are at target.
+    /// An `M109`/`M190`/`M116` waits for its heaters; its `ok` is sent when they are there.
     Heat {
-        /// When to send the next `// T:…` line.
+        /// What it waits for.
+        wait: HeatWait,
+        /// When to send the next temperature report.
         next_report_ms: u32,
     },
 }
@@ -710,7 +715,9 @@ struct Core<'q, const N: usize, const B: usize, const Q: usize, P, X, S> {
     now: Instant,
     reported_alarm: Option<Alarm>,
     thermal: Option<PeripheralError>,
-    job_heat: bool,
+    job_heat: Option<HeatWait>,
+    /// What the host set beside its lines, and the unrequested lines due to it.
+    host: HostReports,
     next_peripherals_ms: u32,
     load_total: Option<u16>,
     /// Something was given to the kernel during this poll: poll it again before returning.
@@ -766,7 +773,8 @@ where
                 now: Instant::from_ticks(0),
                 reported_alarm: None,
                 thermal: None,
-                job_heat: false,
+                job_heat: None,
+                host: HostReports::new(),
                 next_peripherals_ms: 0,
                 load_total: None,
                 taken: false,
@@ -807,6 +815,7 @@ where
                 reported_alarm: c.reported_alarm,
                 thermal: c.thermal,
                 job_heat: c.job_heat,
+                host: c.host,
                 next_peripherals_ms: c.next_peripherals_ms,
                 load_total: c.load_total,
                 taken: c.taken,
@@ -841,7 +850,8 @@ where
         self.core.emergency_stop(out);
     }
 
-    /// Write frame 55 with `counter` (from the board's `LinkSession`).
+    /// Write frame 55 with `counter` (from the board's
+    /// [`LinkSession`](crate::session::LinkSession)).
     pub fn keep_alive<W: Write>(&mut self, counter: u32, out: &mut W) {
         wire::frame(out, &ControllerMessage::KeepAlive { counter });
     }
@@ -1002,6 +1012,16 @@ where
         &mut self.core.storage
     }
 
+    /// The job progress the host announced last (`M73`).
+    pub fn host_progress(&self) -> HostProgress {
+        self.core.host.progress
+    }
+
+    /// The operator's message the host set last (`M117`; empty when none).
+    pub fn message(&self) -> &str {
+        self.core.host.message.as_str()
+    }
+
     /// What the controller has done so far.
     pub fn stats(&self) -> Stats {
         self.core.stats
@@ -1110,7 +1130,7 @@ where
                 self.reported_alarm = Some(Alarm::EmergencyStop);
                 self.job.stop(&mut self.kernel);
                 self.devices.shutdown();
-                self.job_heat = false;
+                self.job_heat = None;
                 self.end_heat_wait(out);
                 self.report_fault(&text::Refusal::new(&e), out);
             }
@@ -1120,7 +1140,7 @@ where
                 if self.reported_alarm != Some(a) {
                     self.reported_alarm = Some(a);
                     self.devices.shutdown();
-                    self.job_heat = false;
+                    self.job_heat = None;
                     self.end_heat_wait(out);
                     let r = text::alarm_refusal(&a, &self.letters());
                     self.report_fault(&r, out);
@@ -1128,8 +1148,10 @@ where
             }
             _ => self.reported_alarm = None,
         }
-        if self.job_heat && self.heaters_at_target() {
-            self.job_heat = false;
+        if let Some(wait) = self.job_heat
+            && self.heat_done(wait)
+        {
+            self.job_heat = None;
         }
         if matches!(self.link.held, Some(Held::Homing))
             && self.kernel.state() != MachineState::Homing
@@ -1137,11 +1159,16 @@ where
             self.link.held = None;
             self.ok(out);
         }
-        if let Some(Held::Heat { next_report_ms }) = self.link.held {
-            if self.heaters_at_target() {
+        if let Some(Held::Heat {
+            wait,
+            next_report_ms,
+        }) = self.link.held
+        {
+            if self.heat_done(wait) {
                 self.end_heat_wait(out);
             } else if self.clock.reached(next_report_ms) {
                 self.link.held = Some(Held::Heat {
+                    wait,
                     next_report_ms: self
                         .clock
                         .ms
@@ -1150,9 +1177,10 @@ where
                 self.report_temperatures(out);
             }
         }
+        self.host_reports(out);
     }
 
-    /// End an `M109`/`M116` of the link: its `ok` goes out.
+    /// End an `M109`/`M190`/`M116` of the link: its `ok` goes out.
     fn end_heat_wait<W: Write>(&mut self, out: &mut W) {
         if let Some(Held::Heat { .. }) = self.link.held {
             self.link.held = None;
@@ -1160,7 +1188,7 @@ where
         }
     }
 
-    /// A fault that stopped the machine, not the answer to a line: `!!` for a G-code host,
+    /// A fault that stopped the machine, not the answer to a line: `Error:` for a G-code host,
     /// 56 for a frame client (both when it cannot tell).
     fn report_fault<W: Write>(&mut self, r: &text::Refusal, out: &mut W) {
         self.stats.faults = self.stats.faults.wrapping_add(1);
@@ -1181,8 +1209,11 @@ where
     /// When the board should poll again at the latest.
     fn wake_at(&self, frame_flush_ms: Option<u32>) -> Option<Instant> {
         let mut ms = self.clock.until(self.next_peripherals_ms);
-        if let Some(Held::Heat { next_report_ms }) = self.link.held {
+        if let Some(Held::Heat { next_report_ms, .. }) = self.link.held {
             ms = ms.min(self.clock.until(next_report_ms));
+        }
+        if let Some(due) = self.host_reports_in() {
+            ms = ms.min(due);
         }
         if let Some(f) = frame_flush_ms {
             ms = ms.min(f);

@@ -30,6 +30,8 @@ pub struct Reading {
     pub current_mc: i32,
     /// The target; 0 when the heater is off.
     pub target_mc: i32,
+    /// The heater power, 0 to [`FULL_POWER`](forja_hal_abstraction::thermal::FULL_POWER).
+    pub power: u16,
 }
 
 /// The temperatures of `M105` and of the `M109`/`M116` progress lines; `None` where the board
@@ -199,6 +201,9 @@ pub(crate) struct Devices<X, const N: usize> {
     rpm: u32,
     /// Whether the motors were last energised.
     pub(crate) motors_on: bool,
+    /// The axes an `M84 X Y` released while the others keep the drivers energised (bit `i`
+    /// for axis `i`).
+    released: u8,
     /// The time of the last temperature loop, ms.
     now_ms: u32,
 }
@@ -208,21 +213,57 @@ fn reading(zone: &dyn TemperatureControl) -> Reading {
     Reading {
         current_mc: zone.current_mc().unwrap_or(0),
         target_mc: zone.target_mc(),
+        power: zone.power(),
     }
 }
 
+/// The heaters a heating wait is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum HeatZones {
+    /// `M109`: the hot end.
+    HotEnd,
+    /// `M190`: the bed.
+    Bed,
+    /// `M116`: every heater.
+    All,
+}
+
+/// What a heating wait waits for (`M109`, `M190`, `M116`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct HeatWait {
+    /// The heaters.
+    pub(crate) zones: HeatZones,
+    /// `S` (Marlin's rule): only a heater below its target holds the wait; `R` and `M116`:
+    /// a heater above it holds it too, until it has cooled to the target.
+    pub(crate) heating_only: bool,
+}
+
+impl HeatWait {
+    /// `M116`: every heater at its target.
+    pub(crate) const ALL: HeatWait = HeatWait {
+        zones: HeatZones::All,
+        heating_only: false,
+    };
+}
+
 /// Whether `zone` holds up no wait: it is off, or its last measurement is within
-/// `tolerance_mc` of its target. A faulted zone, or one not measured yet, holds the wait (the
-/// fault stops the machine).
-fn at_target(zone: &dyn TemperatureControl, tolerance_mc: i32) -> bool {
+/// `tolerance_mc` of its target (or above it, when `heating_only`). A faulted zone, or one not
+/// measured yet, holds the wait (the fault stops the machine).
+fn at_target(zone: &dyn TemperatureControl, tolerance_mc: i32, heating_only: bool) -> bool {
     if zone.fault().is_some() {
         return false;
     }
-    let target = zone.target_mc();
+    let target = i64::from(zone.target_mc());
+    let tolerance = i64::from(tolerance_mc);
     target == 0
-        || zone
-            .current_mc()
-            .is_some_and(|mc| (i64::from(mc) - i64::from(target)).abs() <= i64::from(tolerance_mc))
+        || zone.current_mc().is_some_and(|mc| {
+            let below = target - i64::from(mc);
+            if heating_only {
+                below <= tolerance
+            } else {
+                below.abs() <= tolerance
+            }
+        })
 }
 
 /// The speed of an `M3`/`M4`: its `S` word rounded to whole rpm, or `last` without one.
@@ -236,6 +277,7 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
             parts,
             rpm: 0,
             motors_on: false,
+            released: 0,
             now_ms: 0,
         }
     }
@@ -272,13 +314,15 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
         }
     }
 
-    /// Whether every heater with a target is within `tolerance_mc` of it (`M109`, `M116`).
-    pub(crate) fn heaters_at_target(&mut self, tolerance_mc: i32) -> bool {
-        let hot_end = self
-            .parts
-            .hot_end()
-            .is_none_or(|z| at_target(z, tolerance_mc));
-        hot_end && self.parts.bed().is_none_or(|z| at_target(z, tolerance_mc))
+    /// Whether the heaters of `wait` no longer hold it (a heater the board lacks holds
+    /// nothing).
+    pub(crate) fn heat_done(&mut self, wait: HeatWait, tolerance_mc: i32) -> bool {
+        let check = |z: &mut dyn TemperatureControl| at_target(z, tolerance_mc, wait.heating_only);
+        let hot_end = !matches!(wait.zones, HeatZones::HotEnd | HeatZones::All)
+            || self.parts.hot_end().is_none_or(check);
+        let bed = !matches!(wait.zones, HeatZones::Bed | HeatZones::All)
+            || self.parts.bed().is_none_or(check);
+        hot_end && bed
     }
 
     /// Run fan `index` at `duty` out of 255 (`M106`, `M107`).
@@ -335,6 +379,23 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
     pub(crate) fn set_motors(&mut self, enabled: bool) -> Result<(), PeripheralError> {
         self.parts.set_motors(enabled)?;
         self.motors_on = enabled;
+        self.released = 0;
+        Ok(())
+    }
+
+    /// `M17` (`enabled`) or `M18`/`M84` for `axes` (bit `i` for axis `i`). The board's motors
+    /// have one power decision, so, as Marlin does with a shared enable line, releasing some
+    /// axes keeps the drivers energised until every axis has been released.
+    pub(crate) fn set_axis_motors(
+        &mut self,
+        enabled: bool,
+        axes: u8,
+    ) -> Result<(), PeripheralError> {
+        let every = ((1u16 << N.min(8)) - 1) as u8;
+        if enabled || (self.released | axes) & every == every {
+            return self.set_motors(enabled);
+        }
+        self.released |= axes;
         Ok(())
     }
 

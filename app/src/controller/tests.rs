@@ -29,6 +29,7 @@ use forja_sim_hal::SimLimitSwitch;
 mod bench;
 use bench::Wiring;
 
+mod marlin;
 mod numbering;
 mod programs;
 mod realtime;
@@ -111,6 +112,13 @@ impl TemperatureControl for FakeZone {
     }
     fn current_mc(&self) -> Option<i32> {
         Some(self.current_mc)
+    }
+    fn power(&self) -> u16 {
+        if self.target_mc > self.current_mc {
+            u16::MAX
+        } else {
+            0
+        }
     }
     fn run(&mut self, now_ms: u32) -> Result<(), DeviceError> {
         let dt = self.last_ms.map_or(0, |l| now_ms.wrapping_sub(l)) as i32;
@@ -477,22 +485,23 @@ fn every_line_gets_exactly_one_terminal_reply() {
     }
     b.run_ms(2000);
     let out = b.take();
-    let terminal: Vec<&String> = out
-        .iter()
-        .filter(|l| l.starts_with("ok") || l.starts_with("rs"))
-        .collect();
+    let terminal: Vec<&String> = out.iter().filter(|l| l.starts_with("ok")).collect();
     assert_eq!(terminal.len(), lines.len(), "{out:?}");
     assert!(
         out.iter()
-            .all(|l| !l.starts_with("rs") && !l.starts_with("!!"))
+            .all(|l| !l.starts_with("rs") && !l.starts_with("echo:") && !l.starts_with("Error:"))
     );
     assert!(
-        out.contains(&"ok C: X:12.000 Y:5.000 Z:0.000".to_string()),
+        out.iter()
+            .any(|l| l.starts_with("X:12.000 Y:5.000 Z:0.000 Count X:")),
         "{out:?}"
     );
-    assert!(out.contains(&"ok T:20.0 B:20.0".to_string()), "{out:?}");
     assert!(
-        out.iter().any(|l| l.starts_with("ok FIRMWARE_NAME:Forja ")
+        out.contains(&"ok T:20.0 /0.0 B:20.0 /0.0 @:0 B@:0".to_string()),
+        "{out:?}"
+    );
+    assert!(
+        out.iter().any(|l| l.starts_with("FIRMWARE_NAME:Forja ")
             && l.contains("MACHINE_TYPE:test-bench")
             && l.contains("EXTRUDER_COUNT:1")),
         "{out:?}"
@@ -513,7 +522,7 @@ fn printrun_opening_with_line_minus_one() {
     assert_eq!(b.ask(&numbered(-1, "M110 N-1")), ["ok"]);
     assert_eq!(b.ask(&numbered(0, "G1 X1")), ["ok"]);
     assert_eq!(b.ask(&numbered(1, "G1 X2")), ["ok"]);
-    assert_eq!(b.ask(&numbered(5, "G1 X3")), ["rs 2"]);
+    assert_eq!(b.ask(&numbered(5, "G1 X3")), ["rs 2", "ok"]);
 }
 
 #[test]
@@ -524,23 +533,26 @@ fn transport_failures_get_rs_alone() {
     // Checksum mismatch.
     let good = numbered(2, "G1 X2");
     let bad = good.replace("X2", "X3");
-    assert_eq!(b.ask(&bad), ["rs 2"]);
+    assert_eq!(b.ask(&bad), ["rs 2", "ok"]);
     // N without *, * without N.
-    assert_eq!(b.ask("N2 G1 X2"), ["rs 2"]);
-    assert_eq!(b.ask(&format!("G1 X2*{}", checksum(b"G1 X2"))), ["rs 2"]);
+    assert_eq!(b.ask("N2 G1 X2"), ["rs 2", "ok"]);
+    assert_eq!(
+        b.ask(&format!("G1 X2*{}", checksum(b"G1 X2"))),
+        ["rs 2", "ok"]
+    );
     // Not the line expected; each out-of-order line gets its own rs.
     b.send(&numbered(3, "G1 X3"));
     b.send(&numbered(4, "G1 X4"));
     b.run_ms(5);
-    assert_eq!(b.take(), ["rs 2", "rs 2"]);
+    assert_eq!(b.take(), ["rs 2", "ok", "rs 2", "ok"]);
     // An over-long numbered line.
     let long = numbered(2, &format!("G1 X2 ({})", "x".repeat(300)));
-    assert_eq!(b.ask(&long), ["rs 2"]);
+    assert_eq!(b.ask(&long), ["rs 2", "ok"]);
     // A damaged line number.
-    assert_eq!(b.ask("N2x G1*99"), ["rs 2"]);
+    assert_eq!(b.ask("N2x G1*99"), ["rs 2", "ok"]);
     // The resent line is taken, once.
     assert_eq!(b.ask(&good), ["ok"]);
-    assert_eq!(b.ask(&good), ["rs 3"]);
+    assert_eq!(b.ask(&good), ["rs 3", "ok"]);
     b.idle();
     assert_eq!(b.position_mm()[0], 2.0);
     assert_eq!(b.ctl.stats().executed, 2);
@@ -552,8 +564,8 @@ fn a_numbered_line_that_arrived_intact_but_is_not_gcode_is_refused_and_used_up()
     b.take();
     // Asked again once (the checksum misses some double faults), then refused and its
     // number used up: resending it again would repeat forever.
-    assert_eq!(b.ask(&numbered(1, "G1 X#1")), ["rs 1"]);
-    assert_eq!(b.ask(&numbered(1, "G1 X#1")), ["!! E9 no-value", "ok"]);
+    assert_eq!(b.ask(&numbered(1, "G1 X#1")), ["rs 1", "ok"]);
+    assert_eq!(b.ask(&numbered(1, "G1 X#1")), ["echo:E9 no-value", "ok"]);
     assert_eq!(b.ask(&numbered(2, "G1 X1")), ["ok"]);
 }
 
@@ -569,7 +581,7 @@ fn unnumbered_lines_run_without_numbering_checks() {
     c.take();
     assert_eq!(
         c.ask(&format!("G1 X1 ({})", "x".repeat(300))),
-        ["!! E1 line-too-long", "ok"]
+        ["echo:E1 line-too-long", "ok"]
     );
 }
 
@@ -577,16 +589,16 @@ fn unnumbered_lines_run_without_numbering_checks() {
 fn refused_commands_get_a_fault_line_and_ok_and_change_nothing() {
     let mut b = Bench::new();
     b.take();
-    assert_eq!(b.ask("M21"), ["!! E120 unsupported-command M21", "ok"]);
-    assert_eq!(b.ask("G38.2 X1"), ["!! E120 unsupported-command G", "ok"]);
-    assert_eq!(b.ask("M106 P7 S100"), ["!! E194 no-device fan 7", "ok"]);
-    assert_eq!(b.ask("T3"), ["!! E121 bad-value T3", "ok"]);
-    assert_eq!(b.ask("M104 S900"), ["!! E195 device-range", "ok"]);
+    assert_eq!(b.ask("M21"), ["echo:Unknown command: \"M21\"", "ok"]);
+    assert_eq!(b.ask("G38.2 X1"), ["echo:Unknown command: \"G38.2\"", "ok"]);
+    assert_eq!(b.ask("M106 P7 S100"), ["echo:E194 no-device fan 7", "ok"]);
+    assert_eq!(b.ask("T3"), ["echo:E121 bad-value T3", "ok"]);
+    assert_eq!(b.ask("M104 S900"), ["echo:E195 device-range", "ok"]);
     // Soft limits, once homed.
     b.send_frame(&ClientMessage::Action(Action::HomeAll));
     b.idle();
     b.take();
-    assert_eq!(b.ask("G1 X250"), ["!! E124 soft-limit X", "ok"]);
+    assert_eq!(b.ask("G1 X250"), ["echo:E124 soft-limit X", "ok"]);
     b.idle();
     assert_eq!(b.position_mm()[..2], [1.0, 1.0]);
     assert_eq!(b.ctl.stats().refused, 6);
@@ -660,7 +672,7 @@ fn m109_holds_lines_and_reports_progress_until_at_temperature() {
     b.run_ms(3000);
     let out = b.take();
     assert!(out.iter().all(|l| !l.starts_with("ok")), "{out:?}");
-    let progress: Vec<&String> = out.iter().filter(|l| l.starts_with("// T:")).collect();
+    let progress: Vec<&String> = out.iter().filter(|l| l.starts_with(" T:")).collect();
     assert!((2..=4).contains(&progress.len()), "{out:?}");
     assert!(progress[0].contains(" /200.0 B:"), "{out:?}");
     b.run_until(20_000, |b| b.ctl.stats().oks == 2);
@@ -688,13 +700,13 @@ fn garbage_gets_one_error_frame_per_run_and_a_resend_when_numbered() {
     assert_eq!(error_codes(&out), [21, 21], "{out:?}");
     // Nothing tells yet which protocol the host speaks: both answers go out, the G-code one
     // only for the run that lost text (`junk`).
-    assert_eq!(out[1..3], ["!! E8 bad-character", "ok"], "{out:?}");
+    assert_eq!(out[1..3], ["echo:E8 bad-character", "ok"], "{out:?}");
     assert_eq!(out.len(), 4);
     assert_eq!(b.ask(&numbered(1, "G1 X1")), ["ok"]);
     b.send_raw(b"N2 G1\x01X2*1\n");
     b.run_ms(5);
     // A G-code host: no 56, only the resend.
-    assert_eq!(b.take(), ["rs 2"]);
+    assert_eq!(b.take(), ["rs 2", "ok"]);
 }
 
 #[test]
@@ -810,7 +822,11 @@ fn homing_with_switches_and_positions_report() {
     // Homing waits for the move before it: its ok comes when the cycle has started.
     assert!(b.ask("G28 X0").is_empty());
     b.idle();
-    assert_eq!(b.take(), ["ok"]);
+    // A homing of more than 2 s: the host hears `busy: processing` every 2 s meanwhile.
+    let out = b.take();
+    let (busy, rest): (Vec<_>, Vec<_>) = out.iter().partition(|l| *l == "echo:busy: processing");
+    assert_eq!(rest, ["ok"]);
+    assert!(!busy.is_empty(), "{out:?}");
     assert_eq!(b.position_mm()[0], 1.0);
 }
 
@@ -837,8 +853,8 @@ fn program_upload_run_pause_resume_stop_rewind() {
     b.run_until(20_000, |b| b.ctl.progress().current_line == 5);
     b.run_ms(500);
     // While it runs, moves from the link are refused; reports still work.
-    assert_eq!(b.ask("G1 Z5"), ["!! E182 job-busy", "ok"]);
-    assert!(b.ask("M114")[0].starts_with("ok C: X:40.000"));
+    assert_eq!(b.ask("G1 Z5"), ["echo:E182 job-busy", "ok"]);
+    assert!(b.ask("M114")[0].starts_with("X:40.000"));
     b.send_frame(&ClientMessage::Action(Action::Pause));
     b.run_ms(300);
     let paused = b.position_mm();
@@ -890,8 +906,8 @@ fn program_end_waits_for_the_motion_stops_the_spindle_and_resets_modes() {
     assert_eq!(b.ask("X5"), ["ok"]);
     b.idle();
     assert_eq!(b.position_mm()[0], 5.0);
-    assert_eq!(b.ask("G93"), ["!! E120 unsupported-command G93", "ok"]);
-    assert_eq!(b.ask("G95"), ["!! E120 unsupported-command G95", "ok"]);
+    assert_eq!(b.ask("G93"), ["echo:Unknown command: \"G93\"", "ok"]);
+    assert_eq!(b.ask("G95"), ["echo:Unknown command: \"G95\"", "ok"]);
 }
 
 #[test]
@@ -1013,10 +1029,10 @@ fn a_hard_limit_is_reported_unsolicited_and_lines_in_alarm_are_refused() {
     assert_eq!(b.ask("G1 X-20 F3000"), ["ok"]);
     b.run_ms(1000);
     let out = b.take();
-    assert_eq!(out, ["!! E150 hard-limit X"]);
+    assert_eq!(out, ["Error:E150 hard-limit X"]);
     assert_eq!(b.ctl.peripherals().spindle.stops, 1, "shut down once");
     assert_eq!(b.ask("M119"), ["ok x_min:TRIGGERED y_min:open"]);
-    assert_eq!(b.ask("G1 X5"), ["!! E125 alarm-locked", "ok"]);
+    assert_eq!(b.ask("G1 X5"), ["echo:E125 alarm-locked", "ok"]);
     assert!(b.ask("M105")[0].starts_with("ok T:"));
     // Homing clears it; its ok comes when the cycle is done, and the position follows it.
     b.send("G28");
@@ -1025,7 +1041,10 @@ fn a_hard_limit_is_reported_unsolicited_and_lines_in_alarm_are_refused() {
     assert!(b.take().is_empty());
     b.idle();
     b.run_ms(5);
-    assert_eq!(b.take(), ["ok", "ok C: X:1.000 Y:1.000 Z:0.000"]);
+    assert_eq!(
+        b.take(),
+        ["ok", "X:1.000 Y:1.000 Z:0.000 Count X:80 Y:80 Z:0", "ok"]
+    );
     assert_eq!(b.ask("G1 X5"), ["ok"]);
     b.idle();
     assert_eq!(b.position_mm()[0], 5.0);
@@ -1041,14 +1060,14 @@ fn m112_stops_everything_until_a_reset() {
     b.send("M112");
     b.run_ms(300);
     let out = b.take();
-    assert_eq!(out, ["ok", "ok", "!! E153 emergency-stop", "ok"]);
+    assert_eq!(out, ["ok", "ok", "Error:E153 emergency-stop", "ok"]);
     assert!(!b.ctl.peripherals().motors);
     assert_eq!(b.ctl.peripherals().spindle.last, Some(Turning::Stopped));
     let stopped = b.position_mm();
     b.run_ms(300);
     assert_eq!(b.position_mm(), stopped);
-    assert_eq!(b.ask("G28"), ["!! E125 alarm-locked", "ok"]);
-    assert_eq!(b.ask("M104 S200"), ["!! E125 alarm-locked", "ok"]);
+    assert_eq!(b.ask("G28"), ["echo:E125 alarm-locked", "ok"]);
+    assert_eq!(b.ask("M104 S200"), ["echo:E125 alarm-locked", "ok"]);
     assert_eq!(b.ask("M999"), ["ok"]);
     assert_eq!(b.ask("G1 X0"), ["ok"]);
     b.idle();
@@ -1067,7 +1086,12 @@ fn m112_is_carried_out_even_behind_a_held_line() {
     // the M112 line's own ok.
     assert_eq!(
         b.take(),
-        ["!! E153 emergency-stop", "!! E125 alarm-locked", "ok", "ok"]
+        [
+            "Error:E153 emergency-stop",
+            "echo:E125 alarm-locked",
+            "ok",
+            "ok"
+        ]
     );
 }
 
@@ -1092,7 +1116,7 @@ fn a_thermal_fault_raises_an_alarm_and_shuts_down() {
     b.run_ms(200);
     let out = b.take();
     assert!(
-        out.contains(&"!! E212 thermal-runaway".to_string()),
+        out.contains(&"Error:E212 thermal-runaway".to_string()),
         "{out:?}"
     );
     assert_eq!(error_codes(&out), [212]);
@@ -1101,7 +1125,7 @@ fn a_thermal_fault_raises_an_alarm_and_shuts_down() {
         MachineState::Alarm(forja_motion::Alarm::EmergencyStop)
     ));
     assert_eq!(b.ctl.peripherals().hot.target_mc, 0);
-    assert_eq!(b.ask("M104 S200"), ["!! E125 alarm-locked", "ok"]);
+    assert_eq!(b.ask("M104 S200"), ["echo:E125 alarm-locked", "ok"]);
     b.send_frame(&ClientMessage::Action(Action::Reset));
     b.run_ms(200);
     assert!(b.take().is_empty());
@@ -1146,7 +1170,7 @@ fn a_numbered_line_whose_terminator_was_lost_is_taken_when_the_link_goes_quiet()
     let line = numbered(3, "G1 X3");
     b.send_raw(&line.as_bytes()[..line.len() - 1]);
     b.run_ms(30);
-    assert_eq!(b.take(), ["rs 3"]);
+    assert_eq!(b.take(), ["rs 3", "ok"]);
     assert_eq!(b.ask(&line), ["ok"]);
     b.idle();
     assert_eq!(b.position_mm()[0], 3.0);
@@ -1303,7 +1327,7 @@ fn coolant_follows_the_motion_and_goes_off_at_program_end_and_on_a_stop() {
     assert_eq!(b.ask("M7"), ["ok"]);
     b.send("M112");
     b.run_ms(5);
-    assert_eq!(b.take(), ["!! E153 emergency-stop", "ok"]);
+    assert_eq!(b.take(), ["Error:E153 emergency-stop", "ok"]);
     assert_eq!(coolant(&b), (false, false), "an emergency stop");
 }
 
@@ -1312,7 +1336,7 @@ fn coolant_on_a_board_without_it_is_refused_and_program_end_goes_on() {
     let mut b = Bench::new();
     b.take();
     b.ctl.peripherals_mut().coolant = None;
-    assert_eq!(b.ask("M8"), ["!! E194 no-device coolant", "ok"]);
+    assert_eq!(b.ask("M8"), ["echo:E194 no-device coolant", "ok"]);
     assert_eq!(b.ask("M3 S100"), ["ok"]);
     assert_eq!(b.ask("M30"), ["ok"]);
     assert_eq!(b.ctl.peripherals().spindle.last, Some(Turning::Stopped));

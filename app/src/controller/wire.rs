@@ -29,7 +29,7 @@ pub(crate) fn ok<W: Write>(out: &mut W) {
     let _ = out.write_all(b"ok\n");
 }
 
-/// `!! E<code> <text>`.
+/// `Error:E<code> <text>`: a fault that stopped the machine.
 pub(crate) fn fault<W: Write>(out: &mut W, r: &Refusal) {
     let _ = reply(
         out,
@@ -40,9 +40,22 @@ pub(crate) fn fault<W: Write>(out: &mut W, r: &Refusal) {
     );
 }
 
-/// `rs <line>`.
+/// `echo:E<code> <text>`: a refused line (its `ok` is the caller's).
+pub(crate) fn refused<W: Write>(out: &mut W, r: &Refusal) {
+    let _ = reply(
+        out,
+        &Reply::Refused {
+            code: r.code,
+            text: r.text(),
+        },
+    );
+}
+
+/// `rs <line>` then `ok`, as Marlin answers: a host sends the line again at once, without
+/// waiting out a time-out for the `ok` it counts on.
 pub(crate) fn resend<W: Write>(out: &mut W, line: u32) {
     let _ = reply(out, &Reply::Resend(line));
+    ok(out);
 }
 
 /// One frame and its `\n`. A message that does not encode (a text too long for the payload)

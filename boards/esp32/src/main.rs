@@ -36,6 +36,7 @@ pub mod board;
 pub mod hardware;
 
 use embassy_executor::Spawner;
+use forja_app::session::LinkSession;
 use forja_app::wifi::{CredentialWatch, Credentials};
 use forja_port_esp32::controller;
 use forja_port_esp32::fault::reset;
@@ -78,7 +79,7 @@ async fn main(spawner: Spawner) -> ! {
     let firmware = hardware::firmware(hw.clock, hw.stores, hw.enable, hw.limits, &STEP)
         .unwrap_or_else(|_| reset());
     let stored = firmware.controller().settings();
-    LINK.configure(stored.keep_alive_ms());
+    LINK.admission(|session| *session = LinkSession::new(stored.keep_alive_ms()));
     let network = CredentialWatch::new(stored, wifi::default_network());
     let credentials = network.current().cloned();
     let ap_ssid = wifi::ap_ssid(hw.radio.access_point.mac_address());

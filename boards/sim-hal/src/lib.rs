@@ -56,8 +56,8 @@
 //!
 //! [`link`] has the host links, each an `embedded-io` byte stream with a connection state
 //! ([`link::PortLink`]): [`link::TcpLink`] (like the ESP32's WiFi, one controlling client at a
-//! time as `forja_drivers::session::LinkSession` decides, default port
-//! [`config::DEFAULT_TCP_PORT`]), [`link::PtyLink`] (a pseudo-terminal that
+//! time as the port's session rules decide, `forja_app::session::LinkSession` on the simulator
+//! board; default port [`config::DEFAULT_TCP_PORT`]), [`link::PtyLink`] (a pseudo-terminal that
 //! serial host software opens like a UART), [`link::MemoryLink`] (in-process), and
 //! [`link::FaultInjector`], which corrupts and drops bytes from the host at seeded rates.
 //!

@@ -1,12 +1,13 @@
 //! The TCP link against real sockets on the loopback interface, its clients admitted and
-//! refused by a `LinkSession`.
+//! refused by session rules of one controlling client (the board's are the application's
+//! `LinkSession`, whose rules its own tests cover).
 
 use std::io::{Read as _, Write as _};
 use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 use embedded_io::{ReadReady, Write};
-use forja_drivers::session::{LinkSession, SessionAction};
+use forja_drivers::port_link::{Admission, Admit};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use forja_sim_hal::link::{FaultConfig, FaultInjector, FaultyBytes, PortLink, TcpLink};
 
@@ -16,16 +17,47 @@ fn bind() -> TcpLink {
     TcpLink::bind("127.0.0.1:0".parse().unwrap(), &b"error: busy\n"[..]).unwrap()
 }
 
-/// A link and the session that decides who controls it, as a board serves them.
+/// Session rules of one controlling client: the first client controls, any other is refused
+/// while it does.
+#[derive(Default)]
+struct OneClient {
+    /// When the controlling client was admitted, while it is in control.
+    admitted_ms: Option<u32>,
+}
+
+impl LinkStatus for OneClient {
+    fn state(&self) -> LinkState {
+        if self.admitted_ms.is_some() {
+            LinkState::Connected
+        } else {
+            LinkState::Disconnected
+        }
+    }
+}
+
+impl Admission for OneClient {
+    fn on_connect(&mut self, now_ms: u32) -> Admit {
+        if self.admitted_ms.is_some() {
+            return Admit::Refuse;
+        }
+        self.admitted_ms = Some(now_ms);
+        Admit::Control
+    }
+    fn on_disconnect(&mut self) {
+        self.admitted_ms = None;
+    }
+}
+
+/// A link and the session rules that decide who controls it, as a board serves them.
 struct Served<L> {
     link: L,
-    session: LinkSession,
+    session: OneClient,
 }
 
 fn served<L: PortLink>(link: L) -> Served<L> {
     Served {
         link,
-        session: LinkSession::new(1_000),
+        session: OneClient::default(),
     }
 }
 
@@ -113,9 +145,9 @@ fn a_second_client_is_refused_with_the_busy_message() {
     assert_eq!(s.link.refused(), 1);
 }
 
-/// The refusal is the session's decision, and so is the admission of the next client: the
-/// session that refused the second client admits a third once the first has closed, and
-/// starts its keep-alives afresh.
+/// The refusal is the session rules' decision, and so is the admission of the next client:
+/// the rules that refused the second client admit a third once the first has closed, and hear
+/// of each admission at the time the link was given.
 #[test]
 fn the_session_admits_and_refuses() {
     let mut s = served(bind());
@@ -125,11 +157,10 @@ fn the_session_admits_and_refuses() {
         assert!(start.elapsed() < TIMEOUT, "timed out");
         std::thread::sleep(Duration::from_millis(1));
     }
-    assert!(s.session.is_connected());
     assert_eq!(
-        s.session.poll_at(),
-        Some(1_100),
-        "keep-alives from the admission"
+        s.session.admitted_ms,
+        Some(100),
+        "admitted at the link's time"
     );
 
     let mut second = client(&s.link);
@@ -137,8 +168,11 @@ fn the_session_admits_and_refuses() {
     let mut text = String::new();
     second.read_to_string(&mut text).unwrap();
     assert_eq!(text, "error: busy\n");
-    assert!(s.session.is_connected(), "the controller is untouched");
-    assert_eq!(s.session.poll(1_100), Some(SessionAction::SendKeepAlive(0)));
+    assert_eq!(
+        s.session.admitted_ms,
+        Some(100),
+        "the controller is untouched"
+    );
 
     drop(first);
     let _third = client(&s.link);
@@ -152,8 +186,7 @@ fn the_session_admits_and_refuses() {
         std::thread::sleep(Duration::from_millis(1));
     }
     assert_eq!((s.link.connections(), s.link.refused()), (2, 1));
-    assert_eq!(s.session.poll(5_999), None);
-    assert_eq!(s.session.poll(6_000), Some(SessionAction::SendKeepAlive(0)));
+    assert_eq!(s.session.admitted_ms, Some(5_000), "a new session");
 }
 
 #[test]

@@ -36,11 +36,11 @@ use forja_app::controller::{LoadReport, Peripherals, RecordProgramStore, Status}
 use forja_app::firmware::{self, Parts as FirmwareParts};
 use forja_app::hosts::{Arbiter, Port, PortLink};
 use forja_app::peripherals::{LocalDevices, MotorEnables, Parts};
+use forja_app::session::LinkSession;
 use forja_drivers::heater::HeaterChannel;
 use forja_drivers::limit::LimitInput;
 use forja_drivers::pin::NoPin;
 use forja_drivers::pwm::{Fan, FanConfig, Spindle};
-use forja_drivers::session::LinkSession;
 use forja_drivers::stepper::StepDir;
 use forja_drivers::storage::FlashRecordStorage;
 use forja_hal_abstraction::clock::Alarm as _;

@@ -473,7 +473,7 @@ fn m112_from_a_host_not_in_control_stops_the_machine() {
     });
     rig.run_until("the fault at the controlling host", |_| {
         tcp.receive();
-        tcp.text.contains("!! E153 emergency-stop")
+        tcp.text.contains("Error:E153 emergency-stop")
     });
     let stopped = rig.x_mm();
     assert!(stopped < x0 + 49.0, "{x0} {stopped}");

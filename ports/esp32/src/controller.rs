@@ -1,6 +1,7 @@
 //! The controller task: the thread side of the firmware on the WiFi link.
 //!
-//! Each turn ([`run`]): the session's 54 and 55 ([`WifiLink::poll_session`],
+//! Each turn ([`run`]): the session's 54 and 55 (a new client's greeting from
+//! [`WifiLink::take_greeting`], the keep-alives from its `LinkSession`, both sent with
 //! `Firmware::session`), `Firmware::poll`, the step alarm where it asks
 //! ([`StepCell::arm`]), new WiFi credentials from the settings to the WiFi task
 //! (`CredentialWatch::update`, [`wifi::join`]), the watchdog; then it sleeps until bytes
@@ -13,6 +14,7 @@
 use embassy_time::{Duration, Instant as EmbassyInstant};
 use forja_app::controller::Peripherals;
 use forja_app::firmware::Firmware;
+use forja_app::session::SessionAction;
 use forja_app::wifi::CredentialWatch;
 use forja_drivers::tcp;
 use forja_hal_abstraction::clock::Clock;
@@ -57,8 +59,12 @@ where
 {
     loop {
         let now_ms = tcp::now_ms();
-        while let Some(action) = link.poll_session(now_ms) {
-            firmware.session(action, &mut link);
+        if link.take_greeting() {
+            firmware.session(SessionAction::SendConnected, &mut link);
+        }
+        while let Some(keep_alive) = link.admission(|s| s.poll(now_ms)) {
+            firmware.session(keep_alive, &mut link);
+            link.count_keep_alive();
         }
         let now = clock.now();
         if let Some(at) = firmware.poll(now, &mut link, true) {
@@ -73,7 +79,7 @@ where
         if let Some(at) = firmware.wake_at() {
             deadline = deadline.min(embassy_deadline(clock, now, at));
         }
-        if let Some(at_ms) = link.session_poll_at() {
+        if let Some(at_ms) = link.admission(|s| s.poll_at()) {
             let ms = at_ms.wrapping_sub(tcp::now_ms()) as i32;
             deadline =
                 deadline.min(EmbassyInstant::now() + Duration::from_millis(ms.max(0) as u64));

@@ -22,12 +22,14 @@
 //! - Depends on esp-hal, esp-rtos, esp-radio, esp-storage and Forja's portable crates: the
 //!   traits, the drivers (`StepDir`, `LimitInput`, `FlashRecordStorage`, `SlotProgramStore`,
 //!   `tcp`), the kernel's `StepGenerator`, and the application's `Firmware`, `SetupError`,
-//!   `busy_refusal` and WiFi credentials (`forja_app::wifi`). Knows no board: it chooses no
+//!   `busy_refusal`, session rules (`forja_app::session::LinkSession`) and WiFi credentials
+//!   (`forja_app::wifi`). Knows no board: it chooses no
 //!   pin, no priority, and binds no interrupt but the step alarm's, to the handler it is given.
 //! - Every constructor runs in init, once; errors are `forja_app::firmware::SetupError`, on
 //!   which the board resets ([`fault::reset`]).
 //! - Nothing here holds motion or protocol logic: the kernel is `forja_motion`'s, the
-//!   controller `forja_app`'s, the link's session and queues `forja_drivers::tcp`'s.
+//!   controller and the link's session rules `forja_app`'s, the link's queues and admission
+//!   `forja_drivers::tcp`'s.
 //!
 //! | module | provides | context |
 //! |---|---|---|

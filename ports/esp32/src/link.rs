@@ -1,20 +1,23 @@
 //! The host link over WiFi: a TCP server on [`PORT`] with one controlling client at a time,
 //! across both stacks (station and access point).
 //!
-//! The link is `forja_drivers::tcp` ([`TcpServer`], [`TcpLink`]): the session rules
-//! (`LinkSession`, frames 54/55, the refusal of a second client with the application's
-//! `busy_refusal`, code 300 `link-busy`), the receive and transmit queues with their flow
-//! control, and the waking of the controller task are documented and tested there. This
-//! module fixes its sizes for the ESP32 family and keeps it in [`LINK`]:
+//! The link is `forja_drivers::tcp` ([`TcpServer`], [`TcpLink`]): the receive and transmit
+//! queues with their flow control, the admission of clients, and the waking of the controller
+//! task are documented and tested there; the session rules it admits clients by are the
+//! application's [`LinkSession`] (frames 54/55, the refusal of a second client with the
+//! application's `busy_refusal`, code 300 `link-busy`). This module fixes its sizes for the
+//! ESP32 family and keeps it in [`LINK`]:
 //!
 //! | what | value |
 //! |---|---|
 //! | port | [`PORT`], the simulator's |
 //! | listening tasks | [`LISTENERS`] per stack, each running [`listen`] |
 //! | receive / transmit queues | [`RX_LEN`] / [`TX_LEN`] bytes |
+//! | session | [`LinkSession`], keep-alives every [`DEFAULT_KEEP_ALIVE_MS`] until the board applies its stored `keep_alive_ms` |
 //! | counters | [`FORJA_LINK_COUNTERS`], read by a debugger by symbol name |
 
-use forja_app::controller::busy_refusal;
+use forja_app::controller::{DEFAULT_KEEP_ALIVE_MS, busy_refusal};
+use forja_app::session::LinkSession;
 use forja_drivers::tcp::{LinkCounters, TcpLink, TcpQueues, TcpServer};
 
 use crate::net::Stack;
@@ -40,11 +43,16 @@ pub static FORJA_LINK_COUNTERS: LinkCounters = LinkCounters::new();
 static QUEUES: TcpQueues<RX_LEN, TX_LEN> = TcpQueues::new();
 
 /// The host link: its session over the queues. The controller task takes its end once
-/// ([`TcpServer::take`]); the listening tasks serve it ([`listen`]).
-pub static LINK: TcpServer<RX_LEN, TX_LEN> = TcpServer::new(&QUEUES, &FORJA_LINK_COUNTERS);
+/// ([`TcpServer::take`]); the listening tasks serve it ([`listen`]). The board sets the
+/// session's keep-alive interval from its settings at init ([`TcpServer::admission`]).
+pub static LINK: TcpServer<LinkSession, RX_LEN, TX_LEN> = TcpServer::new(
+    &QUEUES,
+    &FORJA_LINK_COUNTERS,
+    LinkSession::new(DEFAULT_KEEP_ALIVE_MS),
+);
 
 /// The controller's end of the host link.
-pub type WifiLink = TcpLink<'static, RX_LEN, TX_LEN>;
+pub type WifiLink = TcpLink<'static, LinkSession, RX_LEN, TX_LEN>;
 
 /// Serve one listening socket of `stack` for ever: accept a client, then either serve it as
 /// the controller or refuse it, as the session decides.

@@ -655,7 +655,7 @@ impl Resume<'_> {
         let Some(before) = look(host) else {
             return self.fail("the link closed".into());
         };
-        let expected = [format!("!! E{code} {name}"), "ok".to_string()];
+        let expected = [format!("echo:E{code} {name}"), "ok".to_string()];
         match command(host, "M1000") {
             Some(reply) if reply == expected => {}
             reply => self.fail(format!("M1000 answered {reply:?}, expected {expected:?}")),
@@ -715,7 +715,7 @@ impl Resume<'_> {
     /// The job has reached its end: `M1000` has nothing left to resume (`job-busy` while the
     /// job winds up, then `E186 no-resume`), and the flash keeps no record.
     fn finish(&mut self, host: &mut Host) {
-        let expected = ["!! E186 no-resume".to_string(), "ok".to_string()];
+        let expected = ["echo:E186 no-resume".to_string(), "ok".to_string()];
         let mut reply = None;
         for _ in 0..200 {
             reply = command(host, "M1000");

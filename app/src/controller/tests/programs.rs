@@ -163,7 +163,7 @@ fn a_job_cut_by_power_loss_resumes_after_its_last_finished_line() {
     let program = slow_program(100);
     let mut rig = switch_on(RamStore::<128>::new(), VecStorage::default(), [0; 3]);
     assert_eq!(rig.ask("M413"), ["// power-loss recovery on", "ok"]);
-    assert_eq!(rig.ask("M1000"), ["!! E186 no-resume", "ok"]);
+    assert_eq!(rig.ask("M1000"), ["echo:E186 no-resume", "ok"]);
     rig.home();
     let home = rig.physical();
     upload(&mut rig, &program);
@@ -182,7 +182,7 @@ fn a_job_cut_by_power_loss_resumes_after_its_last_finished_line() {
     );
 
     let mut rig = switch_on(store, storage, physical);
-    assert_eq!(rig.ask("M1000"), ["!! E187 not-homed", "ok"]);
+    assert_eq!(rig.ask("M1000"), ["echo:E187 not-homed", "ok"]);
     rig.home();
     assert_eq!(rig.physical(), home);
     assert_eq!(rig.ask("M1000"), ["ok"]);
@@ -222,12 +222,12 @@ fn resume_refuses_a_changed_program_and_can_be_cancelled_or_switched_off() {
     }
     let mut rig = switch_on(store, storage, physical);
     rig.home();
-    assert_eq!(rig.ask("M1000"), ["!! E188 program-changed", "ok"]);
+    assert_eq!(rig.ask("M1000"), ["echo:E188 program-changed", "ok"]);
     assert_eq!(rig.ask("M1000 C1"), ["ok"]);
-    assert_eq!(rig.ask("M1000"), ["!! E186 no-resume", "ok"]);
+    assert_eq!(rig.ask("M1000"), ["echo:E186 no-resume", "ok"]);
     assert_eq!(rig.ask("M413 S0"), ["ok"]);
     assert_eq!(rig.ask("M413"), ["// power-loss recovery off", "ok"]);
-    assert_eq!(rig.ask("M413 S2"), ["!! E121 bad-value S", "ok"]);
+    assert_eq!(rig.ask("M413 S2"), ["echo:E121 bad-value S", "ok"]);
     rig.ask_frame(&ClientMessage::Action(Action::Start));
     rig.run_ms(3_000);
     let (store, mut storage, physical) = rig.power_off();

@@ -45,7 +45,7 @@ fn m112_acts_at_once(b: &mut Bench, sent: u32) {
     );
     assert_eq!(
         out.first().map(String::as_str),
-        Some("!! E153 emergency-stop")
+        Some("Error:E153 emergency-stop")
     );
     assert!(!b.ctl.peripherals().motors);
     assert_eq!(b.ctl.peripherals().hot.target_mc, 0);
@@ -63,11 +63,26 @@ fn m112_acts_at_once(b: &mut Bench, sent: u32) {
 }
 
 /// What the controller sent since the last look, without the temperature reports.
+/// The answers to lines, one per line: reports (`//`, a heating wait's ` T:…`) left out, and
+/// an `M114` position folded into the `ok` that follows it (`ok X:1.000 … Count …`).
 fn replies(b: &mut Bench) -> Vec<String> {
-    b.take()
-        .into_iter()
-        .filter(|l| !l.starts_with("//"))
-        .collect()
+    let mut out: Vec<String> = Vec::new();
+    let mut position: Option<String> = None;
+    for l in b.take() {
+        if l.starts_with("//") || l.starts_with(" T:") {
+            continue;
+        }
+        if l.starts_with("X:") {
+            position = Some(l);
+            continue;
+        }
+        match position.take() {
+            Some(p) if l == "ok" => out.push(format!("ok {p}")),
+            Some(p) => out.extend([p, l]),
+            None => out.push(l),
+        }
+    }
+    out
 }
 
 /// Send `lines` at once, as a host that sends ahead does.
@@ -234,10 +249,19 @@ fn queued_lines_get_one_ok_each_in_order_and_run_once() {
     let out = replies(&mut b);
     assert_eq!(out.len(), bodies.len(), "{out:?}");
     assert_eq!(out[0], "ok");
-    assert_eq!(out[2], "ok C: X:1.000 Y:0.000 Z:0.000");
+    assert!(
+        out[2].starts_with("ok X:1.000 Y:0.000 Z:0.000 Count "),
+        "{out:?}"
+    );
     assert!(out[4].starts_with("ok T:"), "{out:?}");
-    assert_eq!(out[5], "ok C: X:2.000 Y:0.000 Z:0.000");
-    assert_eq!(out[9], "ok C: X:3.000 Y:0.000 Z:0.000");
+    assert!(
+        out[5].starts_with("ok X:2.000 Y:0.000 Z:0.000 Count "),
+        "{out:?}"
+    );
+    assert!(
+        out[9].starts_with("ok X:3.000 Y:0.000 Z:0.000 Count "),
+        "{out:?}"
+    );
     assert_eq!(b.ctl.stats().executed, bodies.len() as u32);
     assert_eq!(b.ctl.stats().oks, bodies.len() as u32);
     b.idle();
@@ -261,7 +285,11 @@ fn a_checksum_error_behind_queued_lines_asks_for_the_right_line() {
     let out = replies(&mut b);
     assert_eq!(&out[..2], ["ok", "ok"], "{out:?}");
     // Line 3 and each line after it is answered `rs 3`, none runs.
-    assert_eq!(out[2..], ["rs 3", "rs 3", "rs 3"], "{out:?}");
+    assert_eq!(
+        out[2..],
+        ["rs 3", "ok", "rs 3", "ok", "rs 3", "ok"],
+        "{out:?}"
+    );
     assert_eq!(b.ctl.stats().executed, 2);
     b.send(&good);
     b.send_numbered(4, "G1 X3");
@@ -288,7 +316,7 @@ fn garbage_behind_queued_lines_asks_for_the_line_expected_then() {
     b.run_ms(5);
     let out = replies(&mut b);
     let replies: Vec<&String> = out.iter().filter(|l| !l.starts_with('N')).collect();
-    assert_eq!(replies, ["ok", "ok", "rs 3", "rs 3"], "{out:?}");
+    assert_eq!(replies, ["ok", "ok", "rs 3", "ok", "rs 3", "ok"], "{out:?}");
 }
 
 #[test]
@@ -306,13 +334,13 @@ fn m112_behind_queued_lines_answers_them_in_order_without_running_them() {
     assert_eq!(
         b.take(),
         [
-            "!! E153 emergency-stop",
+            "Error:E153 emergency-stop",
             "ok",
-            "!! E125 alarm-locked",
+            "echo:E125 alarm-locked",
             "ok",
-            "!! E125 alarm-locked",
+            "echo:E125 alarm-locked",
             "ok",
-            "!! E125 alarm-locked",
+            "echo:E125 alarm-locked",
             "ok",
             "ok",
         ],
@@ -346,11 +374,12 @@ fn a_damaged_m112_behind_queued_lines_still_stops_and_is_asked_again() {
     assert_eq!(
         b.take(),
         [
-            "!! E153 emergency-stop",
+            "Error:E153 emergency-stop",
             "ok",
-            "!! E125 alarm-locked",
+            "echo:E125 alarm-locked",
             "ok",
-            "rs 3"
+            "rs 3",
+            "ok"
         ]
     );
     assert_eq!(
@@ -359,7 +388,7 @@ fn a_damaged_m112_behind_queued_lines_still_stops_and_is_asked_again() {
     );
     b.send(&good);
     b.run_ms(5);
-    assert_eq!(b.take(), ["!! E153 emergency-stop", "ok"]);
+    assert_eq!(b.take(), ["Error:E153 emergency-stop", "ok"]);
 }
 
 #[test]
@@ -479,11 +508,11 @@ fn stop_answers_the_lines_received_before_it_without_running_them() {
         replies(&mut b),
         [
             "ok",
-            "!! E198 stopped",
+            "echo:E198 stopped",
             "ok",
-            "!! E198 stopped",
+            "echo:E198 stopped",
             "ok",
-            "!! E198 stopped",
+            "echo:E198 stopped",
             "ok",
             "ok",
         ],
@@ -516,7 +545,14 @@ fn stop_refuses_a_damaged_waiting_line_instead_of_asking_it_again() {
     b.run_ms(REALTIME_MS);
     assert_eq!(
         replies(&mut b),
-        ["ok", "!! E198 stopped", "ok", "!! E198 stopped", "ok", "ok",],
+        [
+            "ok",
+            "echo:E198 stopped",
+            "ok",
+            "echo:E198 stopped",
+            "ok",
+            "ok",
+        ],
         "M109's wait ends, line 2 and the damaged line 3 are refused, line 4 runs"
     );
     b.idle();
@@ -535,11 +571,11 @@ fn stop_behind_a_full_planner_drops_the_held_and_queued_lines() {
     assert_eq!(
         b.take(),
         [
-            "!! E198 stopped",
+            "echo:E198 stopped",
             "ok",
-            "!! E198 stopped",
+            "echo:E198 stopped",
             "ok",
-            "!! E198 stopped",
+            "echo:E198 stopped",
             "ok"
         ],
         "the held line and the two queued behind it"
@@ -573,10 +609,10 @@ fn reset_answers_the_lines_received_before_it_without_running_them() {
         replies(&mut b),
         [
             "ok",
-            "!! E198 stopped",
+            "echo:E198 stopped",
             "ok",
             "ok",
-            "!! E198 stopped",
+            "echo:E198 stopped",
             "ok",
             "ok",
         ],

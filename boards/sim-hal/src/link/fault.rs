@@ -25,7 +25,7 @@ use core::fmt;
 use std::collections::VecDeque;
 
 use embedded_io::{ErrorType, Read, ReadReady, Write, WriteReady};
-use forja_drivers::session::LinkSession;
+use forja_drivers::port_link::Admission;
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 use rand_chacha::ChaCha8Rng;
 use rand_core::{Rng, SeedableRng};
@@ -285,8 +285,8 @@ impl<L: PortLink> PortLink for FaultInjector<L> {
         self.inner.connections()
     }
 
-    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> Result<bool, Self::Error> {
-        self.inner.admit(session, now_ms)
+    fn admit(&mut self, gate: &mut dyn Admission, now_ms: u32) -> Result<bool, Self::Error> {
+        self.inner.admit(gate, now_ms)
     }
 
     fn discard_input(&mut self) -> Result<usize, Self::Error> {

@@ -9,7 +9,7 @@
 //!
 //! | link | what | connected while |
 //! |---|---|---|
-//! | [`TcpLink`] | a listening socket, one controlling client at a time, as a [`LinkSession`] decides ([`PortLink::admit`]) | a client is admitted and has not closed |
+//! | [`TcpLink`] | a listening socket, one controlling client at a time, as the port's session rules decide ([`Admission`], [`PortLink::admit`]) | a client is admitted and has not closed |
 //! | [`PtyLink`] | a pseudo-terminal pair; host software opens the slave (`/dev/pts/N`) | some process holds the slave open |
 //! | [`MemoryLink`] | an in-process pipe to a [`MemoryHost`], for tests and scripted jobs | the [`MemoryHost`] exists |
 //! | [`FaultInjector`] | wraps any of them; corrupts and drops received bytes | as the wrapped link |
@@ -19,7 +19,8 @@
 //! OS links are non-blocking and buffered: [`PortLink::poll`] (context: thread; never blocks)
 //! notices the loss of a peer, moves received bytes into the receive buffer and sends what the
 //! transmit buffer holds; on a connection-oriented link, [`PortLink::admit`] then lets the
-//! port's [`LinkSession`] admit or refuse the peers that connected. The simulation's thread
+//! port's session rules ([`Admission`], the application's) admit or refuse the peers that
+//! connected. The simulation's thread
 //! side calls both once per turn, then reads while [`ReadReady::read_ready`] says so; that read
 //! never blocks.
 //! [`ReadReady::read_ready`] on an empty buffer and every [`Write::write`] service the link
@@ -69,7 +70,7 @@ pub use tcp::TcpLink;
 /// What every link here is: a link a board serves as a port, the firmware boards' contract.
 pub use forja_drivers::port_link::PortLink;
 
-use forja_drivers::session::LinkSession;
+use forja_drivers::port_link::Admission;
 use forja_hal_abstraction::link::LinkState;
 
 /// Most bytes a link's receive buffer holds.
@@ -127,7 +128,7 @@ pub(crate) trait BufferedPort {
     fn buffers(&mut self) -> &mut Buffers;
     fn is_connected(&self) -> bool;
     fn service(&mut self) -> io::Result<()>;
-    fn admit(&mut self, _session: &mut LinkSession, _now_ms: u32) -> io::Result<bool> {
+    fn admit(&mut self, _gate: &mut dyn Admission, _now_ms: u32) -> io::Result<bool> {
         Ok(false)
     }
     /// `lost` bytes of one write did not fit in the transmit buffer (the peer stopped reading):
@@ -253,10 +254,10 @@ macro_rules! buffered_link {
 
             fn admit(
                 &mut self,
-                session: &mut forja_drivers::session::LinkSession,
+                gate: &mut dyn forja_drivers::port_link::Admission,
                 now_ms: u32,
             ) -> Result<bool, std::io::Error> {
-                $crate::link::BufferedPort::admit(self, session, now_ms)
+                $crate::link::BufferedPort::admit(self, gate, now_ms)
             }
 
             fn discard_input(&mut self) -> Result<usize, std::io::Error> {

@@ -3,7 +3,7 @@
 use std::io::{self, Read as _, Write as _};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
 
-use forja_drivers::session::{LinkSession, SessionAction};
+use forja_drivers::port_link::{Admission, Admit};
 
 use super::{BufferedPort, Buffers, buffered_link};
 
@@ -16,12 +16,13 @@ pub const REFUSE_DRAIN: usize = 16 * 1024;
 
 /// A TCP listener with one controlling client at a time.
 ///
-/// Who controls is decided by a [`LinkSession`], the ESP32 board's WiFi link's rules:
+/// Who controls is decided by the port's session rules ([`Admission`]; on the simulator board
+/// the application's `LinkSession`, the ESP32 board's WiFi link's rules):
 /// [`PortLink::admit`](super::PortLink::admit) accepts the clients waiting on the listener and
-/// reports each to the session (`on_connect`), after reporting the close of the controlling
+/// reports each to the rules (`on_connect`), after reporting the close of the controlling
 /// client (`on_disconnect`), so that a host that closes and reconnects at once is admitted.
 /// The first client controls the machine until it closes; a client that connects while
-/// another is in control (`RefuseSecondClient`) is sent the busy message (given by the
+/// another is in control ([`Admit::Refuse`]) is sent the busy message (given by the
 /// protocol layer, e.g. an error line) and closed, and the controlling client is untouched;
 /// [`TcpLink::refused`] counts them. Until `admit` is called, clients wait in the listener's
 /// backlog. If a refused client has already sent bytes that arrive after its connection is
@@ -186,10 +187,10 @@ impl TcpLink {
         }
     }
 
-    /// Tell `session` that the controlling client went away, if it did.
-    fn report_close(&mut self, session: &mut LinkSession) {
+    /// Tell `gate` that the controlling client went away, if it did.
+    fn report_close(&mut self, gate: &mut dyn Admission) {
         if std::mem::take(&mut self.closed) {
-            session.on_disconnect();
+            gate.on_disconnect();
         }
     }
 
@@ -231,8 +232,8 @@ impl BufferedPort for TcpLink {
         self.disconnect();
     }
 
-    fn admit(&mut self, session: &mut LinkSession, now_ms: u32) -> io::Result<bool> {
-        self.report_close(session);
+    fn admit(&mut self, gate: &mut dyn Admission, now_ms: u32) -> io::Result<bool> {
+        self.report_close(gate);
         let mut admitted = false;
         for _ in 0..ACCEPTS_PER_ADMIT {
             let Some((stream, addr)) = self.accept()? else {
@@ -243,13 +244,13 @@ impl BufferedPort for TcpLink {
             // hears of the close first. A host closes before it reconnects, so its close is
             // there to be seen.
             self.receive();
-            self.report_close(session);
-            match session.on_connect(now_ms) {
-                SessionAction::SendConnected => match self.take_control(stream, addr) {
+            self.report_close(gate);
+            match gate.on_connect(now_ms) {
+                Admit::Control => match self.take_control(stream, addr) {
                     Ok(()) => admitted = true,
-                    Err(_) => session.on_disconnect(),
+                    Err(_) => gate.on_disconnect(),
                 },
-                _ => self.refuse(stream),
+                Admit::Refuse => self.refuse(stream),
             }
         }
         Ok(admitted)
@@ -260,8 +261,43 @@ buffered_link!(TcpLink);
 
 #[cfg(test)]
 mod tests {
+    use forja_hal_abstraction::link::{LinkState, LinkStatus};
+
+    use forja_drivers::port_link::SingleClient;
+
     use super::*;
     use crate::link::PortLink;
+
+    /// What the link reported to the session rules.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    enum Report {
+        Connect(u32),
+        Disconnect,
+    }
+
+    /// One controlling client ([`SingleClient`]), with what the link reported to it.
+    #[derive(Default)]
+    struct Recorded {
+        rules: SingleClient,
+        reports: Vec<Report>,
+    }
+
+    impl LinkStatus for Recorded {
+        fn state(&self) -> LinkState {
+            self.rules.state()
+        }
+    }
+
+    impl Admission for Recorded {
+        fn on_connect(&mut self, now_ms: u32) -> Admit {
+            self.reports.push(Report::Connect(now_ms));
+            self.rules.on_connect(now_ms)
+        }
+        fn on_disconnect(&mut self) {
+            self.reports.push(Report::Disconnect);
+            self.rules.on_disconnect();
+        }
+    }
 
     fn link() -> TcpLink {
         TcpLink::bind("127.0.0.1:0".parse().unwrap(), b"busy\n".to_vec()).unwrap()
@@ -272,38 +308,42 @@ mod tests {
     #[test]
     fn a_host_that_reconnects_at_once_is_not_refused() {
         let mut link = link();
-        let mut session = LinkSession::new(1_000);
+        let mut gate = Recorded::default();
         let addr = link.local_addr().unwrap();
         let first = TcpStream::connect(addr).unwrap();
         while link.connections() == 0 {
             link.poll().unwrap();
-            PortLink::admit(&mut link, &mut session, 0).unwrap();
+            PortLink::admit(&mut link, &mut gate, 0).unwrap();
         }
         // The close and the new connection both come between two reads.
         drop(first);
         let mut second = TcpStream::connect(addr).unwrap();
         std::thread::sleep(std::time::Duration::from_millis(20));
         assert!(
-            PortLink::admit(&mut link, &mut session, 10).unwrap(),
+            PortLink::admit(&mut link, &mut gate, 10).unwrap(),
             "admitted"
         );
         assert_eq!(link.refused(), 0);
         assert_eq!(link.connections(), 2);
-        assert_eq!(session.poll_at(), Some(1_010), "a new session");
+        assert_eq!(
+            gate.reports,
+            [Report::Connect(0), Report::Disconnect, Report::Connect(10)],
+            "the close reported before the new connection"
+        );
         embedded_io::Write::write_all(&mut link, b"ok\n").unwrap();
         let mut buf = [0u8; 3];
         second.read_exact(&mut buf).unwrap();
         assert_eq!(&buf, b"ok\n");
     }
 
-    /// Admission is the session's: a session that already has a controller refuses the first
-    /// client of a new link, and one that has none admits it.
+    /// Admission is the session rules': rules that already have a controller refuse the first
+    /// client of a new link, and rules that have none admit it.
     #[test]
     fn the_session_decides() {
         let mut link = link();
         let addr = link.local_addr().unwrap();
-        let mut taken = LinkSession::new(1_000);
-        assert_eq!(taken.on_connect(0), SessionAction::SendConnected);
+        let mut taken = SingleClient::new();
+        assert_eq!(taken.on_connect(0), Admit::Control);
         let mut refused = TcpStream::connect(addr).unwrap();
         std::thread::sleep(std::time::Duration::from_millis(20));
         assert!(!PortLink::admit(&mut link, &mut taken, 5).unwrap());
@@ -317,6 +357,6 @@ mod tests {
         std::thread::sleep(std::time::Duration::from_millis(20));
         assert!(PortLink::admit(&mut link, &mut taken, 5).unwrap());
         assert_eq!((link.connections(), link.refused()), (1, 1));
-        assert!(taken.is_connected());
+        assert_eq!(taken.state(), LinkState::Connected);
     }
 }

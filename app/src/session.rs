@@ -2,22 +2,25 @@
 //! link): one controlling client at a time, a greeting on connect, periodic keep-alives, and
 //! optionally an idle time-out for a controlling client that has gone silent.
 //!
-//! [`LinkSession`] is sans-IO. The caller owns the sockets and the clock: it reports
-//! connections and disconnections, calls [`LinkSession::poll`] with the time, and carries out
-//! the [`SessionAction`]s it gets back, encoding the messages with the protocol crate:
+//! [`LinkSession`] is sans-IO. The caller owns the sockets and the clock. The link reports
+//! connections and disconnections through the drivers' admission contract ([`Admission`],
+//! which [`PortLink::admit`](forja_drivers::port_link::PortLink::admit) and the drivers' TCP
+//! server call) and carries out its answer ([`Admit`]); the controller's side calls
+//! [`LinkSession::poll`] with the time and sends what it is asked ([`SessionAction`]),
+//! encoding the messages with the protocol crate:
 //!
-//! | action | the caller |
+//! | answer or action | the caller |
 //! |---|---|
-//! | [`SessionAction::SendConnected`] | sends message 54 (connected) to the new client |
+//! | [`Admit::Control`] | the link serves the new client as the controlling one; the controller greets it: [`SessionAction::SendConnected`], message 54 (connected) |
 //! | [`SessionAction::SendKeepAlive`] | sends message 55 (keep-alive) with the counter |
-//! | [`SessionAction::RefuseSecondClient`] | sends the refusal to the *new* client and closes it; the controlling client is untouched |
+//! | [`Admit::Refuse`] | the link sends the refusal to the *new* client and closes it; the controlling client is untouched |
 //!
 //! ```
-//! use forja_drivers::session::{LinkSession, SessionAction};
+//! use forja_app::session::{Admission, Admit, LinkSession, SessionAction};
 //!
 //! let mut session = LinkSession::new(1_000);
-//! assert_eq!(session.on_connect(0), SessionAction::SendConnected);
-//! assert_eq!(session.on_connect(10), SessionAction::RefuseSecondClient);
+//! assert_eq!(session.on_connect(0), Admit::Control);
+//! assert_eq!(session.on_connect(10), Admit::Refuse);
 //! assert_eq!(session.poll(999), None);
 //! assert_eq!(session.poll(1_000), Some(SessionAction::SendKeepAlive(0)));
 //! assert_eq!(session.poll_at(), Some(2_000));
@@ -34,15 +37,15 @@
 //! (`M105`, `?`, a frame 04) more often than the time-out.
 //!
 //! ```
-//! use forja_drivers::session::{LinkSession, SessionAction};
+//! use forja_app::session::{Admission, Admit, LinkSession};
 //!
 //! let mut session = LinkSession::new(1_000).with_idle_timeout(5_000);
-//! assert_eq!(session.on_connect(0), SessionAction::SendConnected);
+//! assert_eq!(session.on_connect(0), Admit::Control);
 //! session.on_input(3_000);
 //! assert!(!session.poll_idle(7_999));
 //! assert!(session.poll_idle(8_000), "silent for 5 s");
 //! assert!(!session.is_connected());
-//! assert_eq!(session.on_connect(8_010), SessionAction::SendConnected);
+//! assert_eq!(session.on_connect(8_010), Admit::Control);
 //! ```
 //!
 //! # Several links, one machine
@@ -56,22 +59,24 @@
 //!
 //! # Execution context
 //!
-//! Thread (the network task). Never blocks, never fails.
+//! Thread (the network task, or the board's host task). Never blocks, never fails.
 
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 
-/// What the caller must do on the link.
+/// The contract the drivers' connection-oriented links ask, and their answer: implemented
+/// here by [`LinkSession`].
+pub use forja_drivers::port_link::{Admission, Admit};
+
+/// What the controller is asked to send its controlling client (see
+/// [`Firmware::session`](crate::firmware::Firmware::session)).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum SessionAction {
-    /// Send message 54 (connected) to the client that just became the controller.
+    /// Send message 54 (connected) to the client that just became the controller (it was
+    /// admitted: [`Admit::Control`]).
     SendConnected,
     /// Send message 55 (keep-alive) carrying this counter, which starts at 0 for each session
-    /// and increments (wrapping) with each keep-alive.
+    /// and increments (wrapping) with each keep-alive ([`LinkSession::poll`]).
     SendKeepAlive(u32),
-    /// A client connected while another is in control (on this link, or on another link of
-    /// the board: [`LinkSession::set_locked`]): send it the refusal message and close its
-    /// connection.
-    RefuseSecondClient,
 }
 
 /// The session of one link: who is in control and when the next keep-alive is due.
@@ -126,7 +131,8 @@ impl LinkSession {
     }
 
     /// Another link of the board has its controlling host (`true`) or no longer has
-    /// (`false`): while locked, every client that connects is refused. The controlling client
+    /// (`false`): while locked, every client that connects is refused ([`Admit::Refuse`]). The
+    /// controlling client
     /// of this session, if any, is untouched.
     pub fn set_locked(&mut self, locked: bool) {
         self.locked = locked;
@@ -163,28 +169,6 @@ impl LinkSession {
             }
             _ => false,
         }
-    }
-
-    /// A client connected at `now_ms`. The first one becomes the controller
-    /// ([`SessionAction::SendConnected`]; its first keep-alive is due one interval later, its
-    /// silence counts from now); any other, while one is in control or the session is
-    /// [locked](LinkSession::set_locked), is refused ([`SessionAction::RefuseSecondClient`])
-    /// and does not change the session.
-    pub fn on_connect(&mut self, now_ms: u32) -> SessionAction {
-        if self.connected || self.locked {
-            return SessionAction::RefuseSecondClient;
-        }
-        self.connected = true;
-        self.counter = 0;
-        self.next_keep_alive_ms = now_ms.wrapping_add(self.keep_alive_interval_ms);
-        self.heard_ms = now_ms;
-        SessionAction::SendConnected
-    }
-
-    /// The controlling client went away (closed, reset, timed out). Call it for the controller
-    /// only: a refused client never joined the session. Idempotent.
-    pub fn on_disconnect(&mut self) {
-        self.connected = false;
     }
 
     /// Whether a client is in control.
@@ -229,6 +213,7 @@ impl LinkSession {
 }
 
 impl LinkStatus for LinkSession {
+    /// `Connected` while a client is in control.
     fn state(&self) -> LinkState {
         if self.connected {
             LinkState::Connected
@@ -238,8 +223,34 @@ impl LinkStatus for LinkSession {
     }
 }
 
+impl Admission for LinkSession {
+    /// A client connected at `now_ms`. The first one becomes the controller
+    /// ([`Admit::Control`]; its first keep-alive is due one interval later, its silence
+    /// counts from now); any other, while one is in control or the session is
+    /// [locked](LinkSession::set_locked), is refused ([`Admit::Refuse`]) and does not change
+    /// the session.
+    fn on_connect(&mut self, now_ms: u32) -> Admit {
+        if self.connected || self.locked {
+            return Admit::Refuse;
+        }
+        self.connected = true;
+        self.counter = 0;
+        self.next_keep_alive_ms = now_ms.wrapping_add(self.keep_alive_interval_ms);
+        self.heard_ms = now_ms;
+        Admit::Control
+    }
+
+    /// The controlling client went away (closed, reset, timed out, or was hung up on). Call it
+    /// for the controller only: a refused client never joined the session. Idempotent.
+    fn on_disconnect(&mut self) {
+        self.connected = false;
+    }
+}
+
 #[cfg(test)]
 mod tests {
+    use std::vec::Vec;
+
     use super::*;
 
     #[test]
@@ -247,17 +258,17 @@ mod tests {
         let mut s = LinkSession::new(500);
         assert_eq!(s.state(), LinkState::Disconnected);
         assert_eq!(s.poll_at(), None);
-        assert_eq!(s.on_connect(100), SessionAction::SendConnected);
+        assert_eq!(s.on_connect(100), Admit::Control);
         assert_eq!(s.state(), LinkState::Connected);
-        assert_eq!(s.on_connect(200), SessionAction::RefuseSecondClient);
-        assert_eq!(s.on_connect(300), SessionAction::RefuseSecondClient);
+        assert_eq!(s.on_connect(200), Admit::Refuse);
+        assert_eq!(s.on_connect(300), Admit::Refuse);
         assert!(s.is_connected(), "refusals leave the controller in place");
         assert_eq!(s.poll_at(), Some(600));
         s.on_disconnect();
         assert_eq!(s.state(), LinkState::Disconnected);
         s.on_disconnect();
         assert_eq!(s.poll(10_000), None);
-        assert_eq!(s.on_connect(1_000), SessionAction::SendConnected);
+        assert_eq!(s.on_connect(1_000), Admit::Control);
     }
 
     #[test]
@@ -311,7 +322,7 @@ mod tests {
         let mut s = LinkSession::new(1_000).with_idle_timeout(3_000);
         assert_eq!(s.idle_timeout_ms(), Some(3_000));
         assert!(!s.poll_idle(10_000), "nobody to time out");
-        assert_eq!(s.on_connect(100), SessionAction::SendConnected);
+        assert_eq!(s.on_connect(100), Admit::Control);
         assert_eq!(s.idle_at(), Some(3_100));
         s.on_input(2_000);
         assert!(!s.poll_idle(4_999));
@@ -322,7 +333,7 @@ mod tests {
         assert!(!s.poll_idle(9_000), "once");
         assert_eq!(s.poll(9_000), None, "no keep-alive after it");
         s.on_disconnect();
-        assert_eq!(s.on_connect(9_000), SessionAction::SendConnected);
+        assert_eq!(s.on_connect(9_000), Admit::Control);
         assert!(
             !s.poll_idle(11_999),
             "the new client's silence starts at its connection"
@@ -344,10 +355,10 @@ mod tests {
         let mut s = LinkSession::new(1_000);
         s.set_locked(true);
         assert!(s.is_locked());
-        assert_eq!(s.on_connect(0), SessionAction::RefuseSecondClient);
+        assert_eq!(s.on_connect(0), Admit::Refuse);
         assert!(!s.is_connected());
         s.set_locked(false);
-        assert_eq!(s.on_connect(1), SessionAction::SendConnected);
+        assert_eq!(s.on_connect(1), Admit::Control);
         s.set_locked(true);
         assert!(s.is_connected(), "locking leaves the controller in place");
     }

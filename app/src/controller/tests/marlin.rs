@@ -1,0 +1,212 @@
+//! The replies and commands of printer hosts, in Marlin's forms (OctoPrint, Printrun, CNCjs).
+
+use super::*;
+
+#[test]
+fn a_command_the_firmware_lacks_is_unknown_not_an_error() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("M123 S1"), ["echo:Unknown command: \"M123\"", "ok"]);
+    assert_eq!(b.ask("G38.2 X1"), ["echo:Unknown command: \"G38.2\"", "ok"]);
+    assert_eq!(b.ctl.stats().executed, 0);
+}
+
+#[test]
+fn m115_names_the_firmware_then_its_capabilities_then_ok() {
+    let mut b = Bench::new();
+    b.take();
+    let out = b.ask("M115");
+    assert!(
+        out[0].starts_with("FIRMWARE_NAME:Forja FIRMWARE_VERSION:"),
+        "{out:?}"
+    );
+    assert_eq!(out.last().map(String::as_str), Some("ok"));
+    let caps: Vec<&str> = out[1..out.len() - 1].iter().map(String::as_str).collect();
+    assert!(
+        caps.iter()
+            .all(|c| c.starts_with("Cap:") && c.ends_with(":1")),
+        "{caps:?}"
+    );
+    for cap in [
+        "Cap:EMERGENCY_PARSER:1",
+        "Cap:AUTOREPORT_TEMP:1",
+        "Cap:THERMAL_PROTECTION:1",
+    ] {
+        assert!(caps.contains(&cap), "{cap} in {caps:?}");
+    }
+}
+
+#[test]
+fn temperatures_carry_targets_and_power_and_waits_report_without_ok() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("M140 S60"), ["ok"]);
+    b.run_ms(100);
+    let out = b.ask("M105");
+    assert_eq!(out.len(), 1, "{out:?}");
+    assert!(out[0].starts_with("ok T:20.0 /0.0 B:2"), "{out:?}");
+    assert!(out[0].contains(" /60.0 @:0 B@:127"), "{out:?}");
+    // M190 waits for the bed alone: reports every second, no `ok` until it is there.
+    b.send("M104 S200");
+    b.send("M190 S60");
+    b.run_ms(1500);
+    let out = b.take();
+    assert_eq!(out[0], "ok", "{out:?}");
+    let reports: Vec<&String> = out.iter().filter(|l| l.starts_with(" T:")).collect();
+    assert!(
+        !reports.is_empty() && out.len() == 1 + reports.len(),
+        "{out:?}"
+    );
+    assert!(reports[0].contains(" /200.0 B:") && reports[0].contains(" /60.0 @:"));
+    b.run_until(10_000, |b| b.ctl.stats().oks == 4);
+    // The hot end is far from 200: M190 did not wait for it.
+    let hot = b.ctl.peripherals().hot.current_mc;
+    assert!(hot < 150_000, "{hot}");
+}
+
+#[test]
+fn m109_s_waits_only_while_heating_and_r_waits_to_cool() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("M109 S25"), Vec::<String>::new());
+    b.run_until(5_000, |b| b.ctl.stats().oks == 1);
+    // At 25 °C and above the new target: `S` does not wait to cool down.
+    assert_eq!(b.ask("M109 S21").last().map(String::as_str), Some("ok"));
+    // `R` does.
+    assert!(b.ask("M109 R0").is_empty() || b.ctl.stats().oks == 3);
+    assert!(b.ask("M109 R21").iter().all(|l| !l.starts_with("ok")));
+    b.run_until(5_000, |b| b.ctl.stats().oks >= 4);
+    assert!(b.ctl.peripherals().hot.current_mc <= 22_000);
+}
+
+#[test]
+fn m108_ends_a_heating_wait_as_it_arrives() {
+    let mut b = Bench::new();
+    b.take();
+    b.send("M109 S250");
+    b.send("G1 X1 F600");
+    b.run_ms(50);
+    assert!(b.take().is_empty());
+    b.send("M108");
+    b.run_ms(20);
+    let out = b.take();
+    assert_eq!(out.iter().filter(|l| *l == "ok").count(), 3, "{out:?}");
+}
+
+#[test]
+fn m400_answers_when_the_motion_is_done_with_busy_meanwhile() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("G1 X30 F600"), ["ok"]);
+    b.send("M400");
+    b.run_ms(2_500);
+    assert_eq!(b.take(), ["echo:busy: processing"]);
+    assert!(!b.ctl.kernel().is_idle());
+    b.run_until(10_000, |b| b.ctl.stats().oks == 2);
+    assert_eq!(b.take(), ["ok"]);
+    assert!(b.ctl.kernel().is_idle());
+    assert_eq!(b.position_mm()[0], 30.0);
+    // `M113 S0` silences it; `M113` tells the period.
+    assert_eq!(b.ask("M113"), ["echo:M113 S2", "ok"]);
+    assert_eq!(b.ask("M113 S0"), ["ok"]);
+    assert_eq!(b.ask("G1 X0"), ["ok"]);
+    b.send("M400");
+    b.run_until(10_000, |b| b.ctl.stats().oks == 6);
+    assert_eq!(b.take(), ["ok"]);
+}
+
+#[test]
+fn m410_stops_the_motion_at_once_and_keeps_the_homing() {
+    let mut b = Bench::new();
+    b.take();
+    b.send("G28 X");
+    b.idle();
+    b.take();
+    assert_eq!(b.ask("G1 X100 F3000"), ["ok"]);
+    b.send("G1 X150");
+    b.send("G1 X200");
+    b.run_ms(300);
+    b.take();
+    b.send("M410");
+    b.run_ms(5);
+    b.idle();
+    let out = b.take();
+    assert!(
+        out.iter().all(|l| l == "ok" || l.starts_with("echo:E")),
+        "{out:?}"
+    );
+    let x = b.position_mm()[0];
+    assert!(x > 1.0 && x < 100.0, "stopped on the way: {x}");
+    assert_eq!(b.ctl.kernel().homed_axes() & 1, 1);
+    assert_eq!(b.ask("G1 X10"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 10.0);
+}
+
+#[test]
+fn progress_messages_and_host_lines() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("M73 P12 R40"), ["ok"]);
+    assert_eq!(b.ask("M73 L3"), ["ok"]);
+    let p = b.ctl.host_progress();
+    assert_eq!(
+        (p.percent, p.remaining_min, p.layer),
+        (Some(12), Some(40), Some(3))
+    );
+    assert_eq!(b.ask("M117 Printing part 1"), ["ok"]);
+    assert_eq!(b.ctl.message(), "Printing part 1");
+    assert_eq!(b.ask("M118 E1 Hello"), ["echo:Hello", "ok"]);
+    assert_eq!(b.ask("M118 A1 action:pause"), ["// action:pause", "ok"]);
+    assert_eq!(b.ask("M118 plain"), ["plain", "ok"]);
+}
+
+#[test]
+fn m155_reports_temperatures_until_stopped() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("M155 S1"), ["ok"]);
+    b.run_ms(3_050);
+    let out = b.take();
+    assert_eq!(out.len(), 3, "{out:?}");
+    assert!(
+        out.iter()
+            .all(|l| l.starts_with(" T:20.0 /0.0 B:20.0 /0.0"))
+    );
+    assert_eq!(b.ask("M155 S0"), ["ok"]);
+    b.run_ms(3_000);
+    assert!(b.take().is_empty());
+}
+
+#[test]
+fn a_halted_machine_says_so_at_connection_and_refuses_moves() {
+    let mut b = Bench::new();
+    b.take();
+    b.send("M112");
+    b.run_ms(5);
+    assert_eq!(b.take(), ["Error:E153 emergency-stop", "ok"]);
+    let out = b.ask("M110 N0");
+    assert_eq!(
+        out,
+        [
+            "// action:notification Machine halted: E153 emergency-stop. Send M999 to clear.",
+            "ok"
+        ]
+    );
+    assert_eq!(b.ask("G1 X1"), ["echo:E125 alarm-locked", "ok"]);
+    assert_eq!(b.ask("M999"), ["ok"]);
+    assert_eq!(b.ask("M110 N0"), ["ok"]);
+}
+
+#[test]
+fn releasing_some_axes_keeps_the_drivers_energised_until_all_are_released() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("G1 X1 F3000"), ["ok"]);
+    b.idle();
+    assert!(b.ctl.peripherals().motors);
+    assert_eq!(b.ask("M84 X Y"), ["ok"]);
+    assert!(b.ctl.peripherals().motors, "Z still held");
+    assert_eq!(b.ask("M18 Z"), ["ok"]);
+    assert!(!b.ctl.peripherals().motors);
+}
