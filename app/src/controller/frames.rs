@@ -338,13 +338,25 @@ where
         if w.letter != b'M' {
             return false;
         }
-        let result = match w.value.as_integer() {
+        let number = w.value.as_integer();
+        if !matches!(number, Some(20 | 413 | 1000)) {
+            return false;
+        }
+        // A letter alone is a flag only to `M1000 C` (Marlin's cancel).
+        if let Some(letter) = line.bare_letter()
+            && !(number == Some(1000) && letter == b'C')
+        {
+            let r = text::command_refusal(&CommandError::MissingValue { letter }, &[]);
+            self.refuse(&r, out);
+            return true;
+        }
+        let result = match number {
             Some(20) => {
                 self.list_program(out);
                 Ok(())
             }
             Some(413) => self.recovery_command(line, out),
-            Some(1000) if line.has(b'C') => self.forget_resume(),
+            Some(1000) if line.mentions(b'C') => self.forget_resume(),
             Some(1000) => self.resume(),
             _ => return false,
         };

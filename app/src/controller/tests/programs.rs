@@ -203,7 +203,7 @@ fn a_job_cut_by_power_loss_resumes_after_its_last_finished_line() {
     assert_eq!(resume_record(&mut storage), None);
 }
 
-/// `M1000` refuses a changed program, `M1000 C1` forgets the record, `M413 S0` stops
+/// `M1000` refuses a changed program, `M1000 C` forgets the record, `M413 S0` stops
 /// recording.
 #[test]
 fn resume_refuses_a_changed_program_and_can_be_cancelled_or_switched_off() {
@@ -223,11 +223,13 @@ fn resume_refuses_a_changed_program_and_can_be_cancelled_or_switched_off() {
     let mut rig = switch_on(store, storage, physical);
     rig.home();
     assert_eq!(rig.ask("M1000"), ["echo:E188 program-changed", "ok"]);
-    assert_eq!(rig.ask("M1000 C1"), ["ok"]);
+    // Marlin's form: `C` alone.
+    assert_eq!(rig.ask("M1000 C"), ["ok"]);
     assert_eq!(rig.ask("M1000"), ["echo:E186 no-resume", "ok"]);
     assert_eq!(rig.ask("M413 S0"), ["ok"]);
     assert_eq!(rig.ask("M413"), ["// power-loss recovery off", "ok"]);
     assert_eq!(rig.ask("M413 S2"), ["echo:E121 bad-value S", "ok"]);
+    assert_eq!(rig.ask("M413 S"), ["echo:E122 missing-value S", "ok"]);
     rig.ask_frame(&ClientMessage::Action(Action::Start));
     rig.run_ms(3_000);
     let (store, mut storage, physical) = rig.power_off();
