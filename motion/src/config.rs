@@ -67,11 +67,11 @@ pub struct AxisConfig {
     pub letter: u8,
     /// What the axis moves.
     pub kind: AxisKind,
-    /// Motor steps per millimetre (or per degree for a rotary axis).
+    /// Motor steps per millimetre (or per degree for a rotary axis); `M92` sets it.
     pub steps_per_mm: f32,
-    /// Maximum rate, mm/min. `G0` moves at this rate.
+    /// Maximum rate, mm/min. `G0` moves at this rate; `M203` sets it (in mm/s, Marlin's unit).
     pub max_rate_mm_min: f32,
-    /// Maximum acceleration, mm/s².
+    /// Maximum acceleration, mm/s²; `M201` sets it.
     pub accel_mm_s2: f32,
     /// Lowest machine position, mm.
     pub min_mm: f32,
@@ -161,6 +161,7 @@ pub struct MachineConfig<const N: usize> {
     pub axes: [AxisConfig; N],
     /// Junction deviation, mm: how far the path may (virtually) cut a corner. Larger is faster
     /// through corners. `0` stops at every corner that is not a straight continuation.
+    /// `M205 J` sets it.
     pub junction_deviation_mm: f32,
     /// Largest distance between an arc and the chords that approximate it, mm.
     pub arc_tolerance_mm: f32,
@@ -198,7 +199,8 @@ impl<const N: usize> MachineConfig<N> {
         self.axes.iter().position(|a| a.letter == letter)
     }
 
-    /// Check every field. The kernel calls this on construction and on `M92`.
+    /// Check every field. The kernel calls this on construction and on every line that changes
+    /// the configuration (`M92`, `M201`, `M203`, `M205 J`).
     pub fn validate(&self) -> Result<(), ConfigError> {
         if N == 0 || N > crate::MAX_AXES {
             return Err(ConfigError::AxisCount);

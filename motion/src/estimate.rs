@@ -20,8 +20,9 @@ use crate::planner::{BlockKind, MoveRequest, Planner};
 use crate::profile::Profile;
 
 /// A dry run of a program, line by line. See the [module documentation](self).
-pub struct Estimate<'k, const N: usize, const B: usize> {
-    config: &'k MachineConfig<N>,
+pub struct Estimate<const N: usize, const B: usize> {
+    /// The kernel's configuration, as the program's `M201`/`M203`/`M205 J` change it.
+    config: MachineConfig<N>,
     interp: Interpreter<N>,
     steps: [i32; N],
     planner: Planner<N, B>,
@@ -30,14 +31,18 @@ pub struct Estimate<'k, const N: usize, const B: usize> {
     ended: bool,
 }
 
-impl<'k, const N: usize, const B: usize> Estimate<'k, N, B> {
+impl<const N: usize, const B: usize> Estimate<N, B> {
     /// A dry run from where `kernel` stands now: its position, modal state and configuration.
-    pub fn new<const Q: usize>(kernel: &'k Kernel<'_, N, B, Q>) -> Self {
+    pub fn new<const Q: usize>(kernel: &Kernel<'_, N, B, Q>) -> Self {
         Self {
-            config: kernel.config(),
+            config: kernel.config().clone(),
             interp: kernel.interpreter(),
             steps: kernel.commanded_steps(),
-            planner: Planner::new(),
+            planner: {
+                let mut planner = Planner::new();
+                planner.set_limits(kernel.planner_settings().path);
+                planner
+            },
             total: 0.0,
             v_carry: 0.0,
             ended: false,
@@ -51,7 +56,7 @@ impl<'k, const N: usize, const B: usize> Estimate<'k, N, B> {
             return false;
         }
         let mut next = self.interp;
-        let Ok(action) = next.interpret(line, self.config) else {
+        let Ok(action) = next.interpret(line, &self.config) else {
             return true;
         };
         self.interp = next;
@@ -79,6 +84,17 @@ impl<'k, const N: usize, const B: usize> Estimate<'k, N, B> {
                 let _ = self.planner.push_dwell(ms, 0);
             }
             Action::Effect(Effect::ProgramEnd) => self.ended = true,
+            Action::SetLimits(change) => {
+                // As the kernel takes it: refused (and changing nothing) when the
+                // configuration it makes is not valid.
+                let mut config = self.config.clone();
+                let mut limits = self.planner.limits();
+                change.apply(&mut config, &mut limits);
+                if config.validate().is_ok() {
+                    self.config = config;
+                    self.planner.set_limits(limits);
+                }
+            }
             Action::Home { mask } => {
                 while !self.planner.is_empty() {
                     self.retire();
@@ -132,7 +148,9 @@ impl<'k, const N: usize, const B: usize> Estimate<'k, N, B> {
         if self.planner.is_full() {
             self.retire();
         }
-        let req = MoveRequest::to_target(target, &mut self.steps, self.config, feed, ramp, 0, 0);
-        let _ = self.planner.push_move(&req, self.config);
+        let mut req =
+            MoveRequest::to_target(target, &mut self.steps, &self.config, feed, ramp, 0, 0);
+        req.feed_scale = self.interp.feed_scale();
+        let _ = self.planner.push_move(&req, &self.config);
     }
 }

@@ -19,9 +19,36 @@
 //! | `M82`, `M83` | extruder absolute, relative |
 //! | `M17`, `M18`, `M84` | motors on, off |
 //! | `M92` | set steps per unit |
+//! | `M201`, `M203` | maximum acceleration (mm/s²), maximum feed rate (mm/s) of the named axes |
+//! | `M204` | acceleration along the path: `P` printing, `R` retracting, `T` travel moves, `S` printing and travel (mm/s²) |
+//! | `M205` | `J` junction deviation (mm), `S` and `T` the slowest extruding and travel feeds (mm/s); the jerks `X Y Z E` and `B` are checked and left out |
+//! | `M220` | feed-rate override, percent (`S`); `B` backs it up, `R` restores it |
+//! | `M221` | flow of the extruders, percent (`S`); `T` names one extruder |
 //! | `M114` | report position |
 //! | `M0`, `M112`, `M226` | stop, emergency stop, pause |
 //! | `M3`–`M5`, `M7`–`M9`, `M104`–`M107`, `M109`, `M110`, `M115`, `M116`, `M119`, `M140`, `M20`–`M29`, `T` | returned as [`crate::Effect`]s |
+//!
+//! ## Planner settings and overrides
+//!
+//! `M201`, `M203`, `M204` and `M205` come back as [`Action::SetLimits`]: the kernel plans the
+//! moves after the line with them (Marlin's order: the moves queued before keep theirs). Values
+//! are in the current unit (`G20`: inches, so that `M203 X1` is 25.4 mm/s), as Marlin reads
+//! them; each must be a finite number, positive for accelerations and rates, not negative for
+//! `M205`. The planner uses junction deviation, so `M205` takes what Marlin takes without
+//! `CLASSIC_JERK`: `J`, `S` and `T`. The classic jerks (`X`, `Y`, `Z`, `E` and any other axis
+//! letter) do not apply to a junction-deviation planner and `B` (the shortest segment time,
+//! which Marlin's `SLOWDOWN` stretches short segments to) has no counterpart here: they are
+//! checked, then left out.
+//!
+//! `M220` (feed) and `M221` (flow) are overrides kept in the interpreter's state and apply to
+//! the moves of later lines, not to moves already queued. The feed override scales the feed of
+//! every later G-code move, `G0` included (its maximum rate), when the move is planned; the
+//! axes' maximum rates still cap it. The flow override scales the filament an extruder feeds:
+//! its machine position moves by the commanded distance × flow while its work position (what
+//! `M114` reports) advances by the commanded distance, in absolute and relative extrusion
+//! alike; the `G92` offset takes the difference, so `G92 E0` after a flow change sets the
+//! reported position and the motor goes on from where it is (Marlin's `e_factor`). Both are
+//! integer percentages from 1 to [`MAX_PERCENT`], 100 at power-on and after a reset.
 
 use forja_protocol::gcode::{Decimal, Line};
 
@@ -29,6 +56,7 @@ use crate::arc::{ArcCenter, ArcCutter, Nm};
 use crate::config::{AxisKind, MachineConfig};
 use crate::effect::{Coolant, Effect, Heater, Spindle, StopKind, Storage, TemperatureWait};
 use crate::error::CommandError;
+use crate::planner::PathLimits;
 
 /// Nanometres per millimetre: positions are kept in integer nanometres.
 pub const NM_PER_MM: f64 = 1e6;
@@ -38,6 +66,9 @@ pub const NM_PER_MM: f64 = 1e6;
 pub(crate) fn mm_to_nm(mm: f32) -> Nm {
     libm::round(f64::from(mm) * NM_PER_MM) as Nm
 }
+/// The largest `M220`/`M221` percentage accepted (the top of Marlin's display range): a tenfold
+/// feed or flow is the most a line may ask for.
+pub(crate) const MAX_PERCENT: u32 = 999;
 /// Largest position magnitude accepted, nm (100 m).
 const MAX_NM: i64 = 100_000_000_000;
 /// The slowest feed accepted, mm/min (grblHAL's `MINIMUM_FEED_RATE`): slower `F` words are
@@ -69,12 +100,95 @@ pub(crate) enum Action<'l, const N: usize> {
     Report,
     /// New steps per unit for some axes.
     SetStepsPerMm([Option<f32>; N]),
+    /// New planner limits for the moves planned after the line.
+    SetLimits(LimitChange<N>),
     /// For the controller.
     Effect(Effect<'l>),
     /// `M0` / `M112`.
     Stop(StopKind),
     /// `M226`.
     Pause,
+}
+
+/// A change of the planner's limits (`M201`, `M203`, `M204`, `M205`); `None` leaves a value as
+/// it is. Values are checked for their form (finite, positive or not negative) by the
+/// interpreter, against the machine by the kernel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum LimitChange<const N: usize> {
+    /// `M201`: maximum acceleration of the named axes, mm/s².
+    AxisAccel([Option<f32>; N]),
+    /// `M203`: maximum rate of the named axes, mm/min (converted from Marlin's mm/s).
+    AxisRate([Option<f32>; N]),
+    /// `M204`: acceleration along the path by kind of move, mm/s².
+    PathAccel {
+        /// `P`, or `S`: printing moves.
+        print: Option<f32>,
+        /// `R`: retracting moves.
+        retract: Option<f32>,
+        /// `T`, or `S`: travel moves.
+        travel: Option<f32>,
+    },
+    /// `M205`: junction deviation and the slowest feeds.
+    Junction {
+        /// `J`, mm.
+        deviation_mm: Option<f32>,
+        /// `S`: the slowest feed of extruding moves, mm/s.
+        min_extruding_feed_mm_s: Option<f32>,
+        /// `T`: the slowest feed of travel moves, mm/s.
+        min_travel_feed_mm_s: Option<f32>,
+    },
+}
+
+impl<const N: usize> LimitChange<N> {
+    /// The change made to `config` and `limits` (the caller validates the configuration it
+    /// makes). An `M203` rate below an axis's homing speeds lowers them to it (Marlin's planner
+    /// caps homing moves the same way).
+    pub(crate) fn apply(&self, config: &mut MachineConfig<N>, limits: &mut PathLimits) {
+        match *self {
+            LimitChange::AxisAccel(values) => {
+                for (a, v) in config.axes.iter_mut().zip(values) {
+                    if let Some(v) = v {
+                        a.accel_mm_s2 = v;
+                    }
+                }
+            }
+            LimitChange::AxisRate(values) => {
+                for (a, v) in config.axes.iter_mut().zip(values) {
+                    if let Some(v) = v {
+                        a.max_rate_mm_min = v;
+                        if let Some(h) = a.homing.as_mut() {
+                            h.seek_mm_min = h.seek_mm_min.min(v);
+                            h.locate_mm_min = h.locate_mm_min.min(h.seek_mm_min);
+                        }
+                    }
+                }
+            }
+            LimitChange::PathAccel {
+                print,
+                retract,
+                travel,
+            } => {
+                limits.print_accel_mm_s2 = print.or(limits.print_accel_mm_s2);
+                limits.retract_accel_mm_s2 = retract.or(limits.retract_accel_mm_s2);
+                limits.travel_accel_mm_s2 = travel.or(limits.travel_accel_mm_s2);
+            }
+            LimitChange::Junction {
+                deviation_mm,
+                min_extruding_feed_mm_s,
+                min_travel_feed_mm_s,
+            } => {
+                if let Some(d) = deviation_mm {
+                    config.junction_deviation_mm = d;
+                }
+                if let Some(f) = min_extruding_feed_mm_s {
+                    limits.min_extruding_feed_mm_s = f;
+                }
+                if let Some(f) = min_travel_feed_mm_s {
+                    limits.min_travel_feed_mm_s = f;
+                }
+            }
+        }
+    }
 }
 
 /// Active plane for arcs.
@@ -107,6 +221,12 @@ pub(crate) struct Interpreter<const N: usize> {
     motion: Motion,
     plane: Plane,
     pub(crate) feed_mm_min: f32,
+    /// Feed-rate override (`M220`), percent.
+    feed_percent: u16,
+    /// What `M220 B` backed up and `M220 R` restores, percent.
+    feed_percent_backup: u16,
+    /// Flow override (`M221`) of each axis, percent: only an extruder's is ever other than 100.
+    flow_percent: [u16; N],
 }
 
 /// A number in nm from a decimal in the current unit.
@@ -190,6 +310,49 @@ fn small_int(v: Decimal, letter: u8, max: u32) -> Result<u32, CommandError> {
         .ok_or(CommandError::BadValue { letter })
 }
 
+/// An `M220`/`M221` percentage: an integer from 1 to [`MAX_PERCENT`].
+fn percent(v: Decimal, letter: u8) -> Result<u16, CommandError> {
+    match small_int(v, letter, MAX_PERCENT)? {
+        0 => Err(CommandError::BadValue { letter }),
+        p => Ok(p as u16),
+    }
+}
+
+/// A setting in millimetres (or mm/s, mm/s²) from a decimal in the current unit, refused as
+/// `letter` unless finite and above 0 (`positive`) or not below 0.
+fn setting(v: Decimal, inches: bool, letter: u8, positive: bool) -> Result<f32, CommandError> {
+    let x = v.to_f32() * if inches { 25.4 } else { 1.0 };
+    let ok = x.is_finite() && if positive { x > 0.0 } else { x >= 0.0 };
+    if ok {
+        Ok(x)
+    } else {
+        Err(CommandError::BadValue { letter })
+    }
+}
+
+/// Refuse a word other than `G`, `M` and the letters of `allowed`.
+fn only_words(line: &Line<'_>, allowed: &[u8]) -> Result<(), CommandError> {
+    match line
+        .words()
+        .iter()
+        .find(|w| !matches!(w.letter, b'G' | b'M') && !allowed.contains(&w.letter))
+    {
+        Some(w) => Err(CommandError::UnknownAxis { letter: w.letter }),
+        None => Ok(()),
+    }
+}
+
+/// `nm × percent / 100`, rounded to the nearest nanometre (halves away from zero).
+fn scale_nm(nm: Nm, percent: u16) -> Nm {
+    let q = i128::from(nm) * i128::from(percent);
+    let r = if q >= 0 {
+        (q + 50) / 100
+    } else {
+        (q - 50) / 100
+    };
+    i64::try_from(r).unwrap_or(if r < 0 { i64::MIN } else { i64::MAX })
+}
+
 impl<const N: usize> Interpreter<N> {
     /// Power-on state: absolute, millimetres, XY plane, rapid, the default feed.
     pub(crate) fn new(config: &MachineConfig<N>) -> Self {
@@ -202,7 +365,26 @@ impl<const N: usize> Interpreter<N> {
             motion: Motion::Rapid,
             plane: Plane::Xy,
             feed_mm_min: config.default_feed_mm_min,
+            feed_percent: 100,
+            feed_percent_backup: 100,
+            flow_percent: [100; N],
         }
+    }
+
+    /// The feed-rate override (`M220`), percent.
+    pub(crate) fn feed_percent(&self) -> u16 {
+        self.feed_percent
+    }
+
+    /// The feed-rate override as a factor, for the moves of the lines interpreted now.
+    #[inline]
+    pub(crate) fn feed_scale(&self) -> f32 {
+        f32::from(self.feed_percent) / 100.0
+    }
+
+    /// The flow override (`M221`) of each axis, percent (100 for axes that are not extruders).
+    pub(crate) fn flow_percent(&self) -> [u16; N] {
+        self.flow_percent
     }
 
     /// End of program (`M2`, `M30`): the modal groups that grbl and LinuxCNC reset go back to
@@ -216,7 +398,8 @@ impl<const N: usize> Interpreter<N> {
         self.absolute = true;
     }
 
-    /// Back to the power-on modal state, keeping the position and clearing offsets.
+    /// Back to the power-on modal state, keeping the position and clearing offsets; the
+    /// overrides go back to 100 %.
     pub(crate) fn reset_modal(&mut self, config: &MachineConfig<N>) {
         let pos = self.pos;
         *self = Self::new(config);
@@ -293,7 +476,7 @@ impl<const N: usize> Interpreter<N> {
         }
         // A letter alone is a flag only to the commands that take flags.
         if let Some(letter) = line.bare_letter()
-            && !matches!(command, Some((b'G', 28) | (b'M', 18 | 84)))
+            && !matches!(command, Some((b'G', 28) | (b'M', 18 | 84 | 220)))
         {
             return Err(CommandError::MissingValue { letter });
         }
@@ -348,13 +531,33 @@ impl<const N: usize> Interpreter<N> {
         }
     }
 
-    /// The target machine position of the axis words on the line.
-    fn target(&self, line: &Line<'_>, config: &MachineConfig<N>) -> Result<[Nm; N], CommandError> {
+    /// The target machine position of the axis words on the line. An extruder under a flow
+    /// override (`M221`) moves by its commanded distance × flow while its work position
+    /// advances by the commanded distance: its `G92` offset takes the difference, here (the
+    /// caller works on a copy of the state and drops it when the line is refused).
+    fn target(
+        &mut self,
+        line: &Line<'_>,
+        config: &MachineConfig<N>,
+    ) -> Result<[Nm; N], CommandError> {
         let mut target = self.pos;
         for (i, a) in config.axes.iter().enumerate() {
             if let Some(v) = line.get(a.letter) {
                 let nm = to_nm(v, self.inches, a.letter)?;
-                target[i] = if self.is_relative(a.kind) {
+                let relative = self.is_relative(a.kind);
+                let flow = self.flow_percent[i];
+                target[i] = if flow != 100 {
+                    let work = self.pos[i].saturating_add(self.offset[i]);
+                    let work_target = if relative {
+                        work.saturating_add(nm)
+                    } else {
+                        nm
+                    };
+                    let fed = scale_nm(work_target.saturating_sub(work), flow);
+                    let machine = self.pos[i].saturating_add(fed);
+                    self.offset[i] = work_target.saturating_sub(machine);
+                    machine
+                } else if relative {
                     self.pos[i].saturating_add(nm)
                 } else {
                     nm.saturating_sub(self.offset[i])
@@ -547,6 +750,137 @@ impl<const N: usize> Interpreter<N> {
                     }
                 }
                 Action::SetStepsPerMm(out)
+            }
+            (b'M', 201 | 203) => {
+                // `M201`/`M203` alone ask for a report: nothing changes.
+                let mut values = [None; N];
+                for w in line.words() {
+                    if matches!(w.letter, b'G' | b'M') {
+                        continue;
+                    }
+                    let i = config
+                        .axis_index(w.letter)
+                        .ok_or(CommandError::UnknownAxis { letter: w.letter })?;
+                    let v = setting(w.value, self.inches, w.letter, true)?;
+                    // Marlin's `M203` is in mm/s; the configuration keeps mm/min.
+                    values[i] = Some(if n == 203 { v * 60.0 } else { v });
+                }
+                match (values.iter().any(Option::is_some), n) {
+                    (false, _) => Action::None,
+                    (true, 201) => Action::SetLimits(LimitChange::AxisAccel(values)),
+                    (true, _) => Action::SetLimits(LimitChange::AxisRate(values)),
+                }
+            }
+            (b'M', 204) => {
+                only_words(line, b"PRST")?;
+                let value = |l: u8| {
+                    line.get(l)
+                        .map(|v| setting(v, self.inches, l, true))
+                        .transpose()
+                };
+                // Marlin reads `S` first: `P` and `T` on the same line win over it.
+                let both = value(b'S')?;
+                let print = value(b'P')?.or(both);
+                let travel = value(b'T')?.or(both);
+                let retract = value(b'R')?;
+                if print.is_none() && travel.is_none() && retract.is_none() {
+                    Action::None
+                } else {
+                    Action::SetLimits(LimitChange::PathAccel {
+                        print,
+                        retract,
+                        travel,
+                    })
+                }
+            }
+            (b'M', 205) => {
+                let mut deviation_mm = None;
+                let mut min_extruding_feed_mm_s = None;
+                let mut min_travel_feed_mm_s = None;
+                for w in line.words() {
+                    let slot = match w.letter {
+                        b'G' | b'M' => continue,
+                        b'J' => &mut deviation_mm,
+                        b'S' => &mut min_extruding_feed_mm_s,
+                        b'T' => &mut min_travel_feed_mm_s,
+                        // The shortest segment time, µs, and the classic jerks: checked, left
+                        // out (see the module documentation).
+                        b'B' => {
+                            setting(w.value, false, b'B', false)?;
+                            continue;
+                        }
+                        l if config.axis_index(l).is_some() => {
+                            setting(w.value, self.inches, l, false)?;
+                            continue;
+                        }
+                        l => return Err(CommandError::UnknownAxis { letter: l }),
+                    };
+                    *slot = Some(setting(w.value, self.inches, w.letter, false)?);
+                }
+                if deviation_mm.is_none()
+                    && min_extruding_feed_mm_s.is_none()
+                    && min_travel_feed_mm_s.is_none()
+                {
+                    Action::None
+                } else {
+                    Action::SetLimits(LimitChange::Junction {
+                        deviation_mm,
+                        min_extruding_feed_mm_s,
+                        min_travel_feed_mm_s,
+                    })
+                }
+            }
+            (b'M', 220) => {
+                // `B` and `R` are flags (their values, if any, are not read, as in Marlin).
+                for w in line.words() {
+                    match w.letter {
+                        b'G' | b'M' | b'B' | b'R' => {}
+                        b'S' if w.bare => return Err(CommandError::MissingValue { letter: b'S' }),
+                        b'S' => {}
+                        l => return Err(CommandError::UnknownAxis { letter: l }),
+                    }
+                }
+                let set = s.map(|v| percent(v, b'S')).transpose()?;
+                // Marlin's order: restore, back up what was in force before the line, set.
+                let before = self.feed_percent;
+                if line.mentions(b'R') {
+                    self.feed_percent = self.feed_percent_backup;
+                }
+                if line.mentions(b'B') {
+                    self.feed_percent_backup = before;
+                }
+                if let Some(p) = set {
+                    self.feed_percent = p;
+                }
+                Action::None
+            }
+            (b'M', 221) => {
+                only_words(line, b"ST")?;
+                // `T<n>`: the `n`-th extruder axis, in axis order; without it, every extruder.
+                let extruder = match line.get(b'T') {
+                    Some(t) => {
+                        let n = small_int(t, b'T', u32::from(u8::MAX))? as usize;
+                        let i = config
+                            .axes
+                            .iter()
+                            .enumerate()
+                            .filter(|(_, a)| a.kind == AxisKind::Extruder)
+                            .nth(n)
+                            .map(|(i, _)| i)
+                            .ok_or(CommandError::BadValue { letter: b'T' })?;
+                        Some(i)
+                    }
+                    None => None,
+                };
+                if let Some(v) = s {
+                    let p = percent(v, b'S')?;
+                    for (i, a) in config.axes.iter().enumerate() {
+                        if a.kind == AxisKind::Extruder && extruder.is_none_or(|e| e == i) {
+                            self.flow_percent[i] = p;
+                        }
+                    }
+                }
+                Action::None
             }
             (b'M', 114) => Action::Report,
             (b'M', 3) => Action::Effect(Effect::Spindle(Spindle::Clockwise {
@@ -1104,6 +1438,209 @@ mod tests {
             run(&mut it, b"M92 E93"),
             Ok(Action::SetStepsPerMm([None, None, None, Some(93.0)]))
         );
+    }
+
+    #[test]
+    fn axis_limits_are_read_in_marlins_units_and_checked() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        assert_eq!(
+            run(&mut it, b"M201 X1000 E5000"),
+            Ok(Action::SetLimits(LimitChange::AxisAccel([
+                Some(1000.0),
+                None,
+                None,
+                Some(5000.0)
+            ])))
+        );
+        // `M203` is in mm/s; the configuration keeps mm/min.
+        assert_eq!(
+            run(&mut it, b"M203 X200 Z12"),
+            Ok(Action::SetLimits(LimitChange::AxisRate([
+                Some(12_000.0),
+                None,
+                Some(720.0),
+                None
+            ])))
+        );
+        // Inches, as Marlin reads axis units.
+        run(&mut it, b"G20").expect("ok");
+        assert_eq!(
+            run(&mut it, b"M203 Y1"),
+            Ok(Action::SetLimits(LimitChange::AxisRate([
+                None,
+                Some(25.4 * 60.0),
+                None,
+                None
+            ])))
+        );
+        run(&mut it, b"G21").expect("ok");
+        // Alone: a report, nothing changes.
+        assert_eq!(run(&mut it, b"M201"), Ok(Action::None));
+        assert_eq!(run(&mut it, b"M203"), Ok(Action::None));
+        let before = it;
+        for (text, error) in [
+            (&b"M201 X0"[..], CommandError::BadValue { letter: b'X' }),
+            (b"M201 X100 Y-5", CommandError::BadValue { letter: b'Y' }),
+            (b"M203 E0", CommandError::BadValue { letter: b'E' }),
+            (b"M203 A10", CommandError::UnknownAxis { letter: b'A' }),
+            (b"M201 T0 E100", CommandError::UnknownAxis { letter: b'T' }),
+            (b"M201 X", CommandError::MissingValue { letter: b'X' }),
+        ] {
+            assert_eq!(run(&mut it, text), Err(error), "{}", text.escape_ascii());
+        }
+        assert_eq!(it, before);
+    }
+
+    #[test]
+    fn m204_sets_the_path_accelerations_s_first_then_p_and_t() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        assert_eq!(
+            run(&mut it, b"M204 P1250 R1250 T1500"),
+            Ok(Action::SetLimits(LimitChange::PathAccel {
+                print: Some(1250.0),
+                retract: Some(1250.0),
+                travel: Some(1500.0)
+            }))
+        );
+        assert_eq!(
+            run(&mut it, b"M204 S1000 P500"),
+            Ok(Action::SetLimits(LimitChange::PathAccel {
+                print: Some(500.0),
+                retract: None,
+                travel: Some(1000.0)
+            }))
+        );
+        assert_eq!(run(&mut it, b"M204"), Ok(Action::None));
+        for (text, error) in [
+            (&b"M204 R0"[..], CommandError::BadValue { letter: b'R' }),
+            (b"M204 S-1000", CommandError::BadValue { letter: b'S' }),
+            (b"M204 X1000", CommandError::UnknownAxis { letter: b'X' }),
+            (b"M204 P", CommandError::MissingValue { letter: b'P' }),
+        ] {
+            assert_eq!(run(&mut it, text), Err(error), "{}", text.escape_ascii());
+        }
+    }
+
+    #[test]
+    fn m205_takes_junction_deviation_and_the_slowest_feeds_and_checks_the_rest() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        assert_eq!(
+            run(&mut it, b"M205 J0.02 S0 T2.5 B20000"),
+            Ok(Action::SetLimits(LimitChange::Junction {
+                deviation_mm: Some(0.02),
+                min_extruding_feed_mm_s: Some(0.0),
+                min_travel_feed_mm_s: Some(2.5)
+            }))
+        );
+        // PrusaSlicer's classic jerks: accepted, nothing to change on this planner.
+        assert_eq!(run(&mut it, b"M205 X8 Y8 Z0.4 E4.5"), Ok(Action::None));
+        assert_eq!(run(&mut it, b"M205"), Ok(Action::None));
+        for (text, error) in [
+            (&b"M205 J-0.01"[..], CommandError::BadValue { letter: b'J' }),
+            (b"M205 X-1", CommandError::BadValue { letter: b'X' }),
+            (b"M205 B-1", CommandError::BadValue { letter: b'B' }),
+            (b"M205 S-2", CommandError::BadValue { letter: b'S' }),
+            (b"M205 Q1", CommandError::UnknownAxis { letter: b'Q' }),
+        ] {
+            assert_eq!(run(&mut it, text), Err(error), "{}", text.escape_ascii());
+        }
+    }
+
+    #[test]
+    fn m220_sets_backs_up_and_restores_the_feed_override() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        assert_eq!(it.feed_percent(), 100);
+        assert_eq!(run(&mut it, b"M220 S50"), Ok(Action::None));
+        assert_eq!(it.feed_percent(), 50);
+        assert_eq!(it.feed_scale(), 0.5);
+        // Back up 50 and set 80 on one line (the backup is what was in force before it).
+        run(&mut it, b"M220 B S80").expect("ok");
+        assert_eq!(it.feed_percent(), 80);
+        run(&mut it, b"M220 R").expect("ok");
+        assert_eq!(it.feed_percent(), 50);
+        // `R B` swaps: restore 50 from the backup, back up the 120 in force.
+        run(&mut it, b"M220 S120").expect("ok");
+        run(&mut it, b"M220 R B").expect("ok");
+        assert_eq!(it.feed_percent(), 50);
+        run(&mut it, b"M220 R").expect("ok");
+        assert_eq!(it.feed_percent(), 120);
+        assert_eq!(run(&mut it, b"M220"), Ok(Action::None));
+        // The feed of the moves is left as given: the kernel scales it when it plans them.
+        assert!(matches!(
+            run(&mut it, b"G1 X1 F600"),
+            Ok(Action::Move {
+                feed_mm_min: Some(600.0),
+                ..
+            })
+        ));
+        let before = it;
+        for (text, error) in [
+            (&b"M220 S0"[..], CommandError::BadValue { letter: b'S' }),
+            (b"M220 S1000", CommandError::BadValue { letter: b'S' }),
+            (b"M220 S50.5", CommandError::BadValue { letter: b'S' }),
+            (b"M220 B S-5", CommandError::BadValue { letter: b'S' }),
+            (b"M220 S", CommandError::MissingValue { letter: b'S' }),
+            (b"M220 X", CommandError::UnknownAxis { letter: b'X' }),
+        ] {
+            assert_eq!(run(&mut it, text), Err(error), "{}", text.escape_ascii());
+        }
+        assert_eq!(it, before);
+        // A soft reset goes back to 100 %.
+        it.reset_modal(&c);
+        assert_eq!(it.feed_percent(), 100);
+    }
+
+    #[test]
+    fn flow_scales_the_filament_fed_not_the_reported_extruder_position() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        const MM: Nm = 1_000_000;
+        run(&mut it, b"M221 S50").expect("ok");
+        assert_eq!(it.flow_percent(), [100, 100, 100, 50]);
+        // Absolute extrusion: E10 feeds 5 mm; the work position is the commanded 10.
+        let a = run(&mut it, b"G1 X5 E10 F600").expect("ok");
+        assert!(matches!(a, Action::Move { target, .. } if target == [5 * MM, 0, 0, 5 * MM]));
+        assert_eq!(it.work_position(), [5 * MM, 0, 0, 10 * MM]);
+        // A retraction to E9 pulls back 0.5 mm.
+        let a = run(&mut it, b"G1 E9").expect("ok");
+        assert!(matches!(a, Action::Move { target, .. } if target[3] == 4_500_000));
+        // `G92 E0` sets the reported position; the motor goes on from where it is.
+        run(&mut it, b"G92 E0").expect("ok");
+        assert_eq!(it.work_position()[3], 0);
+        let a = run(&mut it, b"G1 E2").expect("ok");
+        assert!(matches!(a, Action::Move { target, .. } if target[3] == 5_500_000));
+        assert_eq!(it.work_position()[3], 2 * MM);
+        // Relative extrusion alike.
+        run(&mut it, b"M83").expect("ok");
+        let a = run(&mut it, b"G1 E3").expect("ok");
+        assert!(matches!(a, Action::Move { target, .. } if target[3] == 7 * MM));
+        assert_eq!(it.work_position()[3], 5 * MM);
+        // Back to 100 %: the commanded distance again.
+        run(&mut it, b"M221 T0 S100").expect("ok");
+        let a = run(&mut it, b"G1 E1").expect("ok");
+        assert!(matches!(a, Action::Move { target, .. } if target[3] == 8 * MM));
+        assert_eq!(it.work_position()[3], 6 * MM);
+        // Only the extruders: X is not scaled.
+        run(&mut it, b"M221 S200").expect("ok");
+        let a = run(&mut it, b"G1 X6").expect("ok");
+        assert!(matches!(a, Action::Move { target, .. } if target[0] == 6 * MM));
+        let before = it;
+        for (text, error) in [
+            (&b"M221 S0"[..], CommandError::BadValue { letter: b'S' }),
+            (b"M221 S1000", CommandError::BadValue { letter: b'S' }),
+            (b"M221 T1 S90", CommandError::BadValue { letter: b'T' }),
+            (b"M221 E90", CommandError::UnknownAxis { letter: b'E' }),
+        ] {
+            assert_eq!(run(&mut it, text), Err(error), "{}", text.escape_ascii());
+        }
+        assert_eq!(it, before);
+        assert_eq!(run(&mut it, b"M221"), Ok(Action::None));
+        assert_eq!(run(&mut it, b"M221 T0"), Ok(Action::None));
+        assert_eq!(it, before);
     }
 
     #[test]

@@ -11,8 +11,10 @@ use crate::arc::{ArcCutter, Nm};
 use crate::config::{AxisKind, MachineConfig, SoftLimits};
 use crate::effect::{Effect, StopKind};
 use crate::error::{Alarm, CommandError, ConfigError};
-use crate::interp::{Action, Interpreter, NM_PER_MM, mm_to_nm, nm_to_steps, steps_to_nm};
-use crate::planner::{MoveRequest, Planner};
+use crate::interp::{
+    Action, Interpreter, LimitChange, NM_PER_MM, mm_to_nm, nm_to_steps, steps_to_nm,
+};
+use crate::planner::{MoveRequest, PathLimits, Planner};
 use crate::prep::Prep;
 use crate::queue::{MAX_DELTA, Producer, StepQueue, StopCause};
 use crate::stepgen::StepGenerator;
@@ -48,6 +50,29 @@ pub struct PositionReport<const N: usize> {
     pub work_mm: [f64; N],
     /// The machine position, mm: where the steppers are now.
     pub machine_mm: [f64; N],
+}
+
+/// The settings the planner works with now, for a report of them (Marlin's `M503`): what
+/// `M92`, `M201`, `M203`, `M204`, `M205`, `M220` and `M221` set, in the units Marlin reports.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlannerSettings<const N: usize> {
+    /// The axis letters.
+    pub letters: [u8; N],
+    /// `M92`: steps per mm (per degree on a rotary axis).
+    pub steps_per_mm: [f32; N],
+    /// `M201`: the maximum acceleration of each axis, mm/s².
+    pub max_accel_mm_s2: [f32; N],
+    /// `M203`: the maximum rate of each axis, mm/s (the configuration's
+    /// [`AxisConfig::max_rate_mm_min`](crate::AxisConfig::max_rate_mm_min) / 60).
+    pub max_rate_mm_s: [f32; N],
+    /// `M204` and `M205 S`/`T`: the limits along the path by kind of move.
+    pub path: PathLimits,
+    /// `M205 J`: the junction deviation, mm.
+    pub junction_deviation_mm: f32,
+    /// `M220`: the feed-rate override, percent.
+    pub feed_percent: u16,
+    /// `M221`: the flow override of each extruder axis, percent; `None` for the other axes.
+    pub flow_percent: [Option<u16>; N],
 }
 
 /// The machine's state, as the controller reports it.
@@ -121,6 +146,8 @@ fn axis_bounds<const N: usize>(config: &MachineConfig<N>) -> [AxisBounds; N] {
 struct PendingArc<const N: usize> {
     cutter: ArcCutter<N>,
     feed_mm_min: f32,
+    /// The feed override of the arc's line, as a factor.
+    feed_scale: f32,
     ramp: bool,
 }
 
@@ -133,6 +160,8 @@ pub struct Kernel<'q, const N: usize, const B: usize = 32, const Q: usize = 256>
     config: MachineConfig<N>,
     bounds: [AxisBounds; N],
     tick_hz: u32,
+    /// The drivers' timing the configuration is checked against (`M203`).
+    timing: StepTiming,
     tx: Producer<'q, N, Q>,
     planner: Planner<N, B>,
     prep: Prep<N>,
@@ -196,6 +225,7 @@ pub fn split<'q, const N: usize, const B: usize, const Q: usize>(
     let kernel = Kernel {
         interp: Interpreter::new(&config),
         tick_hz,
+        timing,
         tx: Producer::new(queue),
         planner: Planner::new(),
         prep: Prep::new(tick_hz, pulse, dir_setup),
@@ -223,6 +253,26 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// The configuration in use.
     pub fn config(&self) -> &MachineConfig<N> {
         &self.config
+    }
+
+    /// The planner's settings now (what `M503` reports): the configuration's per-axis limits
+    /// and junction deviation, the limits along the path, and the feed and flow overrides of
+    /// the lines executed so far.
+    pub fn planner_settings(&self) -> PlannerSettings<N> {
+        let axes = &self.config.axes;
+        let flow = self.interp.flow_percent();
+        PlannerSettings {
+            letters: core::array::from_fn(|i| axes[i].letter),
+            steps_per_mm: core::array::from_fn(|i| axes[i].steps_per_mm),
+            max_accel_mm_s2: core::array::from_fn(|i| axes[i].accel_mm_s2),
+            max_rate_mm_s: core::array::from_fn(|i| axes[i].max_rate_mm_s()),
+            path: self.planner.limits(),
+            junction_deviation_mm: self.config.junction_deviation_mm,
+            feed_percent: self.interp.feed_percent(),
+            flow_percent: core::array::from_fn(|i| {
+                (axes[i].kind == AxisKind::Extruder).then_some(flow[i])
+            }),
+        }
     }
 
     /// The clock rate given at construction.
@@ -449,7 +499,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 if self.planner.is_full() {
                     return Ok(Reply::Busy);
                 }
-                self.queue_move(&target, feed_mm_min, ramp, 0);
+                self.queue_move(&target, feed_mm_min, next.feed_scale(), ramp, 0);
                 Reply::Ok
             }
             Action::Arc {
@@ -462,6 +512,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 self.arc = Some(PendingArc {
                     cutter,
                     feed_mm_min,
+                    feed_scale: next.feed_scale(),
                     ramp,
                 });
                 self.drain_arc();
@@ -486,6 +537,10 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                     return Ok(Reply::Busy);
                 }
                 self.set_steps_per_mm(&values)?;
+                Reply::Ok
+            }
+            Action::SetLimits(change) => {
+                self.set_limits(&change)?;
                 Reply::Ok
             }
             Action::Effect(e) => {
@@ -556,7 +611,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return Ok(Reply::Busy);
         }
         let feed = self.config.jog_feed_mm_min;
-        self.queue_move(&target, Some(feed), false, 0);
+        self.queue_move(&target, Some(feed), 1.0, false, 0);
         self.interp.pos = target;
         Ok(Reply::Ok)
     }
@@ -694,6 +749,25 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         Ok(())
     }
 
+    /// Change the planner's limits (`M201`, `M203`, `M204`, `M205`) for the moves planned from
+    /// now on. The blocks already planned keep the limits they were planned with, as in Marlin,
+    /// so the line needs no wait for the motion before it.
+    ///
+    /// The configuration must stay valid: an `M203` rate the drivers or the clock cannot step
+    /// ([`MachineConfig::validate_timing`]) is refused, naming the axis. An `M203` rate below an
+    /// axis's homing speeds lowers them to it (Marlin's planner caps homing moves the same way).
+    fn set_limits(&mut self, change: &LimitChange<N>) -> Result<(), CommandError> {
+        let mut c = self.config.clone();
+        let mut limits = self.planner.limits();
+        change.apply(&mut c, &mut limits);
+        c.validate()
+            .and_then(|()| c.validate_timing(self.tick_hz, self.timing))
+            .map_err(|e| refusal(&c, e))?;
+        self.config = c;
+        self.planner.set_limits(limits);
+        Ok(())
+    }
+
     /// Machine nm limits of axis `i`.
     fn travel_nm(&self, i: usize) -> (Nm, Nm) {
         let b = &self.bounds[i];
@@ -744,10 +818,11 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         &mut self,
         target: &[Nm; N],
         feed_mm_min: Option<f32>,
+        feed_scale: f32,
         ramp: bool,
         homing_mask: u8,
     ) {
-        let req = MoveRequest::to_target(
+        let mut req = MoveRequest::to_target(
             target,
             &mut self.steps,
             &self.config,
@@ -756,6 +831,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             self.line_tag,
             homing_mask,
         );
+        req.feed_scale = feed_scale;
         let _ = self.planner.push_move(&req, &self.config);
     }
 
@@ -768,7 +844,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             match p.cutter.peek() {
                 Some(point) => {
                     let ramp = p.ramp && p.cutter.is_first();
-                    self.queue_move(&point, Some(p.feed_mm_min), ramp, 0);
+                    self.queue_move(&point, Some(p.feed_mm_min), p.feed_scale, ramp, 0);
                     p.cutter.advance();
                     self.arc = Some(p);
                 }
@@ -986,7 +1062,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             .store(u32::from(switch_mask), Ordering::Relaxed);
         let mut target = self.interp.pos;
         target[axis] += mm_to_nm(mm);
-        self.queue_move(&target, Some(feed_mm_min), false, switch_mask);
+        self.queue_move(&target, Some(feed_mm_min), 1.0, false, switch_mask);
         self.interp.pos = target;
     }
 
@@ -994,4 +1070,15 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         self.abort(true, false);
         self.alarm = Some(alarm);
     }
+}
+
+/// The refusal of a setting that leaves `config` invalid: a bad value of the axis the error
+/// names (its letter), of `J` for the junction deviation, else of the command (`M`).
+fn refusal<const N: usize>(config: &MachineConfig<N>, error: ConfigError) -> CommandError {
+    let letter = match (error.axis(), error) {
+        (Some(i), _) => config.axes.get(usize::from(i)).map_or(b'M', |a| a.letter),
+        (None, ConfigError::JunctionDeviation) => b'J',
+        (None, _) => b'M',
+    };
+    CommandError::BadValue { letter }
 }

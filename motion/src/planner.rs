@@ -1,10 +1,12 @@
 //! The look-ahead planner: a ring of blocks with junction-deviation cornering and a grbl-style
 //! reverse/forward pass.
 //!
-//! Thread side. Each added block gets a nominal speed (its feed, capped by every axis's maximum
-//! rate along its direction), an acceleration (capped by every axis's maximum acceleration
-//! along its direction) and a maximum entry speed (the junction-deviation corner speed with the
-//! previous block, capped by both blocks' nominal speeds). The newest block always ends at rest.
+//! Thread side. Each added block gets a nominal speed (its feed, scaled by the feed override of
+//! its line and raised to the [`PathLimits`] slowest feed of its kind, then capped by every
+//! axis's maximum rate along its direction), an acceleration (capped by every axis's maximum
+//! acceleration along its direction and by the [`PathLimits`] acceleration of its kind) and a
+//! maximum entry speed (the junction-deviation corner speed with the previous block, capped by
+//! both blocks' nominal speeds). The newest block always ends at rest.
 //! The reverse pass raises entry speeds from the newest block backwards, and the forward pass
 //! lowers them where acceleration from the previous block cannot reach them. `planned` marks
 //! the first block whose entry may still change: everything before it is optimal and neither
@@ -66,6 +68,98 @@ impl<const N: usize> Block<N> {
     };
 }
 
+/// Limits along the path that depend on what a move does, on top of the per-axis limits of the
+/// [`MachineConfig`]: Marlin's `M204` accelerations and `M205 S`/`T` slowest feeds, as Marlin's
+/// `Planner::_populate_block` applies them.
+///
+/// A move is of one of three kinds: *printing* (an extruder moves together with another axis),
+/// *retracting* (extruders alone: a retraction or its recovery) and *travel* (no extruder
+/// moves). Its acceleration is the smallest of the per-axis limits along its direction and the
+/// acceleration of its kind here; its junction with the move before it is taken at most at that
+/// acceleration too. Unlike Marlin, a retraction is held to the extruder's own maximum
+/// acceleration as well: an axis never accelerates beyond its configured limit.
+///
+/// The slowest feeds raise the feed a move asks for (never above the axes' maximum rates):
+/// `min_extruding_feed_mm_s` for printing and retracting moves, `min_travel_feed_mm_s` for
+/// travel. They apply to every move, homing and jogs included, as in Marlin.
+///
+/// The default, [`PathLimits::NONE`], leaves the per-axis limits alone in charge.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PathLimits {
+    /// `M204 P` (or `S`): acceleration of printing moves, mm/s²; `None`: the per-axis limits
+    /// alone.
+    pub print_accel_mm_s2: Option<f32>,
+    /// `M204 R`: acceleration of retracting moves, mm/s²; `None`: the per-axis limits alone.
+    pub retract_accel_mm_s2: Option<f32>,
+    /// `M204 T` (or `S`): acceleration of travel moves, mm/s²; `None`: the per-axis limits
+    /// alone.
+    pub travel_accel_mm_s2: Option<f32>,
+    /// `M205 S`: the slowest feed of printing and retracting moves, mm/s (0: no floor).
+    pub min_extruding_feed_mm_s: f32,
+    /// `M205 T`: the slowest feed of travel moves, mm/s (0: no floor).
+    pub min_travel_feed_mm_s: f32,
+}
+
+impl PathLimits {
+    /// No limit beyond the per-axis ones: no acceleration cap, no slowest feed.
+    pub const NONE: Self = Self {
+        print_accel_mm_s2: None,
+        retract_accel_mm_s2: None,
+        travel_accel_mm_s2: None,
+        min_extruding_feed_mm_s: 0.0,
+        min_travel_feed_mm_s: 0.0,
+    };
+
+    /// The acceleration cap of a move of `kind`, mm/s² (infinite when there is none).
+    #[inline]
+    fn accel_mm_s2(&self, kind: MoveKind) -> f32 {
+        let cap = match kind {
+            MoveKind::Print => self.print_accel_mm_s2,
+            MoveKind::Retract => self.retract_accel_mm_s2,
+            MoveKind::Travel => self.travel_accel_mm_s2,
+        };
+        cap.unwrap_or(f32::INFINITY)
+    }
+
+    /// The slowest feed of a move of `kind`, mm/s.
+    #[inline]
+    fn min_feed_mm_s(&self, kind: MoveKind) -> f32 {
+        match kind {
+            MoveKind::Print | MoveKind::Retract => self.min_extruding_feed_mm_s,
+            MoveKind::Travel => self.min_travel_feed_mm_s,
+        }
+    }
+}
+
+impl Default for PathLimits {
+    fn default() -> Self {
+        Self::NONE
+    }
+}
+
+/// What a move does, for the [`PathLimits`] of its kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum MoveKind {
+    /// An extruder and another axis.
+    Print,
+    /// Extruders alone.
+    Retract,
+    /// No extruder.
+    Travel,
+}
+
+impl MoveKind {
+    /// The kind of a move that moves extruders (`extrudes`) and other axes (`moves_axes`).
+    #[inline]
+    fn of(extrudes: bool, moves_axes: bool) -> Self {
+        match (extrudes, moves_axes) {
+            (true, true) => Self::Print,
+            (true, false) => Self::Retract,
+            (false, _) => Self::Travel,
+        }
+    }
+}
+
 /// What is known of the previous move, for the junction with the next.
 #[derive(Debug, Clone, Copy)]
 struct Previous<const N: usize> {
@@ -80,6 +174,9 @@ pub(crate) struct MoveRequest<const N: usize> {
     pub steps: [i32; N],
     /// Feed in mm/min along the path, or `None` for the fastest the axes allow (rapid).
     pub feed_mm_min: Option<f32>,
+    /// The feed override (`M220`) as a factor: it scales the feed, or the fastest rate of a
+    /// rapid, before the axes' maximum rates cap it. 1 for moves that are not G-code lines.
+    pub feed_scale: f32,
     /// The feed was given on this line: the move may enter at the previous speed and reach
     /// its own within the move (RepRap's feed ramp).
     pub ramp: bool,
@@ -110,6 +207,7 @@ impl<const N: usize> MoveRequest<N> {
         Self {
             steps: delta,
             feed_mm_min,
+            feed_scale: 1.0,
             ramp,
             line,
             homing_mask,
@@ -125,6 +223,7 @@ pub(crate) struct Planner<const N: usize, const B: usize> {
     planned: usize,
     len: usize,
     previous: Option<Previous<N>>,
+    limits: PathLimits,
 }
 
 const fn next(i: usize, b: usize) -> usize {
@@ -144,7 +243,18 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             planned: 0,
             len: 0,
             previous: None,
+            limits: PathLimits::NONE,
         }
+    }
+
+    /// The limits along the path that moves are planned with.
+    pub(crate) fn limits(&self) -> PathLimits {
+        self.limits
+    }
+
+    /// Plan the moves added from now on with `limits`; the blocks already planned keep theirs.
+    pub(crate) fn set_limits(&mut self, limits: PathLimits) {
+        self.limits = limits;
     }
 
     pub(crate) fn len(&self) -> usize {
@@ -159,7 +269,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         self.len == 0
     }
 
-    /// Forget every block (stop, alarm).
+    /// Forget every block (stop, alarm). The limits are kept.
     pub(crate) fn clear(&mut self) {
         self.head = 0;
         self.tail = 0;
@@ -233,11 +343,14 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         let mut mm = [0f32; N];
         let mut len_sqr = 0f32;
         let mut feed_len_sqr = 0f32;
+        let mut extrudes = false;
         for (i, (m, a)) in mm.iter_mut().zip(config.axes.iter()).enumerate() {
             let s = req.steps.get(i).copied().unwrap_or(0);
             *m = s as f32 / a.steps_per_mm;
             len_sqr += *m * *m;
-            if a.kind != AxisKind::Extruder {
+            if a.kind == AxisKind::Extruder {
+                extrudes |= s != 0;
+            } else {
                 feed_len_sqr += *m * *m;
             }
         }
@@ -250,8 +363,10 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         } else {
             length
         };
+        let kind = MoveKind::of(extrudes, feed_len_sqr > 0.0);
+        let cap = self.limits.accel_mm_s2(kind);
         let mut unit = [0f32; N];
-        let mut accel = f32::INFINITY;
+        let mut accel = cap;
         let mut rate = f32::INFINITY;
         for ((u, m), a) in unit.iter_mut().zip(mm.iter()).zip(config.axes.iter()) {
             *u = *m / length;
@@ -261,15 +376,23 @@ impl<const N: usize, const B: usize> Planner<N, B> {
                 rate = rate.min(a.max_rate_mm_s() / au);
             }
         }
-        let nominal = match req.feed_mm_min {
-            Some(f) => (f / 60.0 * length / feed_len).min(rate),
-            None => rate,
+        // A feed is along the axes that are not extruders; the speed is along the whole path.
+        let wanted = match req.feed_mm_min {
+            Some(f) => f * req.feed_scale / 60.0 * length / feed_len,
+            None => rate * req.feed_scale,
         };
+        let floor = self.limits.min_feed_mm_s(kind);
+        let nominal = if floor > 0.0 {
+            wanted.max(floor * length / feed_len)
+        } else {
+            wanted
+        }
+        .min(rate);
         let nominal_sqr = nominal * nominal;
         let max_entry_sqr = match (self.len, self.previous) {
             (0, _) | (_, None) => 0.0,
             (_, Some(p)) => {
-                let junction = junction_speed_sqr(&p.unit, &unit, config);
+                let junction = junction_speed_sqr(&p.unit, &unit, config, cap);
                 // A feed ramp may enter above its own feed, never above what its axes allow.
                 let own = if req.ramp { rate * rate } else { nominal_sqr };
                 junction.min(p.nominal_sqr).min(own)
@@ -360,11 +483,13 @@ impl<const N: usize, const B: usize> Planner<N, B> {
 
 /// Junction deviation (grbl): the corner speed at which a virtual arc, tangent to both moves and
 /// `junction_deviation_mm` from the corner, is taken at the acceleration the axes allow along
-/// the change of direction. Returns the square of the speed.
+/// the change of direction, and at most `cap_mm_s2` (the [`PathLimits`] acceleration of the
+/// new move's kind). Returns the square of the speed.
 pub(crate) fn junction_speed_sqr<const N: usize>(
     prev_unit: &[f32; N],
     unit: &[f32; N],
     config: &MachineConfig<N>,
+    cap_mm_s2: f32,
 ) -> f32 {
     let mut cos_theta = 0f32;
     let mut delta = [0f32; N];
@@ -385,7 +510,7 @@ pub(crate) fn junction_speed_sqr<const N: usize>(
         return f32::INFINITY;
     }
     let delta_len = sqrtf(delta_len_sqr);
-    let mut accel = f32::INFINITY;
+    let mut accel = cap_mm_s2;
     for (d, a) in delta.iter().zip(config.axes.iter()) {
         let du = (d / delta_len).abs();
         if du > 0.0 {
@@ -414,6 +539,7 @@ mod tests {
         MoveRequest {
             steps: [x, y],
             feed_mm_min: Some(feed),
+            feed_scale: 1.0,
             ramp: false,
             line: 0,
             homing_mask: 0,
@@ -498,6 +624,129 @@ mod tests {
         assert!(p.push_move(&mv(1000, 0, 1500.0), &c));
         let b = p.iter().nth(1).copied().expect("second");
         assert!((b.max_entry_sqr - 625.0).abs() < 1e-2);
+    }
+
+    /// X and Y as [`cfg`], and an extruder: 100 steps/mm, 50 mm/s, 2000 mm/s².
+    fn printer() -> MachineConfig<3> {
+        let mut e = AxisConfig::linear(b'E', 100.0, 3000.0, 2000.0, 1000.0);
+        e.kind = AxisKind::Extruder;
+        let c = cfg();
+        let mut p = MachineConfig::new([c.axes[0], c.axes[1], e]);
+        p.junction_deviation_mm = 0.05;
+        p
+    }
+
+    fn mv3(steps: [i32; 3], feed: Option<f32>) -> MoveRequest<3> {
+        MoveRequest {
+            steps,
+            feed_mm_min: feed,
+            feed_scale: 1.0,
+            ramp: false,
+            line: 0,
+            homing_mask: 0,
+        }
+    }
+
+    /// The acceleration of the single block `req` plans into an empty planner with `limits`.
+    fn accel_of(limits: PathLimits, req: &MoveRequest<3>) -> f32 {
+        let mut p = Planner::<3, 8>::new();
+        p.set_limits(limits);
+        assert!(p.push_move(req, &printer()));
+        p.tail().expect("block").accel
+    }
+
+    #[test]
+    fn path_accelerations_cap_each_kind_of_move() {
+        let limits = PathLimits {
+            print_accel_mm_s2: Some(300.0),
+            retract_accel_mm_s2: Some(150.0),
+            travel_accel_mm_s2: Some(600.0),
+            ..PathLimits::NONE
+        };
+        let travel = mv3([1000, 0, 0], Some(3000.0));
+        let print = mv3([1000, 0, 50], Some(3000.0));
+        let retract = mv3([0, 0, -200], Some(2400.0));
+        assert_eq!(accel_of(PathLimits::NONE, &travel), 1000.0);
+        assert_eq!(accel_of(limits, &travel), 600.0);
+        assert_eq!(accel_of(limits, &print), 300.0);
+        assert_eq!(accel_of(limits, &retract), 150.0);
+        // Without a cap for its kind, the per-axis limits alone.
+        let no_print = PathLimits {
+            print_accel_mm_s2: None,
+            ..limits
+        };
+        assert!(accel_of(no_print, &print) > 990.0);
+        // A cap never lets an axis exceed its own limit: the extruder's 2000 mm/s².
+        let fast_retract = PathLimits {
+            retract_accel_mm_s2: Some(5000.0),
+            ..limits
+        };
+        assert_eq!(accel_of(fast_retract, &retract), 2000.0);
+    }
+
+    #[test]
+    fn a_corner_is_taken_at_most_at_the_cap_of_the_new_move() {
+        let c = cfg();
+        let mut p = Planner::<2, 8>::new();
+        p.set_limits(PathLimits {
+            travel_accel_mm_s2: Some(100.0),
+            ..PathLimits::NONE
+        });
+        assert!(p.push_move(&mv(10_000, 0, 3000.0), &c));
+        assert!(p.push_move(&mv(0, 10_000, 3000.0), &c));
+        let second = p.iter().nth(1).copied().expect("second");
+        let sin_half = core::f32::consts::FRAC_1_SQRT_2;
+        let expected = 100.0 * 0.05 * sin_half / (1.0 - sin_half);
+        assert!((second.max_entry_sqr - expected).abs() < 1e-3);
+    }
+
+    #[test]
+    fn the_feed_override_scales_feeds_and_rapids_within_the_rates() {
+        let c = cfg();
+        let nominal = |feed: Option<f32>, scale: f32| {
+            let mut p = Planner::<2, 8>::new();
+            let mut req = mv(1000, 0, 0.0);
+            req.feed_mm_min = feed;
+            req.feed_scale = scale;
+            assert!(p.push_move(&req, &c));
+            sqrtf(p.tail().expect("block").nominal_sqr)
+        };
+        assert!((nominal(Some(3000.0), 0.5) - 25.0).abs() < 1e-4);
+        assert!((nominal(Some(2400.0), 2.0) - 80.0).abs() < 1e-4);
+        // X's maximum rate, 100 mm/s, caps what the override asks for.
+        assert_eq!(nominal(Some(4000.0), 2.0), 100.0);
+        assert_eq!(nominal(None, 0.5), 50.0);
+        assert_eq!(nominal(None, 1.5), 100.0);
+    }
+
+    #[test]
+    fn the_slowest_feeds_raise_slow_moves_of_their_kind() {
+        let nominal = |limits: PathLimits, req: &MoveRequest<3>| {
+            let mut p = Planner::<3, 8>::new();
+            p.set_limits(limits);
+            assert!(p.push_move(req, &printer()));
+            sqrtf(p.tail().expect("block").nominal_sqr)
+        };
+        let limits = PathLimits {
+            min_extruding_feed_mm_s: 20.0,
+            min_travel_feed_mm_s: 30.0,
+            ..PathLimits::NONE
+        };
+        let travel = mv3([1000, 0, 0], Some(600.0));
+        let retract = mv3([0, 0, -100], Some(600.0));
+        assert!((nominal(PathLimits::NONE, &travel) - 10.0).abs() < 1e-4);
+        assert!((nominal(limits, &travel) - 30.0).abs() < 1e-4);
+        assert!((nominal(limits, &retract) - 20.0).abs() < 1e-4);
+        // The floor is a feed along X (the extruder is left out of it) and never passes the
+        // axes' maximum rates.
+        let print = mv3([1000, 0, 1000], Some(600.0));
+        let along_path = core::f32::consts::SQRT_2;
+        assert!((nominal(limits, &print) - 20.0 * along_path).abs() < 1e-3);
+        let fast = PathLimits {
+            min_travel_feed_mm_s: 500.0,
+            ..limits
+        };
+        assert_eq!(nominal(fast, &travel), 100.0);
     }
 
     #[test]
