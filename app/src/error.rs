@@ -1,5 +1,5 @@
-//! Errors of the application layer and their stable wire codes: the program store's and the
-//! job's. The kernel's own errors (`100..=155`) are in `forja_motion::error`.
+//! Errors of the application layer and their stable wire codes: the program store's, the file
+//! store's and the job's. The kernel's own errors (`100..=155`) are in `forja_motion::error`.
 //!
 //! | code | error | meaning |
 //! |---|---|---|
@@ -9,6 +9,10 @@
 //! | 173 | [`StoreError::NoSuchLine`] | a line index outside the stored program |
 //! | 174 | [`StoreError::Device`] | the storage device failed |
 //! | 175 | [`StoreError::NoUpload`] | a program line that continues no upload in progress (send line 1 first) |
+//! | 176 | [`FileError::NotFound`] | no file of that name |
+//! | 177 | [`FileError::Full`] | the file store has no room for the bytes, or for one more file |
+//! | 178 | [`FileError::BadName`] | a file name outside the rules of [`FileName`](forja_hal_abstraction::files::FileName) |
+//! | 179 | [`FileError::Busy`] | a file is being written already |
 //! | 180 | [`JobError::Empty`] | start asked with no program stored |
 //! | 181 | [`JobError::NotRunning`] | pause or resume with no job running |
 //! | 182 | [`JobError::Busy`] | the action needs the job stopped (load, rewind, jog) |
@@ -18,13 +22,18 @@
 //! | 186 | [`JobError::NothingToResume`] | resume (`M1000`) with no interrupted job recorded |
 //! | 187 | [`JobError::NotHomed`] | resume (`M1000`) before the machine is homed |
 //! | 188 | [`JobError::ProgramChanged`] | resume (`M1000`) of a job whose program has changed since |
+//! | 189 | [`JobError::NoFileSelected`] | a file command (`M24`, `M26`) with no file selected (`M23`) |
+//! | 199 | [`FileError::NotWriting`] | no file is being written |
+//! | 220 | [`FileError::Device`] | the file store's device (the SD card) failed |
 //!
 //! Codes not listed are reserved. A code is never reused for a different meaning. The program
-//! store's errors are a contract of `forja-hal-abstraction` ([`StoreError`]), which knows no
-//! wire: [`StoreRefusal`] gives them their codes.
+//! store's and the file store's errors are contracts of `forja-hal-abstraction`
+//! ([`StoreError`], [`FileError`]), which knows no wire: [`StoreRefusal`] and [`FileRefusal`]
+//! give them their codes (a device's failure in the drivers' range, 200–299).
 
 use core::fmt;
 
+use forja_hal_abstraction::files::FileError;
 use forja_hal_abstraction::program::StoreError;
 use forja_motion::CommandError;
 use forja_protocol::error::WireError;
@@ -52,6 +61,33 @@ impl WireError for StoreRefusal {
             StoreError::NoSuchLine => "no-such-line",
             StoreError::Device => "store-device",
             StoreError::NoUpload => "no-upload",
+        }
+    }
+}
+
+/// A file store's error as it goes on the wire, with its code and name.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FileRefusal(pub FileError);
+
+impl WireError for FileRefusal {
+    fn code(&self) -> u16 {
+        match self.0 {
+            FileError::NotFound => 176,
+            FileError::Full => 177,
+            FileError::BadName => 178,
+            FileError::Busy => 179,
+            FileError::NotWriting => 199,
+            FileError::Device => 220,
+        }
+    }
+    fn name(&self) -> &'static str {
+        match self.0 {
+            FileError::NotFound => "no-such-file",
+            FileError::Full => "files-full",
+            FileError::BadName => "bad-file-name",
+            FileError::Busy => "file-busy",
+            FileError::NotWriting => "not-writing",
+            FileError::Device => "file-device",
         }
     }
 }
@@ -91,6 +127,8 @@ pub enum JobError {
     NotHomed,
     /// Resume (`M1000`) of a job whose program is no longer the stored one.
     ProgramChanged,
+    /// A file command (`M24`, `M26`) with no file selected.
+    NoFileSelected,
 }
 
 impl JobError {
@@ -106,6 +144,7 @@ impl JobError {
             Self::NothingToResume => 186,
             Self::NotHomed => 187,
             Self::ProgramChanged => 188,
+            Self::NoFileSelected => 189,
         }
     }
 }
@@ -127,6 +166,7 @@ impl fmt::Display for JobError {
             Self::NothingToResume => f.write_str("job: nothing to resume"),
             Self::NotHomed => f.write_str("job: home the machine first"),
             Self::ProgramChanged => f.write_str("job: the program changed since it ran"),
+            Self::NoFileSelected => f.write_str("job: no file selected"),
         }
     }
 }
@@ -146,6 +186,7 @@ impl WireError for JobError {
             Self::NothingToResume => "no-resume",
             Self::NotHomed => "not-homed",
             Self::ProgramChanged => "program-changed",
+            Self::NoFileSelected => "no-file-selected",
         }
     }
 }
@@ -184,10 +225,20 @@ mod tests {
             JobError::NothingToResume.code(),
             JobError::NotHomed.code(),
             JobError::ProgramChanged.code(),
+            JobError::NoFileSelected.code(),
+            FileRefusal(FileError::NotFound).code(),
+            FileRefusal(FileError::Full).code(),
+            FileRefusal(FileError::BadName).code(),
+            FileRefusal(FileError::Busy).code(),
+            FileRefusal(FileError::NotWriting).code(),
         ];
         for (i, c) in codes.iter().enumerate() {
             assert!((170..=199).contains(c), "{c}");
             assert!(!codes[..i].contains(c), "duplicate {c}");
         }
+        // A device's failure is in the drivers' range, apart from their own codes.
+        let device = FileRefusal(FileError::Device).code();
+        assert!((200..=299).contains(&device) && !(210..=215).contains(&device));
+        assert!(!(230..=238).contains(&device));
     }
 }

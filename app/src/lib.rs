@@ -42,7 +42,7 @@
 //! | [`job`] | the job runner over a program store: start, pause, stop, rewind, progress, checkpoints |
 //! | [`peripherals`] | [`peripherals::Parts`]: a board's list of its devices for the controller; [`peripherals::MotorPeripherals`] for a board whose parts are motion alone |
 //! | [`wifi`] | the network a WiFi board joins: credentials from the settings, and the watch on them |
-//! | [`error`] | the errors of jobs and program stores, and their wire codes (170–199) |
+//! | [`error`] | the errors of jobs, program stores and file stores, and their wire codes (170–199, 220) |
 #![no_std]
 #![forbid(unsafe_code)]
 #![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::panic))]

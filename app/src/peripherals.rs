@@ -12,6 +12,7 @@
 //! | coolant | `Option<&mut dyn CoolantControl>` (a [`Coolant`](forja_drivers::coolant::Coolant)) | `M7`/`M8`/`M9` |
 //! | motor power | any [`StepperEnable`] ([`MotorEnables`] for one line per driver, [`NoMotors`] for none) | `M17`/`M18`/`M84`, before motion |
 //! | end-stops | `[Option<L>; N]`, `L:` [`LimitSwitch`], the thread side's own reading of each axis's switch | `M119` |
+//! | file store | `Option<&mut dyn FileStore>` (an SD card, a directory, a [`RamFileStore`](forja_hal_abstraction::files::RamFileStore)) | `M20`–`M32` |
 //!
 //! A device the board does not have is `None` (or no fan at all: `F` is 0). The devices are
 //! lent for `'a`: a firmware board keeps them for its whole life (RTIC init locals, statics)
@@ -57,6 +58,7 @@ use forja_hal_abstraction::ErrorType;
 use forja_hal_abstraction::device::{
     CoolantControl, DeviceError, FanControl, SpindleControl, TemperatureControl,
 };
+use forja_hal_abstraction::files::FileStore;
 use forja_hal_abstraction::limit::LimitSwitch;
 use forja_hal_abstraction::stepper::StepperEnable;
 
@@ -73,6 +75,8 @@ pub trait DeviceObjects {
     type Spindle: SpindleControl + ?Sized;
     /// Coolant.
     type Coolant: CoolantControl + ?Sized;
+    /// A file store.
+    type Files: FileStore + ?Sized;
 }
 
 /// Devices lent as `Send` trait objects (`dyn TemperatureControl + Send`, …): a firmware
@@ -85,6 +89,7 @@ impl DeviceObjects for SendDevices {
     type Fan = dyn FanControl + Send;
     type Spindle = dyn SpindleControl + Send;
     type Coolant = dyn CoolantControl + Send;
+    type Files = dyn FileStore + Send;
 }
 
 /// Devices lent as they are (`dyn TemperatureControl`, …): those of a program on one thread,
@@ -97,6 +102,7 @@ impl DeviceObjects for LocalDevices {
     type Fan = dyn FanControl;
     type Spindle = dyn SpindleControl;
     type Coolant = dyn CoolantControl;
+    type Files = dyn FileStore;
 }
 
 /// A board's devices, as the controller reaches them. See the [module documentation](self).
@@ -120,6 +126,8 @@ pub struct Parts<'a, M, L, const N: usize, const F: usize = 0, D: DeviceObjects 
     pub motors: M,
     /// Each axis's switch as the thread side reads it, for `M119`.
     pub endstops: [Option<L>; N],
+    /// The file store of the SD-card commands, if any.
+    pub files: Option<&'a mut D::Files>,
 }
 
 impl<M, L, const N: usize, const F: usize, D: DeviceObjects> Parts<'_, M, L, N, F, D> {
@@ -134,6 +142,7 @@ impl<M, L, const N: usize, const F: usize, D: DeviceObjects> Parts<'_, M, L, N, 
             coolant: None,
             motors,
             endstops,
+            files: None,
         }
     }
 }
@@ -174,12 +183,17 @@ where
     fn endstop(&mut self, axis: usize) -> Option<bool> {
         read_endstop(&mut self.endstops, axis)
     }
+
+    fn files(&mut self) -> Option<&mut dyn FileStore> {
+        self.files.as_mut().map(|f| f as _)
+    }
 }
 
 /// The peripherals of a board whose parts are motion alone: motor power, and the end-stops as
-/// the thread side reads them for `M119` ([`NoLimit`]: none). It has no heater, fan, spindle
-/// or coolant: their commands are refused (`E194 no-device`), and the code that drives them is
-/// left out of the board's image.
+/// the thread side reads them for `M119` ([`NoLimit`]: none). It has no heater, fan, spindle,
+/// coolant or file store: their commands are refused (`E194 no-device`; the SD-card commands
+/// are answered as Marlin without a card answers them), and the code that drives them is left
+/// out of the board's image.
 #[derive(Debug, Clone)]
 pub struct MotorPeripherals<M, const N: usize, L = NoLimit> {
     /// Motor power.

@@ -16,6 +16,7 @@
 //! | [`device`] | [`device::TemperatureControl`], [`device::FanControl`], [`device::SpindleControl`], [`device::CoolantControl`], [`device::DigitalOutput`] | the machine's devices as the application commands them, with one [`device::DeviceError`] |
 //! | [`storage`] | [`storage::RecordStorage`] | power-loss-safe keyed records (over `embedded-storage`) |
 //! | [`program`] | [`program::ProgramStore`] | where a program's lines are kept, stored whole or not at all |
+//! | [`files`] | [`files::FileStore`] | named files (an SD card, a directory), each stored whole or not at all |
 //!
 //! ## Contract
 //!
@@ -37,6 +38,7 @@
 
 pub mod clock;
 pub mod device;
+pub mod files;
 pub mod limit;
 pub mod link;
 pub mod program;

@@ -239,6 +239,10 @@ pub fn frame_text(line: &Line<'_>) -> Option<String> {
 
 fn push_word(out: &mut String, word: &Word, shortest: bool) {
     out.push(char::from(word.letter));
+    if word.bare {
+        // A flag (`G28 X Y`): the next word starts with its letter, so it reads back alone.
+        return;
+    }
     if shortest {
         out.push_str(&shortest_decimal(word.value));
     } else {
@@ -279,6 +283,9 @@ mod tests {
         assert_eq!(texts, ["G21", "G1X2.0Y2.0F3000.0", "M117 Hello there"]);
         assert_eq!(p.lines[1].source_line, 4);
         assert_eq!(p.source_lines, 6);
+        // Flags stay flags: `G28 W` is not `G28 W0`.
+        let p = Program::parse(b"G28 W\nM84 X Y E\nG28 X Y10\n").unwrap();
+        assert_eq!(p.texts().collect::<Vec<_>>(), ["G28W", "M84XYE", "G28XY10"]);
         // A slicer's settings comment longer than a line is left out with its line.
         let long = format!(
             "G1 X1 ; {}\n; {}\nG1 X2\n",

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use common::{Sim, axis, positions, scratch, settle, with};
+use common::{Sim, axis, positions, scratch, settle, venv_python, with};
 
 /// The packages `from printrun.printcore import printcore` needs.
 const PACKAGES: [&str; 5] = [
@@ -23,57 +23,14 @@ const PACKAGES: [&str; 5] = [
     "psutil",
 ];
 
-/// The virtual environment's Python, created and filled if needed.
+/// The virtual environment's Python with Printrun, created and filled if needed.
 fn printrun_python() -> PathBuf {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let venv = root.join("target").join("printrun-venv");
-    let python = venv.join("bin").join("python");
-    let ready = |python: &Path| {
-        Command::new(python)
-            .args(["-c", "from printrun.printcore import printcore"])
-            .output()
-            .is_ok_and(|o| o.status.success())
-    };
-    if python.exists() && ready(&python) {
-        return python;
-    }
-    let made = Command::new("python3")
-        .args(["-m", "venv"])
-        .arg(&venv)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run python3 to make {}: {e}", venv.display()));
-    assert!(
-        made.status.success(),
-        "python3 -m venv {} failed: {}",
-        venv.display(),
-        String::from_utf8_lossy(&made.stderr)
-    );
-    let pip = Command::new(&python)
-        .args([
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--disable-pip-version-check",
-            "--no-deps",
-        ])
-        .args(PACKAGES)
-        .output()
-        .expect("the virtual environment's python runs");
-    assert!(
-        pip.status.success(),
-        "pip could not install Printrun ({}) into {}: {}{}",
-        PACKAGES.join(" "),
-        venv.display(),
-        String::from_utf8_lossy(&pip.stdout),
-        String::from_utf8_lossy(&pip.stderr)
-    );
-    assert!(
-        ready(&python),
-        "Printrun was installed into {} but `from printrun.printcore import printcore` fails",
-        venv.display()
-    );
-    python
+    venv_python(
+        "printrun-venv",
+        &PACKAGES,
+        true,
+        "from printrun.printcore import printcore",
+    )
 }
 
 #[test]

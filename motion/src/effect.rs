@@ -79,7 +79,8 @@ pub enum Coolant {
     Off,
 }
 
-/// SD card / file storage commands `M20`–`M29`, for the controller's storage subsystem.
+/// SD card / file storage commands `M20`–`M30`, `M32`, for the controller's storage subsystem.
+/// A file name is the command's free text, as given.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Storage<'l> {
     /// `M20`: list files.
@@ -98,10 +99,16 @@ pub enum Storage<'l> {
     SetPosition(u32),
     /// `M27`: report the printing status.
     Report,
+    /// `M27 S<seconds>`: report the printing status every so many seconds (0: stop).
+    ReportEvery(u8),
     /// `M28 <name>`: begin writing to a file.
     BeginWrite(&'l [u8]),
     /// `M29 <name>`: stop writing.
     EndWrite(Option<&'l [u8]>),
+    /// `M30 <name>`: delete a file (`M30` alone is program end, [`Effect::ProgramEnd`]).
+    Delete(&'l [u8]),
+    /// `M32 <name>`: select a file and start printing it.
+    SelectAndStart(&'l [u8]),
 }
 
 /// How motion stopped on a program command.
@@ -150,7 +157,7 @@ pub enum Effect<'l> {
     ReportFirmware,
     /// `M119`: report the limit switches.
     ReportEndstops,
-    /// `M20`–`M29`.
+    /// `M20`–`M29`, `M30 <name>`, `M32`.
     Storage(Storage<'l>),
     /// `T<n>`: select tool `n`.
     SelectTool(u8),
@@ -235,6 +242,8 @@ impl Effect<'_> {
                 Storage::Select(n) => Storage::Select(r(n)),
                 Storage::BeginWrite(n) => Storage::BeginWrite(r(n)),
                 Storage::EndWrite(n) => Storage::EndWrite(n.map(r)),
+                Storage::Delete(n) => Storage::Delete(r(n)),
+                Storage::SelectAndStart(n) => Storage::SelectAndStart(r(n)),
                 Storage::List => Storage::List,
                 Storage::Init => Storage::Init,
                 Storage::Release => Storage::Release,
@@ -242,6 +251,7 @@ impl Effect<'_> {
                 Storage::Pause => Storage::Pause,
                 Storage::SetPosition(p) => Storage::SetPosition(p),
                 Storage::Report => Storage::Report,
+                Storage::ReportEvery(s) => Storage::ReportEvery(s),
             }),
             Effect::SetTemperature {
                 heater,

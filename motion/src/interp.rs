@@ -11,13 +11,13 @@
 //! | `G2`, `G3` | clockwise / counter-clockwise arc, `I`/`J`/`K` centre offsets or `R` radius; `G17`/`G18`/`G19` pick the plane |
 //! | `G4` | dwell `P` ms or `S` s |
 //! | `G20`, `G21` | inches, millimetres |
-//! | `G28` | home all axes, or those named (their values are ignored) |
+//! | `G28` | home all axes, or those named (bare letters or values, which are ignored; Prusa's `W` changes nothing) |
 //! | `G90`, `G91` | absolute, relative |
 //! | `G92` | set the current position (all axes to 0 without words) |
 //! | `G94` | feed in units per minute (the only feed mode; `G93` and `G95` are refused) |
-//! | `M2`, `M30` | end of program: after the motion before it, `G1`, `G17`, `G90`, `G94` and the spindle off (`M30` with a file name is RepRap's delete file, unsupported) |
+//! | `M2`, `M30` | end of program: after the motion before it, `G1`, `G17`, `G90`, `G94` and the spindle off (`M30` with a file name is RepRap's delete file, a storage effect) |
 //! | `M82`, `M83` | extruder absolute, relative |
-//! | `M17`, `M18`, `M84` | motors on, off |
+//! | `M17`, `M18`, `M84` | motors on, off (`M18`/`M84` with axis letters: those axes) |
 //! | `M92` | set steps per unit |
 //! | `M201`, `M203` | maximum acceleration (mm/s²), maximum feed rate (mm/s) of the named axes |
 //! | `M204` | acceleration along the path: `P` printing, `R` retracting, `T` travel moves, `S` printing and travel (mm/s²) |
@@ -26,7 +26,8 @@
 //! | `M221` | flow of the extruders, percent (`S`); `T` names one extruder |
 //! | `M114` | report position |
 //! | `M0`, `M112`, `M226` | stop, emergency stop, pause |
-//! | `M3`–`M5`, `M7`–`M9`, `M104`–`M107`, `M109`, `M110`, `M115`, `M116`, `M119`, `M140`, `M20`–`M29`, `T` | returned as [`crate::Effect`]s |
+//! | `M3`–`M5`, `M7`–`M9`, `M73`, `M104`–`M107`, `M109`, `M110`, `M113`, `M115`–`M119`, `M140`, `M155`, `M190`, `M400`, `M410`, `M20`–`M30`, `M32`, `T` | returned as [`crate::Effect`]s |
+//! | `M900` | linear advance: `K0` (none, what this planner does) is taken, another factor refused |
 //!
 //! ## Planner settings and overrides
 //!
@@ -999,10 +1000,23 @@ impl<const N: usize> Interpreter<N> {
                         b'S',
                         u32::MAX,
                     )?),
-                    27 => Storage::Report,
+                    27 => match s {
+                        Some(v) => Storage::ReportEvery(small_int(v, b'S', 255)? as u8),
+                        None => Storage::Report,
+                    },
                     28 => Storage::BeginWrite(name()?),
                     _ => Storage::EndWrite(text),
                 }))
+            }
+            // `M30` with a name (without one it is program end, above).
+            (b'M', 30) => Action::Effect(Effect::Storage(Storage::Delete(
+                line.text_arg().unwrap_or(&[]),
+            ))),
+            (b'M', 32) => {
+                let name = line
+                    .text_arg()
+                    .ok_or(CommandError::MissingValue { letter: b'M' })?;
+                Action::Effect(Effect::Storage(Storage::SelectAndStart(name)))
             }
             (b'T', t) => {
                 let t = u8::try_from(t).map_err(|_| CommandError::BadValue { letter: b'T' })?;
@@ -1389,13 +1403,12 @@ mod tests {
         run(&mut it, b"G91 G20").expect("ok");
         assert_eq!(run(&mut it, b"M30"), Ok(Action::Effect(Effect::ProgramEnd)));
         assert!(it.absolute && it.inches && it.plane == Plane::Xy);
-        // `M30 <file>` is RepRap's delete file, which Forja lacks.
+        // `M30 <file>` is RepRap's delete file.
         assert_eq!(
             run(&mut it, b"M30 part.gco"),
-            Err(CommandError::Unsupported {
-                letter: b'M',
-                number: Some(30)
-            })
+            Ok(Action::Effect(Effect::Storage(Storage::Delete(
+                b"part.gco"
+            ))))
         );
     }
 

@@ -738,15 +738,72 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             .map_err(|_| CommandError::BadValue { letter: b'M' })?;
         self.bounds = axis_bounds(&c);
         self.config = c;
-        // Marlin's rule: the machine stays at the same millimetres, which are now other step
-        // counts (the motors do not move). Idle, so the interrupt's count is the planner's.
+        self.rescale_steps();
+        Ok(())
+    }
+
+    /// After a change of steps per unit, while idle: Marlin's rule, the machine stays at the
+    /// same millimetres, which are now other step counts (the motors do not move). Idle, so the
+    /// interrupt's count is the planner's.
+    fn rescale_steps(&mut self) {
         let isr = self.tx.shared().positions();
         for (i, a) in self.config.axes.iter().enumerate() {
             let steps = nm_to_steps(self.interp.pos[i], a.steps_per_mm);
             self.origin[i] = isr[i].wrapping_sub(steps);
             self.steps[i] = steps;
         }
-        Ok(())
+    }
+
+    /// Take a whole set of planner settings at once (the steps per unit, maximum accelerations
+    /// and rates, path limits and junction deviation of `settings`; its letters and overrides
+    /// are not read): what a controller's `M501` (the stored settings) and `M502` (the
+    /// defaults) do, and a board's start with stored path limits. Steps per unit change by
+    /// `M92`'s rule (the machine keeps its millimetres).
+    ///
+    /// Returns [`Reply::Busy`] until the machine is idle (nothing changes meanwhile), like
+    /// `M92`. Errors: the configuration it makes is not valid, or cannot be stepped
+    /// ([`MachineConfig::validate_timing`]), or a path limit is not a finite positive number
+    /// (a slowest feed not negative): [`CommandError::BadValue`] naming the axis or `M`;
+    /// nothing changes.
+    pub fn set_planner_settings(
+        &mut self,
+        settings: &PlannerSettings<N>,
+    ) -> Result<Reply<'static, N>, CommandError> {
+        if !self.is_idle() || self.homing.is_some() {
+            return Ok(Reply::Busy);
+        }
+        let mut c = self.config.clone();
+        let change = [
+            LimitChange::AxisAccel(settings.max_accel_mm_s2.map(Some)),
+            LimitChange::AxisRate(settings.max_rate_mm_s.map(|r| Some(r * 60.0))),
+        ];
+        let mut limits = settings.path;
+        for ch in &change {
+            ch.apply(&mut c, &mut limits);
+        }
+        for (a, spm) in c.axes.iter_mut().zip(settings.steps_per_mm) {
+            a.steps_per_mm = spm;
+        }
+        c.junction_deviation_mm = settings.junction_deviation_mm;
+        let accel_ok = |v: Option<f32>| v.is_none_or(|v| v.is_finite() && v > 0.0);
+        let feed_ok = |v: f32| v.is_finite() && v >= 0.0;
+        let path = settings.path;
+        if !(accel_ok(path.print_accel_mm_s2)
+            && accel_ok(path.retract_accel_mm_s2)
+            && accel_ok(path.travel_accel_mm_s2)
+            && feed_ok(path.min_extruding_feed_mm_s)
+            && feed_ok(path.min_travel_feed_mm_s))
+        {
+            return Err(CommandError::BadValue { letter: b'M' });
+        }
+        c.validate()
+            .and_then(|()| c.validate_timing(self.tick_hz, self.timing))
+            .map_err(|e| refusal(&c, e))?;
+        self.bounds = axis_bounds(&c);
+        self.config = c;
+        self.planner.set_limits(path);
+        self.rescale_steps();
+        Ok(Reply::Ok)
     }
 
     /// Change the planner's limits (`M201`, `M203`, `M204`, `M205`) for the moves planned from

@@ -77,7 +77,7 @@ pub use estimate::Estimate;
 pub use interp::NM_PER_MM;
 pub use kernel::{Kernel, MachineState, PlannerSettings, PositionReport, Reply, split};
 pub use planner::PathLimits;
-pub use preview::{Preview, Travel};
+pub use preview::{Piece, Preview, Travel};
 pub use queue::{StepQueue, SwitchAlert};
 pub use replay::Replay;
 pub use stepgen::StepGenerator;

@@ -144,6 +144,28 @@ impl Decimal {
         Some(Self::new(rounded as i64, scale))
     }
 
+    /// `value` to an `f32`'s precision, seven significant digits (at most six after the point),
+    /// without trailing fractional zeros: `80`, `93.45678`, `0.013`, as a person writes the
+    /// value that was typed. Reports write numbers with it, so that no float formatting is
+    /// needed. `None` when it is not finite or beyond `1e12`.
+    pub fn from_f32_significant(value: f32) -> Option<Self> {
+        if !value.is_finite() || value.abs() >= 1e12 {
+            return None;
+        }
+        let mut whole_digits = 1u8;
+        let mut limit = 10.0f32;
+        while value.abs() >= limit && whole_digits < 12 {
+            whole_digits += 1;
+            limit *= 10.0;
+        }
+        let scale = 7u8.saturating_sub(whole_digits).min(6);
+        let mut d = Self::from_f32(value, scale)?;
+        while d.scale > 0 && d.mantissa % 10 == 0 {
+            d = Self::new(d.mantissa / 10, d.scale - 1);
+        }
+        Some(d)
+    }
+
     /// The whole of `text` as a number (`[+-]digits[.digits]`, at least one digit); `None`
     /// otherwise or when out of range.
     pub fn parse(text: &[u8]) -> Option<Self> {
@@ -264,6 +286,19 @@ pub(crate) fn parse_prefix(text: &[u8]) -> Result<(Decimal, usize), NumberError>
 #[cfg(test)]
 #[allow(clippy::unwrap_used, clippy::panic, clippy::indexing_slicing)]
 mod tests {
+
+    #[test]
+    fn a_float_is_written_to_its_precision() {
+        let shown = |v: f32| std::format!("{}", Decimal::from_f32_significant(v).unwrap());
+        assert_eq!(shown(80.0), "80");
+        assert_eq!(shown(93.45678), "93.45678");
+        assert_eq!(shown(0.013), "0.013");
+        assert_eq!(shown(0.1), "0.1");
+        assert_eq!(shown(12_000.0), "12000");
+        assert_eq!(shown(-2.5), "-2.5");
+        assert_eq!(shown(1_234_567.0), "1234567");
+        assert_eq!(Decimal::from_f32_significant(f32::NAN), None);
+    }
     extern crate std;
     use std::string::ToString;
 

@@ -32,9 +32,10 @@ pub const MAX_LINE_LEN: usize = 256;
 /// The most words one line may hold (the `N` line number not counted).
 pub const MAX_WORDS: usize = 32;
 
-/// The M-codes whose argument is free text rather than words: `M23`, `M28`, `M29`, `M30`
-/// (file names), `M117` (a message) and `M118` (a line for the host). See [`Line::text_arg`].
-pub const TEXT_COMMANDS: [i64; 6] = [23, 28, 29, 30, 117, 118];
+/// The M-codes whose argument is free text rather than words: `M23`, `M28`, `M29`, `M30`,
+/// `M32` (file names), `M117` (a message) and `M118` (a line for the host). See
+/// [`Line::text_arg`].
+pub const TEXT_COMMANDS: [i64; 7] = [23, 28, 29, 30, 32, 117, 118];
 
 /// The checksum of a line: the XOR of every byte of `bytes` up to, not including, the first `*`
 /// (the seed's C snippet, byte for byte).

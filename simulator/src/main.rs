@@ -3,10 +3,10 @@
 //! Runs a job through the firmware (the controller and the motion kernel on the simulated
 //! hardware) and prints the result; with `--listen`, serves hosts on TCP and a
 //! pseudo-terminal instead; with `--check`, only describes the machine file and the job (and,
-//! with `--state`, what the state file keeps); with `--plot`, draws the job's toolpath and the
-//! steps the machine made. The work is in the library (`forja_simulator::run`,
-//! `forja_simulator::state`, `forja_simulator::plot`); the clap doc comments below are the
-//! `--help`.
+//! with `--state`, what the state file keeps); with `--plot`, draws the job's toolpath (a
+//! printer's extrusion and travel, by layer) and the steps the machine made. The work is in the
+//! library (`forja_simulator::run`, `forja_simulator::state`, `forja_simulator::plot`); the clap
+//! doc comments below are the `--help`.
 
 use std::io::Write as _;
 use std::net::{IpAddr, SocketAddr};
@@ -20,7 +20,7 @@ use forja_sim_hal::config::{AxisKind, SwitchPolarity, SwitchSide};
 use forja_sim_hal::link::FaultConfig;
 use forja_sim_hal::{MachineConfig, Pacing};
 use forja_simulator::Job;
-use forja_simulator::plot::{self, Executed, ImageFormat, Toolpath};
+use forja_simulator::plot::{self, Executed, ImageFormat, LayerRange, PlotOptions, Toolpath};
 use forja_simulator::run::{JobOptions, ListenOptions};
 
 /// Exit code of a job that did not run cleanly (a refused line, lost or badly timed steps, a
@@ -33,7 +33,8 @@ const EXIT_NOT_CLEAN: u8 = 2;
 #[command(
     name = "forja-sim",
     version,
-    after_help = "Exit status: 0 success, 1 bad input or link failure, 2 the job did not run cleanly."
+    after_help = "Exit status: 0 success, 1 bad input or link failure, 2 the job did not run \
+                  cleanly (with --check --plot: the kernel refuses a line of it)."
 )]
 struct Cli {
     /// Machine file (TOML), or `builtin:NAME` for a bundled one: `builtin:default` (the 4-axis
@@ -107,6 +108,14 @@ struct Cli {
     /// toolpath starts with the run's G28 (none with --no-home). With --check nothing runs: the
     /// job alone is drawn from the machine's start position, as a host that sends the file to
     /// --listen has it run, with the steps of --plot-trace over it when given.
+    ///
+    /// On a printer (a machine with an extruder axis) extrusion is drawn solid, coloured by
+    /// layer from purple (lowest) through blue and teal to green (highest), travel thin and
+    /// dashed; retractions draw nothing. The view frames the part over the bed (the machine's
+    /// X/Y travel): extrusion far from the layers above the first, such as a purge line, is
+    /// left to an overview beside it. On other machines feeds are solid, rapids dashed, and the
+    /// view frames the whole path. A line the kernel refuses is drawn as the machine runs the
+    /// job, without it, listed and marked.
     #[arg(long, value_name = "OUT", conflicts_with = "listen")]
     plot: Option<PathBuf>,
 
@@ -114,6 +123,20 @@ struct Cli {
     /// by a host) to draw over the toolpath.
     #[arg(long, value_name = "FILE", requires = "plot", requires = "check")]
     plot_trace: Option<PathBuf>,
+
+    /// With --plot, on a printer: draw only these layers, numbered from 1 as slicer previews
+    /// number them: one (`3`), or a range with both ends included (`2..5`, `2..` to the top,
+    /// `..5` from the first). A layer is a height at which extrusion happens, counted in the
+    /// order printed: a purge line drawn before the first layer belongs to layer 1. Cura's
+    /// `;LAYER:n` comments count from 0: its layer n is layer n+1 here. The title says the
+    /// layers drawn and their heights; the steps the machine made are drawn at those heights.
+    #[arg(long, value_name = "LAYERS", requires = "plot")]
+    plot_layers: Option<String>,
+
+    /// With --plot: leave travel out (a printer's moves without extrusion; the rapids of other
+    /// machines).
+    #[arg(long, requires = "plot")]
+    plot_hide_travel: bool,
 
     /// With --listen: a controlling host that sends nothing for this many seconds of virtual
     /// time, while no answer is owed to it, loses control (a TCP client is closed). Any byte
@@ -131,6 +154,11 @@ struct Cli {
     /// power cut leaves a flash. With --check: describe what FILE keeps.
     #[arg(long, value_name = "FILE")]
     state: Option<PathBuf>,
+
+    /// Keep the board's SD card (M20–M32: files uploaded with M28/M29, printed with M23/M24)
+    /// in DIR, made if missing; by default a fresh temporary directory, removed at exit.
+    #[arg(long, value_name = "DIR")]
+    sd_dir: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -176,6 +204,16 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
     } else {
         Pacing::Scaled(cli.time_scale)
     };
+    let plot_options = PlotOptions {
+        layers: match &cli.plot_layers {
+            Some(text) => Some(
+                text.parse::<LayerRange>()
+                    .map_err(|e| format!("--plot-layers {text}: {e}"))?,
+            ),
+            None => None,
+        },
+        hide_travel: cli.plot_hide_travel,
+    };
 
     if cli.check {
         print_machine(&cli.machine, &machine);
@@ -191,11 +229,20 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
             }
         }
         if let Some(out) = &cli.plot {
+            let path = toolpath(&machine, &job, false, &plot_options)?;
             let executed = match &cli.plot_trace {
                 Some(trace) => Some(read_trace(trace, &machine)?),
                 None => None,
             };
-            draw(out, &machine, &job, false, executed.as_ref())?;
+            draw(out, &job, &path, executed.as_ref(), &plot_options)?;
+            if !path.refused.is_empty() {
+                eprintln!(
+                    "forja-sim: the kernel refuses {} of the job's lines (listed above): the \
+                     machine would run it without them",
+                    path.refused.len()
+                );
+                return Ok(ExitCode::from(EXIT_NOT_CLEAN));
+            }
         }
         return Ok(ExitCode::SUCCESS);
     }
@@ -211,6 +258,7 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
             time_limit_ticks,
             trace: cli.trace.clone(),
             state: cli.state.clone(),
+            sd_dir: cli.sd_dir.clone(),
             busy_message: forja_simulator::run::busy_message(),
             idle_timeout_ms: Some(idle_timeout_ms(cli.idle_timeout)?),
         };
@@ -223,11 +271,15 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
         return Ok(ExitCode::SUCCESS);
     }
 
-    // A plot draws the run's own steps: recorded to --trace's file, or to one of its own that
-    // is not kept.
-    if let Some(out) = &cli.plot {
-        ImageFormat::of(out).map_err(|e| e.to_string())?;
-    }
+    // A plot is checked before the job runs, and draws the run's own steps: recorded to
+    // --trace's file, or to one of its own that is not kept.
+    let plotted = match &cli.plot {
+        Some(out) => {
+            ImageFormat::of(out).map_err(|e| e.to_string())?;
+            Some(toolpath(&machine, &job, !cli.no_home, &plot_options)?)
+        }
+        None => None,
+    };
     let own_trace = cli.plot.is_some() && cli.trace.is_none();
     let trace = cli.trace.clone().or_else(|| {
         own_trace.then(|| {
@@ -245,6 +297,7 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
         },
         trace: trace.clone(),
         state: cli.state.clone(),
+        sd_dir: cli.sd_dir.clone(),
     };
     let result = forja_simulator::run::run_job(&machine, &job, &options);
     let executed = match (&cli.plot, &trace, &result) {
@@ -256,8 +309,8 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
     }
     let result = result?;
     println!("{result}");
-    if let (Some(out), Some(executed)) = (&cli.plot, executed) {
-        draw(out, &machine, &job, result.homed_first, Some(&executed?))?;
+    if let (Some(out), Some(path), Some(executed)) = (&cli.plot, &plotted, executed) {
+        draw(out, &job, path, Some(&executed?), &plot_options)?;
     }
     Ok(exit_code(&result))
 }
@@ -278,28 +331,71 @@ fn read_trace(path: &Path, machine: &MachineConfig) -> Result<Executed, String> 
     Executed::from_trace(&text, Some(machine)).map_err(|e| format!("{}: {e}", path.display()))
 }
 
-/// Draw `job`'s toolpath on `machine` (after a `G28` when `home_first`) to `out`, with
-/// `executed` over it, and say what was drawn.
-fn draw(
-    out: &Path,
+/// The toolpath of `job` on `machine` (after a `G28` when `home_first`, as the run sends it:
+/// a machine that homes no axis is the same either way), with the layers of `options` checked.
+fn toolpath(
     machine: &MachineConfig,
     job: &Job,
     home_first: bool,
-    executed: Option<&Executed>,
-) -> Result<(), String> {
+    options: &PlotOptions,
+) -> Result<Toolpath, String> {
     let path = Toolpath::from_job(machine, job, home_first).map_err(|e| e.to_string())?;
-    let title = Path::new(job.name()).file_name().map_or_else(
+    if let Some(range) = options.layers {
+        path.select_layers(range)
+            .map_err(|e| format!("--plot-layers {range}: {e}"))?;
+    }
+    Ok(path)
+}
+
+/// Draw `path`, the toolpath of `job`, to `out` as `options` say, with `executed` over it, and
+/// say what was drawn and which lines the kernel refuses.
+fn draw(
+    out: &Path,
+    job: &Job,
+    path: &Toolpath,
+    executed: Option<&Executed>,
+    options: &PlotOptions,
+) -> Result<(), String> {
+    let name = Path::new(job.name()).file_name().map_or_else(
         || job.name().to_string(),
         |n| n.to_string_lossy().into_owned(),
     );
-    plot::render(out, &title, &path, executed).map_err(|e| e.to_string())?;
-    println!(
-        "plotted {} to {}: {:.1} mm at feed, {:.1} mm rapid",
-        job.name(),
-        out.display(),
-        path.feed_mm,
-        path.rapid_mm
-    );
+    plot::render(out, &name, path, executed, options).map_err(|e| e.to_string())?;
+    if path.printer {
+        println!(
+            "plotted {} to {}: {}; {:.1} mm of extrusion ({:.1} mm of filament), {:.1} mm of \
+             travel, {} retractions",
+            job.name(),
+            out.display(),
+            path.describe_layers(None),
+            path.extrusion_mm,
+            path.filament_mm,
+            path.travel_mm,
+            path.retractions
+        );
+        if let Some(range) = options.layers {
+            let span = path.select_layers(range).map_err(|e| e.to_string())?;
+            println!("drawn: {}", path.describe_layers(Some(span)));
+        }
+    } else {
+        println!(
+            "plotted {} to {}: {:.1} mm at feed, {:.1} mm rapid",
+            job.name(),
+            out.display(),
+            path.feed_mm,
+            path.rapid_mm
+        );
+    }
+    for refusal in &path.refused {
+        let place = match refusal.line {
+            Some(n) => format!("{}, line {n}", job.name()),
+            None => "before the job".to_string(),
+        };
+        println!(
+            "refused by the kernel: {place}: {}: {}",
+            refusal.text, refusal.reason
+        );
+    }
     if let Some(ex) = executed {
         println!(
             "executed: {:.1} mm in XY from {} steps over {:.1} s; ends {:.3} mm from the \
@@ -307,7 +403,7 @@ fn draw(
             ex.length_mm,
             ex.steps,
             ex.duration_s,
-            ex.off_end_mm(&path)
+            ex.off_end_mm(path)
         );
     }
     Ok(())

@@ -4,24 +4,44 @@
 //! [`Toolpath::from_job`] runs the job through the kernel's own reading of G-code
 //! ([`forja_motion::Preview`], on the kernel configuration the simulator board builds from the
 //! machine file, [`forja_sim::board::parts::machine`]): units, distance modes, planes, `G92`
-//! offsets, arcs (cut into the kernel's chords) and homing are the firmware's, and a line the
-//! kernel refuses is an error naming the job and the line. Positions are the machine's
-//! physical ones, those of a step trace: the firmware counts from zero when it starts while the
-//! machine stands at each axis's `start_mm`, so an axis is drawn shifted by its start position
-//! until a homing line homes it, and from then on where the kernel's homing cycle left it.
+//! offsets, extrusion modes, arcs (cut into the kernel's chords) and homing are the
+//! firmware's. Positions are the machine's physical ones, those of a step trace: the firmware
+//! counts from zero when it starts while the machine stands at each axis's `start_mm`, so an
+//! axis is drawn shifted by its start position until a homing line homes it, and from then on
+//! where the kernel's homing cycle left it; nothing is drawn between the two. A line the kernel
+//! refuses changes nothing, as when the machine runs the job (which goes on to its end): it is
+//! kept in [`Toolpath::refused`], said on the plot and marked where the tool stood.
+//!
+//! On a machine with an extruder (a printer) the path is told apart as the preview's
+//! [`Piece`]s are: **extrusion**, where an extruder advances as the tool moves, and **travel**,
+//! where the tool moves without extruding (wipes included); a piece that only turns the
+//! extruder (a retraction, its undoing, a prime) draws nothing and is counted. The part's
+//! **layers** are the heights at which extrusion happens, numbered from 1 in the order they are
+//! printed: a layer starts at the first extrusion above every extrusion before it, and an
+//! extrusion at or below the height of the layer being printed belongs to that layer (a purge
+//! line a start G-code draws at 0.3 mm before the first layer at 0.2 mm belongs to layer 1,
+//! whose heights are then 0.2 to 0.3 mm). A travel move belongs to the layer of the next
+//! extrusion, the one it leads to; the travel after the last extrusion to the last layer. On a
+//! machine without an extruder the path is told apart by how it is travelled: rapids (`G0`)
+//! and feeds.
+//!
 //! [`Executed::from_trace`] replays a step trace (`forja_sim_hal::trace`) step by step.
-//! [`render`] draws both in the XY plane with a millimetre grid; the text is drawn with a
-//! built-in 8×8 bitmap font, so no system font is needed.
+//! [`render`] draws both in the XY plane with a millimetre grid and the machine's X/Y travel
+//! (the bed of a printer), [`PlotOptions`] choosing the layers drawn and whether travel is;
+//! the view frames the extrusion drawn (the whole path on a machine without an extruder). The
+//! text is drawn with a built-in 8×8 bitmap font, so no system font is needed.
 //!
 //! A tool of the simulator program, on the host: nothing here is part of the firmware.
 
 use std::fmt;
+use std::ops::RangeInclusive;
 use std::path::Path;
+use std::str::FromStr;
 
 use forja_hal_abstraction::stepper::Direction;
 use forja_host::codes::explain;
 use forja_host::program::{Program, ProgramError, describe_line_error};
-use forja_motion::{NM_PER_MM, Preview, Travel};
+use forja_motion::{AxisKind, NM_PER_MM, Piece, Preview, Travel};
 use forja_protocol::gcode::Line;
 use forja_sim::board::BoardError;
 use forja_sim::board::parts;
@@ -32,13 +52,51 @@ use plotters::prelude::*;
 
 use crate::job::Job;
 
-/// Connected points travelled the same way, XY in mm.
+/// What a stretch of the path does, which decides how it is drawn.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PathKind {
+    /// On a machine without an extruder: positioning in rapids (`G0`).
+    Rapid,
+    /// On a machine without an extruder: at the feed rate (`G1`, `G2`, `G3`).
+    Feed,
+    /// On a printer: material laid, an extruder advancing as the tool moves.
+    Extrusion,
+    /// On a printer: the tool moving without extruding (in rapids or not, wipes included).
+    Travel,
+}
+
+/// Connected points of the same kind and layer, XY in mm.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Polyline {
-    /// How: in rapids or at the feed rate.
-    pub travel: Travel,
+    /// What the stretch does.
+    pub kind: PathKind,
+    /// The layer it belongs to, an index into [`Toolpath::layers`]; `None` on a machine without
+    /// an extruder, and for travel of a printer job that extrudes nothing.
+    pub layer: Option<usize>,
     /// The points, in order.
     pub points: Vec<[f64; 2]>,
+}
+
+/// One layer of a printed part. See the [module documentation](self).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Layer {
+    /// The lowest and highest height of its extrusion, mm.
+    pub z_mm: [f64; 2],
+    /// Length of its extrusion, mm (XYZ).
+    pub extrusion_mm: f64,
+}
+
+/// A line of the job the kernel refuses: the machine runs the job without it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Refusal {
+    /// The line's number in the job; `None` for the `G28` sent before the job.
+    pub line: Option<usize>,
+    /// The line as sent (comments and spaces left out).
+    pub text: String,
+    /// Why the kernel refuses it, with its error code.
+    pub reason: String,
+    /// Where the tool stands when the line comes, XY mm.
+    pub at: [f64; 2],
 }
 
 /// The path a job asks for, in the machine's physical coordinates.
@@ -46,10 +104,27 @@ pub struct Polyline {
 pub struct Toolpath {
     /// The stretches, in program order; a homing line starts a new one.
     pub polylines: Vec<Polyline>,
+    /// Whether the machine has an extruder: the path is then extrusion and travel, in layers.
+    pub printer: bool,
+    /// The layers of a printer job, from the first printed; empty when nothing is extruded.
+    pub layers: Vec<Layer>,
     /// Length travelled at the feed rate, mm (XYZ).
     pub feed_mm: f64,
     /// Length travelled in rapids, mm (XYZ).
     pub rapid_mm: f64,
+    /// On a printer: length of the extrusion, mm (XYZ).
+    pub extrusion_mm: f64,
+    /// On a printer: length travelled without extruding, mm (XYZ).
+    pub travel_mm: f64,
+    /// On a printer: filament fed along the extrusion, mm (the extruders' advance).
+    pub filament_mm: f64,
+    /// On a printer: moves of the extruders alone that draw filament back.
+    pub retractions: usize,
+    /// The lines the kernel refuses, in order.
+    pub refused: Vec<Refusal>,
+    /// The machine's X/Y travel (the bed of a printer), mm: x0, y0, x1, y1; `None` when X or Y
+    /// has no limits.
+    pub bed: Option<[f64; 4]>,
     /// Where the job ends, XYZ mm (0 on an axis the machine does not have).
     pub end: [f64; 3],
 }
@@ -66,12 +141,92 @@ impl fmt::Display for PlotError {
 
 impl std::error::Error for PlotError {}
 
+/// Layers of a printed part (`--plot-layers`), numbered from 1 as slicer previews number them:
+/// one (`3`) or a range with both ends included (`2..5`; `2..` up to the top, `..5` from the
+/// first).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LayerRange {
+    /// The first layer, from 1.
+    pub first: usize,
+    /// The last layer; `None`: the top one.
+    pub last: Option<usize>,
+}
+
+impl FromStr for LayerRange {
+    type Err = PlotError;
+
+    /// Errors: not a number or a range of them, a layer 0, a range that ends before it starts.
+    fn from_str(text: &str) -> Result<Self, PlotError> {
+        let number = |s: &str| -> Result<usize, PlotError> {
+            match s.trim().parse::<usize>() {
+                Ok(0) => Err(PlotError("layers are numbered from 1".into())),
+                Ok(n) => Ok(n),
+                Err(_) => Err(PlotError(
+                    "give a layer (3) or a range of layers, both ends included (2..5, 2.., ..5)"
+                        .into(),
+                )),
+            }
+        };
+        let range = match text.split_once("..") {
+            None => {
+                let n = number(text)?;
+                Self {
+                    first: n,
+                    last: Some(n),
+                }
+            }
+            Some((first, last)) => Self {
+                first: if first.trim().is_empty() {
+                    1
+                } else {
+                    number(first)?
+                },
+                last: if last.trim().is_empty() {
+                    None
+                } else {
+                    Some(number(last)?)
+                },
+            },
+        };
+        match range.last {
+            Some(last) if last < range.first => {
+                Err(PlotError("the range ends before it starts".into()))
+            }
+            _ => Ok(range),
+        }
+    }
+}
+
+impl fmt::Display for LayerRange {
+    /// As [`LayerRange::from_str`] reads it: `3`, `2..5`, `2..`.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.last {
+            Some(last) if last == self.first => write!(f, "{last}"),
+            Some(last) => write!(f, "{}..{last}", self.first),
+            None => write!(f, "{}..", self.first),
+        }
+    }
+}
+
+/// What a plot shows of a toolpath.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct PlotOptions {
+    /// The layers drawn, on a printer; all when `None`.
+    pub layers: Option<LayerRange>,
+    /// Leave travel out (a printer's; on a machine without an extruder, the rapids).
+    pub hide_travel: bool,
+}
+
+/// Heights closer than this are one, mm.
+const Z_TOLERANCE_MM: f64 = 0.001;
+
 impl Toolpath {
     /// Follow `job` on a machine of `machine` standing at its start position; `home_first`:
     /// a `G28` comes before the job, as [`crate::run::run_job`] sends it.
     ///
-    /// Errors: a machine the kernel cannot take, a job line that does not parse or that the
-    /// kernel refuses (with the job's name and the line's number).
+    /// Errors: a machine the kernel cannot take, a job line that does not parse (with the
+    /// job's name and the line's number). A line the kernel refuses is not an error: it is
+    /// kept in [`Toolpath::refused`].
     pub fn from_job(
         machine: &MachineConfig,
         job: &Job,
@@ -90,23 +245,72 @@ impl Toolpath {
         }
     }
 
-    /// Add a straight piece from `from` to `to` (XYZ mm).
-    fn add(&mut self, travel: Travel, from: [f64; 3], to: [f64; 3]) {
-        let length =
-            ((to[0] - from[0]).powi(2) + (to[1] - from[1]).powi(2) + (to[2] - from[2]).powi(2))
-                .sqrt();
-        match travel {
-            Travel::Rapid => self.rapid_mm += length,
-            Travel::Feed => self.feed_mm += length,
+    /// The layers `range` names, as indices into [`Toolpath::layers`].
+    ///
+    /// Errors: a machine without an extruder, a job that extrudes nothing, a layer the job does
+    /// not have (saying how many it has).
+    pub fn select_layers(&self, range: LayerRange) -> Result<RangeInclusive<usize>, PlotError> {
+        if !self.printer {
+            return Err(PlotError(
+                "layers are the heights at which an extruder lays material, and the machine has \
+                 no extruder"
+                    .into(),
+            ));
         }
-        let (from, to) = ([from[0], from[1]], [to[0], to[1]]);
-        match self.polylines.last_mut() {
-            Some(p) if p.travel == travel && p.points.last() == Some(&from) => p.points.push(to),
-            _ => self.polylines.push(Polyline {
-                travel,
-                points: vec![from, to],
-            }),
+        let count = self.layers.len();
+        if count == 0 {
+            return Err(PlotError(
+                "the job extrudes nothing: it has no layers".into(),
+            ));
         }
+        let last = range.last.unwrap_or(count);
+        if range.first > count || last > count {
+            return Err(PlotError(format!(
+                "the job has {}",
+                self.describe_layers(None)
+            )));
+        }
+        Ok(range.first - 1..=last - 1)
+    }
+
+    /// The layers of `span` (all when `None`) in words, with their heights: `6 layers, Z 0.2 to
+    /// 1.2 mm`, `layer 2 of 6, Z 0.4 mm`, `layers 2 to 4 of 6, Z 0.4 to 0.8 mm`.
+    pub fn describe_layers(&self, span: Option<RangeInclusive<usize>>) -> String {
+        let count = self.layers.len();
+        if count == 0 {
+            return "no layers (nothing extruded)".into();
+        }
+        let (first, last) = span.map_or((0, count - 1), |s| (*s.start(), *s.end()));
+        let (low, high) = (self.layers[first].z_mm[0], self.layers[last].z_mm[1]);
+        let z = if high - low < Z_TOLERANCE_MM {
+            format!("Z {} mm", label(low))
+        } else {
+            format!("Z {} to {} mm", label(low), label(high))
+        };
+        let plural = if count == 1 { "" } else { "s" };
+        if first == 0 && last == count - 1 {
+            format!("{count} layer{plural}, {z}")
+        } else if first == last {
+            format!("layer {} of {count}, {z}", first + 1)
+        } else {
+            format!("layers {} to {} of {count}, {z}", first + 1, last + 1)
+        }
+    }
+}
+
+/// A straight piece of the path in physical XYZ mm, before it joins a polyline.
+struct Stroke {
+    kind: PathKind,
+    from: [f64; 3],
+    to: [f64; 3],
+    /// The first piece after a homing line: it starts a new polyline.
+    after_homing: bool,
+}
+
+impl Stroke {
+    fn length_mm(&self) -> f64 {
+        let d = |k: usize| self.to[k] - self.from[k];
+        (d(0).powi(2) + d(1).powi(2) + d(2).powi(2)).sqrt()
     }
 }
 
@@ -124,6 +328,7 @@ fn follow<const N: usize>(
         e => PlotError(format!("{}: {e}", job.name())),
     })?;
     let xyz = [b'X', b'Y', b'Z'].map(|l| config.axis_index(l));
+    let printer = config.axes.iter().any(|a| a.kind == AxisKind::Extruder);
     // Physical position = the kernel's count + the shift: the start position until homed.
     let mut shift: [i64; N] = core::array::from_fn(|i| {
         machine
@@ -134,9 +339,24 @@ fn follow<const N: usize>(
     let at = |nm: [i64; N], shift: &[i64; N]| {
         xyz.map(|i| i.map_or(0.0, |i| (nm[i] + shift[i]) as f64 / NM_PER_MM))
     };
+    let travel_of = |letter: char| {
+        machine
+            .axes
+            .iter()
+            .find(|a| a.letter == letter)
+            .and_then(|a| a.travel)
+    };
+    let mut path = Toolpath {
+        printer,
+        bed: travel_of('X')
+            .zip(travel_of('Y'))
+            .map(|(x, y)| [x.min_mm, y.min_mm, x.max_mm, y.max_mm]),
+        ..Toolpath::default()
+    };
     // The firmware counts from zero when it starts.
     let mut preview = Preview::new(&config, [0; N]);
-    let mut path = Toolpath::default();
+    let mut strokes: Vec<Stroke> = Vec::new();
+    let mut after_homing = false;
     let lines = home_first.then_some((None, "G28")).into_iter().chain(
         program
             .lines
@@ -144,45 +364,145 @@ fn follow<const N: usize>(
             .map(|l| (Some(l.source_line), l.text.as_str())),
     );
     for (number, text) in lines {
-        let place = || match number {
-            Some(n) => format!("{}, line {n}", job.name()),
-            None => "G28 (before the job)".to_string(),
-        };
-        let line = Line::parse(text.as_bytes())
-            .map_err(|e| PlotError(format!("{}: {}", place(), describe_line_error(&e))))?;
-        let homed = preview
-            .line(&line, |travel, from, to| {
-                path.add(travel, at(from, &shift), at(to, &shift));
-            })
-            .map_err(|e| {
-                PlotError(format!(
-                    "{}: {}",
-                    place(),
-                    explain(e.code(), &e.to_string())
-                ))
-            })?;
-        if homed != 0 {
-            for (i, s) in shift.iter_mut().enumerate() {
-                if homed & (1 << i) != 0 {
-                    *s = 0;
-                }
+        let line = Line::parse(text.as_bytes()).map_err(|e| {
+            let place = match number {
+                Some(n) => format!("{}, line {n}", job.name()),
+                None => "G28 (before the job)".to_string(),
+            };
+            PlotError(format!("{place}: {}", describe_line_error(&e)))
+        })?;
+        let outcome = preview.line(&line, |piece: Piece<N>| {
+            let (from, to) = (at(piece.from, &shift), at(piece.to, &shift));
+            match piece.travel {
+                Travel::Rapid => path.rapid_mm += distance(from, to),
+                Travel::Feed => path.feed_mm += distance(from, to),
             }
-            path.polylines.push(Polyline {
-                travel: Travel::Rapid,
-                points: Vec::new(),
+            if !piece.moves_tool {
+                if piece.extruded_nm < 0 {
+                    path.retractions += 1;
+                }
+                return;
+            }
+            let kind = match (printer, piece.travel) {
+                (true, _) if piece.extrudes() => {
+                    path.filament_mm += piece.extruded_nm as f64 / NM_PER_MM;
+                    PathKind::Extrusion
+                }
+                (true, _) => PathKind::Travel,
+                (false, Travel::Rapid) => PathKind::Rapid,
+                (false, Travel::Feed) => PathKind::Feed,
+            };
+            strokes.push(Stroke {
+                kind,
+                from,
+                to,
+                after_homing: core::mem::take(&mut after_homing),
             });
+        });
+        match outcome {
+            Ok(0) => {}
+            Ok(homed) => {
+                for (i, s) in shift.iter_mut().enumerate() {
+                    if homed & (1 << i) != 0 {
+                        *s = 0;
+                    }
+                }
+                after_homing = true;
+            }
+            Err(e) => {
+                let here = at(preview.position(), &shift);
+                path.refused.push(Refusal {
+                    line: number,
+                    text: text.to_string(),
+                    reason: explain(e.code(), &e.to_string()),
+                    at: [here[0], here[1]],
+                });
+            }
         }
     }
-    path.polylines.retain(|p| p.points.len() > 1);
+    let layer_of = assign_layers(&mut path, &strokes);
+    for (stroke, layer) in strokes.iter().zip(layer_of) {
+        path.add(stroke, layer);
+    }
     path.end = at(preview.position(), &shift);
     Ok(path)
+}
+
+/// Find the layers of a printer job's extrusion (into `path.layers`) and the layer of each
+/// stroke. See the [module documentation](self).
+fn assign_layers(path: &mut Toolpath, strokes: &[Stroke]) -> Vec<Option<usize>> {
+    let mut layer_of = vec![None; strokes.len()];
+    let mut top = f64::NEG_INFINITY;
+    for (k, s) in strokes.iter().enumerate() {
+        if s.kind != PathKind::Extrusion {
+            continue;
+        }
+        let z = s.to[2];
+        if z > top + Z_TOLERANCE_MM {
+            top = z;
+            path.layers.push(Layer {
+                z_mm: [z, z],
+                extrusion_mm: 0.0,
+            });
+        }
+        let layer = path.layers.len() - 1;
+        let l = &mut path.layers[layer];
+        l.z_mm = [l.z_mm[0].min(z), l.z_mm[1].max(z)];
+        l.extrusion_mm += s.length_mm();
+        layer_of[k] = Some(layer);
+    }
+    // Travel: the layer it leads to; after the last extrusion, the last layer.
+    let mut next = path.layers.len().checked_sub(1);
+    for (k, s) in strokes.iter().enumerate().rev() {
+        match s.kind {
+            PathKind::Extrusion => next = layer_of[k],
+            PathKind::Travel => layer_of[k] = next,
+            PathKind::Rapid | PathKind::Feed => {}
+        }
+    }
+    layer_of
+}
+
+fn distance(from: [f64; 3], to: [f64; 3]) -> f64 {
+    ((to[0] - from[0]).powi(2) + (to[1] - from[1]).powi(2) + (to[2] - from[2]).powi(2)).sqrt()
+}
+
+impl Toolpath {
+    /// Add a stroke of `layer`, joining the polyline before when it goes on from its end.
+    fn add(&mut self, stroke: &Stroke, layer: Option<usize>) {
+        match stroke.kind {
+            PathKind::Extrusion => self.extrusion_mm += stroke.length_mm(),
+            PathKind::Travel => self.travel_mm += stroke.length_mm(),
+            PathKind::Rapid | PathKind::Feed => {}
+        }
+        let (from, to) = (
+            [stroke.from[0], stroke.from[1]],
+            [stroke.to[0], stroke.to[1]],
+        );
+        match self.polylines.last_mut() {
+            Some(p)
+                if !stroke.after_homing
+                    && p.kind == stroke.kind
+                    && p.layer == layer
+                    && p.points.last() == Some(&from) =>
+            {
+                p.points.push(to);
+            }
+            _ => self.polylines.push(Polyline {
+                kind: stroke.kind,
+                layer,
+                points: vec![from, to],
+            }),
+        }
+    }
 }
 
 /// The path the machine took, replayed from a step trace.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Executed {
-    /// XY points in mm, machine coordinates, in time order (close points merged).
-    pub points: Vec<[f64; 2]>,
+    /// XYZ points in mm, machine coordinates (0 on an axis the trace does not have), in time
+    /// order (points closer than 0.02 mm to the one before merged).
+    pub points: Vec<[f64; 3]>,
     /// Steps in the trace, all axes.
     pub steps: u64,
     /// Length of the XY path, mm.
@@ -201,8 +521,8 @@ impl Executed {
     /// come from `machine` when given, else from the trace's `# steps_per_mm` and `# start_mm`
     /// header lines.
     ///
-    /// Errors: a trace that does not read (naming the line), an X or Y axis whose steps per mm
-    /// nobody gives.
+    /// Errors: a trace that does not read (naming the line), an X, Y or Z axis whose steps per
+    /// mm nobody gives.
     pub fn from_trace(text: &str, machine: Option<&MachineConfig>) -> Result<Self, PlotError> {
         let trace = StepTrace::read_csv(text.as_bytes()).map_err(|e| PlotError(e.to_string()))?;
         // The axis's index in the trace, its steps per mm and its start position.
@@ -226,13 +546,13 @@ impl Executed {
                 .unwrap_or(0.0);
             Ok(Some((i, steps_per_mm, start_mm)))
         };
-        let xy = [axis('X')?, axis('Y')?];
-        let place = |steps: [i64; 2]| -> [f64; 2] {
+        let xyz = [axis('X')?, axis('Y')?, axis('Z')?];
+        let place = |steps: [i64; 3]| -> [f64; 3] {
             core::array::from_fn(|k| {
-                xy[k].map_or(0.0, |(_, per_mm, start)| start + steps[k] as f64 / per_mm)
+                xyz[k].map_or(0.0, |(_, per_mm, start)| start + steps[k] as f64 / per_mm)
             })
         };
-        let mut steps = [0i64; 2];
+        let mut steps = [0i64; 3];
         let mut out = Executed::default();
         let mut last = place(steps);
         out.points.push(last);
@@ -243,7 +563,7 @@ impl Executed {
                 continue;
             };
             out.steps += 1;
-            let Some(k) = (0..2).find(|&k| xy[k].is_some_and(|(i, _, _)| i == event.axis)) else {
+            let Some(k) = (0..3).find(|&k| xyz[k].is_some_and(|(i, _, _)| i == event.axis)) else {
                 continue;
             };
             steps[k] += if direction == Direction::Positive {
@@ -252,19 +572,18 @@ impl Executed {
                 -1
             };
             let p = place(steps);
-            let d = ((p[0] - last[0]).powi(2) + (p[1] - last[1]).powi(2)).sqrt();
-            if d >= MERGE_MM {
-                out.length_mm += d;
+            if distance(p, last) >= MERGE_MM {
+                out.length_mm += xy_distance(p, last);
                 out.points.push(p);
                 last = p;
             }
         }
         let end = place(steps);
         if end != last {
-            out.length_mm += ((end[0] - last[0]).powi(2) + (end[1] - last[1]).powi(2)).sqrt();
+            out.length_mm += xy_distance(end, last);
             out.points.push(end);
         }
-        out.end = end;
+        out.end = [end[0], end[1]];
         out.duration_s = last_ticks as f64 / f64::from(trace.tick_hz());
         Ok(out)
     }
@@ -273,11 +592,45 @@ impl Executed {
     pub fn off_end_mm(&self, path: &Toolpath) -> f64 {
         ((self.end[0] - path.end[0]).powi(2) + (self.end[1] - path.end[1]).powi(2)).sqrt()
     }
+
+    /// The stretches of the path whose height is within `z_mm` (both ends included), XY mm.
+    fn within(&self, z_mm: [f64; 2]) -> Vec<Vec<[f64; 2]>> {
+        let inside = |p: &[f64; 3]| {
+            (z_mm[0] - EXECUTED_Z_TOLERANCE_MM..=z_mm[1] + EXECUTED_Z_TOLERANCE_MM).contains(&p[2])
+        };
+        self.points
+            .chunk_by(|a, b| inside(a) == inside(b))
+            .filter(|run| inside(&run[0]))
+            .map(|run| run.iter().map(|p| [p[0], p[1]]).collect())
+            .collect()
+    }
+}
+
+/// How far from a layer's height the executed path still counts as at that layer, mm: a few Z
+/// steps.
+const EXECUTED_Z_TOLERANCE_MM: f64 = 0.01;
+
+fn xy_distance(a: [f64; 3], b: [f64; 3]) -> f64 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
 }
 
 const FEED: RGBColor = RGBColor(120, 170, 235);
-const RAPID: RGBColor = RGBColor(150, 150, 150);
+/// Moves that neither cut nor lay material: rapids, and a printer's travel.
+const TRAVEL: RGBColor = RGBColor(150, 150, 150);
+/// The extrusion of a single layer.
+const EXTRUSION: RGBColor = RGBColor(30, 100, 200);
+/// The extrusion of layers, from the lowest drawn to the highest (none of them red, the
+/// executed path's colour).
+const LAYER_RAMP: [RGBColor; 4] = [
+    RGBColor(70, 40, 150),
+    RGBColor(30, 100, 200),
+    RGBColor(10, 155, 150),
+    RGBColor(80, 170, 40),
+];
 const EXECUTED: RGBColor = RGBColor(220, 40, 40);
+const REFUSED: RGBColor = RGBColor(200, 0, 140);
+const BED: RGBColor = RGBColor(246, 242, 232);
+const BED_EDGE: RGBColor = RGBColor(185, 170, 140);
 const GRID: RGBColor = RGBColor(228, 228, 228);
 const INK: RGBColor = RGBColor(40, 40, 40);
 
@@ -285,6 +638,8 @@ const INK: RGBColor = RGBColor(40, 40, 40);
 const TEXT_SCALE: i32 = 2;
 /// Width of the image, pixels.
 const WIDTH: u32 = 1200;
+/// Layers named one by one in the legend; more are shown as a colour ramp.
+const LEGEND_LAYERS: usize = 16;
 
 /// The image formats [`render`] writes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -315,92 +670,470 @@ impl ImageFormat {
     }
 }
 
-/// Draw `path` (and `executed`, if given) to `out`, a `.png` or `.svg` file.
+/// Draw `path` (and `executed`, if given) to `out`, a `.png` or `.svg` file, as `options`
+/// say, under a title that starts with `name` and says which layers are drawn.
 ///
-/// Errors: another extension, an empty drawing, or the file cannot be written.
+/// Errors: another extension, layers the job does not have ([`Toolpath::select_layers`]),
+/// nothing to draw, or the file cannot be written.
 pub fn render(
     out: &Path,
-    title: &str,
+    name: &str,
     path: &Toolpath,
     executed: Option<&Executed>,
+    options: &PlotOptions,
 ) -> Result<(), PlotError> {
     let format = ImageFormat::of(out)?;
-    let layout = Layout::new(path, executed)?;
-    let size = (WIDTH, layout.height);
+    let scene = Scene::new(name, path, executed, options)?;
+    let size = (WIDTH, scene.layout.height);
     let result = match format {
         ImageFormat::Png => {
             let root = BitMapBackend::new(out, size).into_drawing_area();
-            draw(&root, &layout, title, path, executed)
-                .and_then(|()| root.present().map_err(|e| e.to_string()))
+            draw(&root, &scene).and_then(|()| root.present().map_err(|e| e.to_string()))
         }
         ImageFormat::Svg => {
             let root = SVGBackend::new(out, size).into_drawing_area();
-            draw(&root, &layout, title, path, executed)
-                .and_then(|()| root.present().map_err(|e| e.to_string()))
+            draw(&root, &scene).and_then(|()| root.present().map_err(|e| e.to_string()))
         }
     };
     result.map_err(|e| PlotError(format!("cannot write {}: {e}", out.display())))
 }
 
-struct Layout {
-    height: u32,
-    /// Data bounds, mm: x0, y0, x1, y1.
-    bounds: [f64; 4],
-    scale: f64,
-    origin: (f64, f64),
+/// How a polyline is drawn.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Pen {
+    /// Solid, `width` pixels wide.
+    Solid(RGBColor, u32),
+    /// Thin and dashed.
+    Dashed(RGBColor),
 }
 
-const MARGIN_LEFT: f64 = 110.0;
-const MARGIN_RIGHT: f64 = 30.0;
-const MARGIN_TOP: f64 = 90.0;
-const MARGIN_BOTTOM: f64 = 50.0;
+/// An entry of the legend: a sample of how a thing is drawn, and its name.
+struct Entry {
+    sample: Option<Sample>,
+    name: String,
+}
 
-impl Layout {
-    fn new(path: &Toolpath, executed: Option<&Executed>) -> Result<Self, PlotError> {
-        let mut b = [
-            f64::INFINITY,
-            f64::INFINITY,
-            f64::NEG_INFINITY,
-            f64::NEG_INFINITY,
-        ];
-        let points = path
-            .polylines
+enum Sample {
+    Line(Pen),
+    Area(RGBColor, RGBColor),
+    Cross(RGBColor),
+}
+
+/// What is drawn, where, and with what words.
+struct Scene {
+    title: String,
+    /// The legend, a row of entries a line.
+    rows: Vec<Vec<Entry>>,
+    /// What the plot warns of, under the legend.
+    warning: Option<String>,
+    /// The polylines, XY mm, in drawing order.
+    strokes: Vec<(Vec<[f64; 2]>, Pen)>,
+    /// The extrusion drawn, for the overview: points and colour.
+    extrusion: Vec<(Vec<[f64; 2]>, RGBColor)>,
+    bed: Option<[f64; 4]>,
+    /// The refused lines: where the tool stood, and which line it is.
+    refused: Vec<([f64; 2], String)>,
+    layout: Layout,
+}
+
+impl Scene {
+    /// What a plot of `path` (and `executed`) as `options` say shows, under a title that
+    /// starts with `name`.
+    ///
+    /// Errors: layers the job does not have, nothing to draw.
+    fn new(
+        name: &str,
+        path: &Toolpath,
+        executed: Option<&Executed>,
+        options: &PlotOptions,
+    ) -> Result<Self, PlotError> {
+        let span = match options.layers {
+            Some(range) => Some(path.select_layers(range)?),
+            None => None,
+        };
+        let drawn_layers = span
+            .clone()
+            .or_else(|| (!path.layers.is_empty()).then(|| 0..=path.layers.len() - 1));
+        let colour_of = |layer: Option<usize>| match (&drawn_layers, layer) {
+            (Some(s), Some(l)) if s.start() != s.end() => {
+                layer_colour((l - s.start()) as f64 / (s.end() - s.start()) as f64)
+            }
+            _ => EXTRUSION,
+        };
+
+        // Extrusion, lower layers first so that each lies over the one below; then feeds and
+        // rapids in program order, then travel over them.
+        let chosen = path.polylines.iter().filter(|p| match &span {
+            None => true,
+            Some(s) => p.layer.is_some_and(|l| s.contains(&l)),
+        });
+        let mut extrusion: Vec<&Polyline> = Vec::new();
+        let mut others: Vec<(Vec<[f64; 2]>, Pen)> = Vec::new();
+        let mut travel: Vec<(Vec<[f64; 2]>, Pen)> = Vec::new();
+        for p in chosen {
+            match p.kind {
+                PathKind::Extrusion => extrusion.push(p),
+                PathKind::Feed => others.push((p.points.clone(), Pen::Solid(FEED, 3))),
+                PathKind::Rapid if !options.hide_travel => {
+                    others.push((p.points.clone(), Pen::Dashed(TRAVEL)));
+                }
+                PathKind::Travel if !options.hide_travel => {
+                    travel.push((p.points.clone(), Pen::Dashed(TRAVEL)));
+                }
+                PathKind::Travel | PathKind::Rapid => {}
+            }
+        }
+        extrusion.sort_by_key(|p| p.layer);
+        let executed_runs: Vec<Vec<[f64; 2]>> = match (executed, &span) {
+            (Some(ex), Some(s)) => ex.within([
+                path.layers[*s.start()].z_mm[0],
+                path.layers[*s.end()].z_mm[1],
+            ]),
+            (Some(ex), None) => vec![ex.points.iter().map(|p| [p[0], p[1]]).collect()],
+            (None, _) => Vec::new(),
+        };
+
+        // The view: the part, from the extrusion drawn; without extrusion, all that is drawn.
+        let mut view = part_bounds(path, &extrusion);
+        if view.is_empty() {
+            for (points, _) in others.iter().chain(&travel) {
+                view.take(points);
+            }
+            for run in &executed_runs {
+                view.take(run);
+            }
+        }
+        let Some(view) = view.get() else {
+            return Err(PlotError(if span.is_some() {
+                "nothing to draw: the layers chosen make no move in X or Y".into()
+            } else {
+                "nothing to draw: the program makes no move in X or Y".into()
+            }));
+        };
+
+        let title = if path.printer {
+            format!("{name}: {}", path.describe_layers(span.clone()))
+        } else {
+            name.to_string()
+        };
+        let rows = legend(path, executed, options, drawn_layers.clone(), &colour_of);
+        let warning = match path.refused.as_slice() {
+            [] => None,
+            [one] => Some(format!(
+                "the kernel refuses {}: the machine runs the job without it",
+                line_name(one)
+            )),
+            [first, ..] => Some(format!(
+                "the kernel refuses {} lines ({} first): the machine runs the job without them",
+                path.refused.len(),
+                line_name(first)
+            )),
+        };
+        let text_rows = rows.len() + usize::from(warning.is_some());
+        let mut layout = Layout::new(view, text_rows, false);
+        // Extrusion outside the view (a purge line), or a refused line: an overview beside
+        // shows the whole of it.
+        let mut whole = Bounds::default();
+        for p in &extrusion {
+            whole.take(&p.points);
+        }
+        for r in &path.refused {
+            whole.take(&[r.at]);
+        }
+        if whole.get().is_some_and(|w| !contains(layout.bounds, w)) {
+            layout = Layout::new(view, text_rows, true);
+            let b = layout.bounds;
+            whole.take(&[[b[0], b[1]], [b[2], b[3]]]);
+            if let Some(bed) = path.bed {
+                whole.take(&[[bed[0], bed[1]], [bed[2], bed[3]]]);
+            }
+            layout.overview = whole.get();
+        }
+
+        let width = extrusion_width_px(layout.scale);
+        let mut strokes: Vec<(Vec<[f64; 2]>, Pen)> = extrusion
             .iter()
-            .flat_map(|p| p.points.iter())
-            .chain(executed.into_iter().flat_map(|e| e.points.iter()));
+            .map(|p| (p.points.clone(), Pen::Solid(colour_of(p.layer), width)))
+            .collect();
+        strokes.extend(others);
+        strokes.extend(travel);
+        strokes.extend(
+            executed_runs
+                .into_iter()
+                .map(|run| (run, Pen::Solid(EXECUTED, 1))),
+        );
+        Ok(Self {
+            title,
+            rows,
+            warning,
+            strokes,
+            extrusion: extrusion
+                .iter()
+                .map(|p| (p.points.clone(), colour_of(p.layer)))
+                .collect(),
+            bed: path.bed,
+            refused: path
+                .refused
+                .iter()
+                .map(|r| {
+                    let name = r.line.map_or_else(|| "G28".into(), |n| format!("line {n}"));
+                    (r.at, name)
+                })
+                .collect(),
+            layout,
+        })
+    }
+}
+
+/// About the width of a 0.45 mm extrusion drawn at `scale` pixels per mm, halved so that the
+/// lines stay apart, 2 to 6 pixels.
+fn extrusion_width_px(scale: f64) -> u32 {
+    (0.45 * scale * 0.5).round().clamp(2.0, 6.0) as u32
+}
+
+/// The legend of a plot of `path`: the extrusion's layers (`drawn`) on a row of their own,
+/// then how the rest is drawn.
+fn legend(
+    path: &Toolpath,
+    executed: Option<&Executed>,
+    options: &PlotOptions,
+    drawn: Option<RangeInclusive<usize>>,
+    colour_of: &dyn Fn(Option<usize>) -> RGBColor,
+) -> Vec<Vec<Entry>> {
+    let entry = |sample: Sample, name: &str| Entry {
+        sample: Some(sample),
+        name: name.into(),
+    };
+    let hidden = |name: &str| {
+        if options.hide_travel {
+            format!("{name} (hidden)")
+        } else {
+            name.to_string()
+        }
+    };
+    let mut rows = Vec::new();
+    let mut row = Vec::new();
+    if path.printer {
+        rows.push(layer_legend(path, drawn, colour_of));
+        row.push(entry(Sample::Line(Pen::Dashed(TRAVEL)), &hidden("travel")));
+    } else {
+        row.push(entry(Sample::Line(Pen::Solid(FEED, 2)), "feed"));
+        row.push(entry(Sample::Line(Pen::Dashed(TRAVEL)), &hidden("rapid")));
+    }
+    if path.bed.is_some() {
+        let name = if path.printer { "bed" } else { "X/Y travel" };
+        row.push(entry(Sample::Area(BED, BED_EDGE), name));
+    }
+    if executed.is_some() {
+        row.push(entry(
+            Sample::Line(Pen::Solid(EXECUTED, 2)),
+            "executed (step trace)",
+        ));
+    }
+    if !path.refused.is_empty() {
+        row.push(entry(Sample::Cross(REFUSED), "refused line"));
+    }
+    rows.push(row);
+    rows
+}
+
+/// `line 26 (G28W)`, or the `G28` before the job.
+fn line_name(r: &Refusal) -> String {
+    match r.line {
+        Some(n) => format!("line {n} ({})", r.text),
+        None => format!("the {} before the job", r.text),
+    }
+}
+
+/// The legend of the extrusion: each layer drawn with its colour, or the ramp's ends when
+/// there are many.
+fn layer_legend(
+    path: &Toolpath,
+    drawn: Option<RangeInclusive<usize>>,
+    colour_of: &dyn Fn(Option<usize>) -> RGBColor,
+) -> Vec<Entry> {
+    let Some(drawn) = drawn else {
+        return vec![Entry {
+            sample: None,
+            name: "extrusion: none".into(),
+        }];
+    };
+    let line = |layer: usize, name: String| Entry {
+        sample: Some(Sample::Line(Pen::Solid(colour_of(Some(layer)), 3))),
+        name,
+    };
+    if drawn.start() == drawn.end() {
+        return vec![line(*drawn.start(), "extrusion".into())];
+    }
+    let z = |l: usize| label(path.layers[l].z_mm[0]);
+    if drawn.clone().count() <= LEGEND_LAYERS {
+        let mut row = vec![Entry {
+            sample: None,
+            name: "extrusion by layer:".into(),
+        }];
+        row.extend(drawn.map(|l| line(l, format!("{}", l + 1))));
+        row
+    } else {
+        let (first, last) = (*drawn.start(), *drawn.end());
+        vec![
+            line(
+                first,
+                format!("extrusion, layer {} (Z {})", first + 1, z(first)),
+            ),
+            line((first + last) / 2, "to".into()),
+            line(last, format!("layer {} (Z {})", last + 1, z(last))),
+        ]
+    }
+}
+
+/// How far from the extrusion of the layers above the first the extrusion drawn still frames
+/// the part, at least, mm: a skirt or a brim is in the view, a purge line along the bed's edge
+/// is not.
+const PART_REACH_MM: f64 = 15.0;
+
+/// The view of a printer's extrusion `drawn`: the part. The part is the extrusion of the job's
+/// layers above the first (whose extrusion holds what a start G-code purges); the extrusion
+/// drawn within [`PART_REACH_MM`] of it, or half its size, is framed. All of `drawn` when the
+/// job has one layer, or when none of `drawn` is near the part.
+fn part_bounds(path: &Toolpath, drawn: &[&Polyline]) -> Bounds {
+    let mut part = Bounds::default();
+    for p in &path.polylines {
+        if p.kind == PathKind::Extrusion && p.layer.is_some_and(|l| l > 0) {
+            part.take(&p.points);
+        }
+    }
+    let mut view = Bounds::default();
+    if let Some(core) = part.get() {
+        let reach = (0.5 * (core[2] - core[0]).max(core[3] - core[1])).max(PART_REACH_MM);
+        let near = [
+            core[0] - reach,
+            core[1] - reach,
+            core[2] + reach,
+            core[3] + reach,
+        ];
+        for q in drawn.iter().flat_map(|p| &p.points) {
+            if contains(near, [q[0], q[1], q[0], q[1]]) {
+                view.take(&[*q]);
+            }
+        }
+    }
+    if view.is_empty() {
+        for p in drawn {
+            view.take(&p.points);
+        }
+    }
+    view
+}
+
+/// Whether the rectangle `outer` (x0, y0, x1, y1) holds the rectangle `inner`.
+fn contains(outer: [f64; 4], inner: [f64; 4]) -> bool {
+    outer[0] <= inner[0] && outer[1] <= inner[1] && inner[2] <= outer[2] && inner[3] <= outer[3]
+}
+
+/// The colour of the layer at `t` from the lowest drawn (0) to the highest (1).
+fn layer_colour(t: f64) -> RGBColor {
+    let t = t.clamp(0.0, 1.0) * (LAYER_RAMP.len() - 1) as f64;
+    let k = (t.floor() as usize).min(LAYER_RAMP.len() - 2);
+    let f = t - k as f64;
+    let (a, b) = (LAYER_RAMP[k], LAYER_RAMP[k + 1]);
+    let mix = |x: u8, y: u8| (f64::from(x) + (f64::from(y) - f64::from(x)) * f).round() as u8;
+    RGBColor(mix(a.0, b.0), mix(a.1, b.1), mix(a.2, b.2))
+}
+
+/// The smallest rectangle around some points, mm.
+#[derive(Clone, Copy, Debug)]
+struct Bounds([f64; 4]);
+
+impl Default for Bounds {
+    fn default() -> Self {
+        Self([
+            f64::INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NEG_INFINITY,
+        ])
+    }
+}
+
+impl Bounds {
+    fn take(&mut self, points: &[[f64; 2]]) {
         for p in points {
-            b = [
+            let b = &mut self.0;
+            *b = [
                 b[0].min(p[0]),
                 b[1].min(p[1]),
                 b[2].max(p[0]),
                 b[3].max(p[1]),
             ];
         }
-        if !b.iter().all(|v| v.is_finite()) {
-            return Err(PlotError(
-                "nothing to draw: the program makes no move in X or Y".into(),
-            ));
-        }
+    }
+
+    fn is_empty(&self) -> bool {
+        self.get().is_none()
+    }
+
+    /// x0, y0, x1, y1; `None` before any point.
+    fn get(&self) -> Option<[f64; 4]> {
+        self.0.iter().all(|v| v.is_finite()).then_some(self.0)
+    }
+}
+
+struct Layout {
+    height: u32,
+    /// What the overview beside the plot shows, mm: x0, y0, x1, y1; `None`: no overview.
+    overview: Option<[f64; 4]>,
+    /// The view, mm: x0, y0, x1, y1.
+    bounds: [f64; 4],
+    /// Pixels per mm.
+    scale: f64,
+    origin: (f64, f64),
+}
+
+const MARGIN_LEFT: f64 = 110.0;
+const MARGIN_RIGHT: f64 = 30.0;
+/// Width of the overview beside the plot, pixels.
+const OVERVIEW_WIDTH: f64 = 270.0;
+const MARGIN_BOTTOM: f64 = 50.0;
+/// Where the title is, and the height of a line of text under it, pixels.
+const TITLE_Y: i32 = 16;
+const ROW_HEIGHT: i32 = 30;
+
+impl Layout {
+    /// A view of `b` (mm) with a margin around it, under `rows` lines of text, with room for an
+    /// overview on its right when `beside`.
+    fn new(b: [f64; 4], rows: usize, beside: bool) -> Self {
+        let top = f64::from(TITLE_Y + 20 + ROW_HEIGHT * rows as i32 + 20);
         let (mut dx, mut dy) = (b[2] - b[0], b[3] - b[1]);
-        let pad = 0.04 * dx.max(dy).max(1.0);
-        b = [b[0] - pad, b[1] - pad, b[2] + pad, b[3] + pad];
+        let pad = (0.05 * dx.max(dy)).max(1.0);
+        let b = [b[0] - pad, b[1] - pad, b[2] + pad, b[3] + pad];
         dx += 2.0 * pad;
         dy += 2.0 * pad;
-        let inner_w = f64::from(WIDTH) - MARGIN_LEFT - MARGIN_RIGHT;
+        let right = if beside {
+            MARGIN_RIGHT + OVERVIEW_WIDTH + MARGIN_RIGHT
+        } else {
+            MARGIN_RIGHT
+        };
+        let inner_w = f64::from(WIDTH) - MARGIN_LEFT - right;
         let scale = inner_w / dx;
-        let height = (dy * scale + MARGIN_TOP + MARGIN_BOTTOM).clamp(360.0, 1600.0);
-        let inner_h = height - MARGIN_TOP - MARGIN_BOTTOM;
+        let least = if beside {
+            top + OVERVIEW_WIDTH + 2.0 * f64::from(ROW_HEIGHT) + MARGIN_BOTTOM
+        } else {
+            360.0
+        };
+        let height = (dy * scale + top + MARGIN_BOTTOM).clamp(least, 1600.0);
+        let inner_h = height - top - MARGIN_BOTTOM;
         let scale = scale.min(inner_h / dy);
         let origin = (
             MARGIN_LEFT + (inner_w - dx * scale) / 2.0,
-            MARGIN_TOP + inner_h - (inner_h - dy * scale) / 2.0,
+            top + inner_h - (inner_h - dy * scale) / 2.0,
         );
-        Ok(Self {
+        Self {
             height: height as u32,
+            overview: None,
             bounds: b,
             scale,
             origin,
-        })
+        }
     }
 
     fn px(&self, p: [f64; 2]) -> (i32, i32) {
@@ -409,6 +1142,64 @@ impl Layout {
             (self.origin.1 - (p[1] - self.bounds[1]) * self.scale).round() as i32,
         )
     }
+}
+
+/// The part of the segment `a`–`b` inside `rect` (x0, y0, x1, y1), if any (Liang–Barsky).
+fn clip(a: [f64; 2], b: [f64; 2], rect: [f64; 4]) -> Option<([f64; 2], [f64; 2])> {
+    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for (p, q) in [
+        (-dx, a[0] - rect[0]),
+        (dx, rect[2] - a[0]),
+        (-dy, a[1] - rect[1]),
+        (dy, rect[3] - a[1]),
+    ] {
+        if p == 0.0 {
+            if q < 0.0 {
+                return None;
+            }
+        } else if p < 0.0 {
+            t0 = t0.max(q / p);
+        } else {
+            t1 = t1.min(q / p);
+        }
+        if t0 > t1 {
+            return None;
+        }
+    }
+    Some((
+        [a[0] + t0 * dx, a[1] + t0 * dy],
+        [a[0] + t1 * dx, a[1] + t1 * dy],
+    ))
+}
+
+/// The stretches of the polyline `points` inside `rect`.
+fn clip_polyline(points: &[[f64; 2]], rect: [f64; 4]) -> Vec<Vec<[f64; 2]>> {
+    let mut runs = Vec::new();
+    let mut run: Vec<[f64; 2]> = Vec::new();
+    for pair in points.windows(2) {
+        match clip(pair[0], pair[1], rect) {
+            Some((a, b)) => {
+                if run.last() != Some(&a) {
+                    if run.len() > 1 {
+                        runs.push(core::mem::take(&mut run));
+                    }
+                    run = vec![a];
+                }
+                run.push(b);
+            }
+            None => {
+                if run.len() > 1 {
+                    runs.push(core::mem::take(&mut run));
+                }
+                run.clear();
+            }
+        }
+    }
+    if run.len() > 1 {
+        runs.push(run);
+    }
+    runs
 }
 
 /// 1, 2 or 5 times a power of ten, about `range / 8`.
@@ -434,19 +1225,35 @@ fn label(v: f64) -> String {
 
 type DrawResult = Result<(), String>;
 
-fn draw<DB: DrawingBackend>(
-    root: &DrawingArea<DB, Shift>,
-    layout: &Layout,
-    title: &str,
-    path: &Toolpath,
-    executed: Option<&Executed>,
-) -> DrawResult {
+fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, scene: &Scene) -> DrawResult {
     let e = |e: DrawingAreaErrorKind<DB::ErrorType>| e.to_string();
+    let layout = &scene.layout;
+    let view = layout.bounds;
     root.fill(&WHITE).map_err(e)?;
-    let [x0, y0, x1, y1] = layout.bounds;
-    let step = grid_step((x1 - x0).max(y1 - y0));
+    let [x0, y0, x1, y1] = view;
     let (left, top) = layout.px([x0, y1]);
     let (right, bottom) = layout.px([x1, y0]);
+
+    // The bed, under everything.
+    if let Some(bed) = scene.bed {
+        let inside = [
+            bed[0].max(x0),
+            bed[1].max(y0),
+            bed[2].min(x1),
+            bed[3].min(y1),
+        ];
+        if inside[0] < inside[2] && inside[1] < inside[3] {
+            root.draw(&Rectangle::new(
+                [
+                    layout.px([inside[0], inside[3]]),
+                    layout.px([inside[2], inside[1]]),
+                ],
+                BED.filled(),
+            ))
+            .map_err(e)?;
+        }
+    }
+    let step = grid_step((x1 - x0).max(y1 - y0));
     let mut gx = (x0 / step).ceil() * step;
     while gx <= x1 {
         let (x, _) = layout.px([gx, y0]);
@@ -466,70 +1273,175 @@ fn draw<DB: DrawingBackend>(
         draw_text(root, left - 12 - text_width(&text), y - 8, &text, INK).map_err(e)?;
         gy += step;
     }
+    if let Some(bed) = scene.bed {
+        let outline = [
+            [bed[0], bed[1]],
+            [bed[2], bed[1]],
+            [bed[2], bed[3]],
+            [bed[0], bed[3]],
+            [bed[0], bed[1]],
+        ];
+        for run in clip_polyline(&outline, view) {
+            let points = pixels(layout, &run);
+            root.draw(&PathElement::new(points, BED_EDGE.stroke_width(2)))
+                .map_err(e)?;
+        }
+    }
     root.draw(&Rectangle::new([(left, top), (right, bottom)], INK))
         .map_err(e)?;
     draw_text(root, right - text_width("mm"), bottom + 30, "mm", INK).map_err(e)?;
 
-    for p in &path.polylines {
-        let points = pixels(layout, &p.points);
-        match p.travel {
-            Travel::Rapid => root
-                .draw(&DashedPathElement::new(points, 6, 4, RAPID.stroke_width(1)))
-                .map_err(e)?,
-            Travel::Feed => draw_wide(root, points, FEED).map_err(e)?,
+    for (points, pen) in &scene.strokes {
+        for run in clip_polyline(points, view) {
+            draw_polyline(root, pixels(layout, &run), *pen).map_err(e)?;
         }
     }
-    if let Some(ex) = executed {
-        let points = pixels(layout, &ex.points);
-        root.draw(&PathElement::new(
-            points,
-            EXECUTED.mix(0.85).stroke_width(1),
-        ))
-        .map_err(e)?;
+    for (at, name) in &scene.refused {
+        if !(x0..=x1).contains(&at[0]) || !(y0..=y1).contains(&at[1]) {
+            continue;
+        }
+        let (x, y) = layout.px(*at);
+        draw_cross(root, x, y, REFUSED).map_err(e)?;
+        draw_text(root, x + 10, y + 6, name, REFUSED).map_err(e)?;
     }
 
-    draw_text(root, 20, 16, title, INK).map_err(e)?;
-    let mut x = 20;
-    let y = 52;
-    let mut legend: Vec<(&str, RGBColor, bool)> =
-        vec![("feed", FEED, false), ("rapid", RAPID, true)];
-    if executed.is_some() {
-        legend.push(("executed (step trace)", EXECUTED, false));
+    if let Some(whole) = layout.overview {
+        draw_overview(root, scene, whole, top).map_err(e)?;
     }
-    for (name, color, dashed) in legend {
-        let sample = vec![(x, y + 8), (x + 30, y + 8)];
-        if dashed {
-            root.draw(&DashedPathElement::new(sample, 6, 4, color.stroke_width(2)))
-                .map_err(e)?;
-        } else {
-            root.draw(&PathElement::new(sample, color.stroke_width(2)))
-                .map_err(e)?;
+
+    draw_text(root, 20, TITLE_Y, &scene.title, INK).map_err(e)?;
+    let mut y = TITLE_Y + 20 + 12;
+    for row in &scene.rows {
+        let mut x = 20;
+        for entry in row {
+            match &entry.sample {
+                None => {}
+                Some(Sample::Line(pen)) => {
+                    let sample = vec![(x, y + 8), (x + 30, y + 8)];
+                    let pen = match *pen {
+                        Pen::Solid(c, w) => Pen::Solid(c, w.max(2)),
+                        dashed => dashed,
+                    };
+                    draw_polyline(root, sample, pen).map_err(e)?;
+                    x += 38;
+                }
+                Some(Sample::Area(fill, edge)) => {
+                    root.draw(&Rectangle::new([(x, y), (x + 30, y + 16)], fill.filled()))
+                        .map_err(e)?;
+                    root.draw(&Rectangle::new([(x, y), (x + 30, y + 16)], *edge))
+                        .map_err(e)?;
+                    x += 38;
+                }
+                Some(Sample::Cross(colour)) => {
+                    draw_cross(root, x + 15, y + 8, *colour).map_err(e)?;
+                    x += 38;
+                }
+            }
+            draw_text(root, x, y, &entry.name, INK).map_err(e)?;
+            x += text_width(&entry.name) + 24;
         }
-        draw_text(root, x + 38, y, name, INK).map_err(e)?;
-        x += 38 + text_width(name) + 30;
+        y += ROW_HEIGHT;
+    }
+    if let Some(warning) = &scene.warning {
+        draw_text(root, 20, y, warning, REFUSED).map_err(e)?;
     }
     Ok(())
 }
 
-/// A polyline two pixels wide, drawn segment by segment: the bitmap backend's wide strokes
-/// lose whole segments of long paths that run over themselves.
-fn draw_wide<DB: DrawingBackend>(
+/// Draw the overview of `whole` (mm) beside the plot, its top at `top` pixels: the bed, the
+/// extrusion drawn, the plot's view and the refused lines.
+fn draw_overview<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    scene: &Scene,
+    whole: [f64; 4],
+    top: i32,
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    let side = OVERVIEW_WIDTH;
+    let left = f64::from(WIDTH) - MARGIN_RIGHT - side;
+    draw_text(root, left as i32, top, "overview", INK)?;
+    let top = f64::from(top + ROW_HEIGHT);
+    let (w, h) = (
+        (whole[2] - whole[0]).max(1e-3),
+        (whole[3] - whole[1]).max(1e-3),
+    );
+    let scale = (side / w).min(side / h);
+    let px = |p: [f64; 2]| {
+        (
+            (left + (p[0] - whole[0]) * scale).round() as i32,
+            (top + (whole[3] - p[1]) * scale).round() as i32,
+        )
+    };
+    let rect = |r: [f64; 4]| [px([r[0], r[3]]), px([r[2], r[1]])];
+    if let Some(bed) = scene.bed {
+        root.draw(&Rectangle::new(rect(bed), BED.filled()))?;
+        root.draw(&Rectangle::new(rect(bed), BED_EDGE))?;
+    }
+    for (points, colour) in &scene.extrusion {
+        draw_polyline(root, pixels_by(px, points), Pen::Solid(*colour, 2))?;
+    }
+    root.draw(&Rectangle::new(rect(scene.layout.bounds), INK))?;
+    for (at, _) in &scene.refused {
+        if contains(whole, [at[0], at[1], at[0], at[1]]) {
+            let (x, y) = px(*at);
+            draw_cross(root, x, y, REFUSED)?;
+        }
+    }
+    let bottom = px([whole[0], whole[1]]).1;
+    draw_text(root, left as i32, bottom + 8, "box: the view", INK)
+}
+
+/// Draw a polyline (pixels) with `pen`. A solid one is drawn segment by segment: the bitmap
+/// backend's wide strokes lose whole segments of long paths that run over themselves.
+fn draw_polyline<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     points: Vec<(i32, i32)>,
-    color: RGBColor,
+    pen: Pen,
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
-    for pair in points.windows(2) {
-        root.draw(&PathElement::new(pair.to_vec(), color.stroke_width(3)))?;
+    match pen {
+        Pen::Solid(colour, 1) => root.draw(&PathElement::new(points, colour.stroke_width(1))),
+        Pen::Solid(colour, width) => {
+            for pair in points.windows(2) {
+                root.draw(&PathElement::new(pair.to_vec(), colour.stroke_width(width)))?;
+            }
+            Ok(())
+        }
+        Pen::Dashed(colour) => root.draw(&DashedPathElement::new(
+            points,
+            6,
+            4,
+            colour.stroke_width(1),
+        )),
     }
-    Ok(())
+}
+
+/// A cross 12 pixels wide centred on `(x, y)`.
+fn draw_cross<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    x: i32,
+    y: i32,
+    colour: RGBColor,
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    root.draw(&PathElement::new(
+        vec![(x - 6, y - 6), (x + 6, y + 6)],
+        colour.stroke_width(3),
+    ))?;
+    root.draw(&PathElement::new(
+        vec![(x - 6, y + 6), (x + 6, y - 6)],
+        colour.stroke_width(3),
+    ))
 }
 
 /// The points in pixels, without repeats: a wide stroke through a repeated point (a Z-only
 /// move in the XY plane) is drawn wrongly by the backends.
 fn pixels(layout: &Layout, points: &[[f64; 2]]) -> Vec<(i32, i32)> {
+    pixels_by(|q| layout.px(q), points)
+}
+
+/// The points in pixels by `px`, without repeats.
+fn pixels_by(px: impl Fn([f64; 2]) -> (i32, i32), points: &[[f64; 2]]) -> Vec<(i32, i32)> {
     let mut out: Vec<(i32, i32)> = Vec::with_capacity(points.len());
     for &q in points {
-        let p = layout.px(q);
+        let p = px(q);
         if out.last() != Some(&p) {
             out.push(p);
         }
@@ -614,7 +1526,7 @@ mod tests {
     fn feeds(p: &Toolpath) -> Vec<&Polyline> {
         p.polylines
             .iter()
-            .filter(|l| l.travel == Travel::Feed)
+            .filter(|l| l.kind == PathKind::Feed)
             .collect()
     }
 
@@ -665,11 +1577,17 @@ mod tests {
     }
 
     #[test]
-    fn a_line_the_kernel_refuses_is_an_error_naming_the_job_and_line() {
-        let job = Job::from_text("job.gcode", "G0 X1\n\n(an arc without centre)\nG2 X1 Y1\n");
-        let e = Toolpath::from_job(&plain(), &job, false).unwrap_err();
-        assert!(e.to_string().starts_with("job.gcode, line 4: "), "{e}");
-        assert!(e.to_string().contains("(E12"), "{e}");
+    fn a_line_the_kernel_refuses_is_kept_and_the_path_goes_on_without_it() {
+        let p = path("G0 X1\n\n(an arc without centre)\nG2 X1 Y1\nG0 X3\n");
+        assert_eq!(p.refused.len(), 1, "{:?}", p.refused);
+        let r = &p.refused[0];
+        assert_eq!(
+            (r.line, r.text.as_str(), r.at),
+            (Some(4), "G2X1Y1", [1.0, 0.0])
+        );
+        assert!(r.reason.contains("(E12"), "{}", r.reason);
+        assert_eq!(p.polylines[0].points, [[0.0, 0.0], [1.0, 0.0], [3.0, 0.0]]);
+        // A line that does not parse is not the kernel's to refuse: the job cannot be sent.
         let job = Job::from_text("job.gcode", "G0 X1\nG1 X(\n");
         let e = Toolpath::from_job(&plain(), &job, false).unwrap_err();
         assert!(e.to_string().starts_with("job.gcode, line 2: "), "{e}");
@@ -704,6 +1622,7 @@ mod tests {
                      0,X,enable\n1,X,step+\n2,X,step+\n3,Y,step-\n4,Z,step+\n5,Y,step-\n";
         let ex = Executed::from_trace(trace, None).unwrap();
         assert_eq!(ex.end, [11.0, -0.5]);
+        assert_eq!(ex.points.last(), Some(&[11.0, -0.5, 1.0]));
         assert_eq!(ex.steps, 5);
         assert_eq!(ex.duration_s, 0.005);
         let e = Executed::from_trace("# tick_hz 1000\n# axes X\ntime_ticks,axis,event\n", None)
@@ -740,19 +1659,293 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let p = path("G0 X10 Y10\nG1 X30 F6000\nG2 X40 Y20 I0 J10\nG1 Y30\nG0 X0 Y0\n");
         let ex = Executed {
-            points: vec![[0.0, 0.0], [10.0, 10.0], [30.0, 10.0]],
+            points: vec![[0.0, 0.0, 0.0], [10.0, 10.0, 0.0], [30.0, 10.0, 0.0]],
             ..Executed::default()
         };
+        let options = PlotOptions::default();
         for name in ["plot.png", "plot.SVG"] {
             let out = dir.join(name);
-            render(&out, "job.gcode", &p, Some(&ex)).unwrap();
+            render(&out, "job.gcode", &p, Some(&ex), &options).unwrap();
             assert!(std::fs::metadata(&out).unwrap().len() > 1000, "{name}");
         }
-        let e = render(&dir.join("plot.jpg"), "job.gcode", &p, None).unwrap_err();
+        let e = render(&dir.join("plot.jpg"), "job.gcode", &p, None, &options).unwrap_err();
         assert!(e.to_string().contains("name it .png or .svg"), "{e}");
-        let e = render(&dir.join("none.svg"), "none", &path("G21\n"), None).unwrap_err();
+        let e = render(
+            &dir.join("none.svg"),
+            "none",
+            &path("G21\n"),
+            None,
+            &options,
+        )
+        .unwrap_err();
         assert!(e.to_string().starts_with("nothing to draw"), "{e}");
+        // A printer job, all layers and one, with travel and without.
+        let job = printer_path(PRINTER_JOB);
+        for (name, layers, hide_travel) in [
+            ("all.png", None, false),
+            ("one.svg", Some(LayerRange::from_str("2").unwrap()), true),
+        ] {
+            let out = dir.join(name);
+            let options = PlotOptions {
+                layers,
+                hide_travel,
+            };
+            render(&out, "part.gcode", &job, None, &options).unwrap();
+            assert!(std::fs::metadata(&out).unwrap().len() > 1000, "{name}");
+        }
+        let options = PlotOptions {
+            layers: Some(LayerRange::from_str("4..").unwrap()),
+            ..PlotOptions::default()
+        };
+        let e = render(&dir.join("none.png"), "part", &job, None, &options).unwrap_err();
+        assert!(e.to_string().starts_with("the job has 3 layers"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A printer job: homing, a purge line at 0.3 mm near the bed's edge, then three layers of
+    /// a 20 mm part at 0.2, 0.4 and 0.6 mm, with retractions, a wipe, and a park at the end.
+    const PRINTER_JOB: &str = "G28\nM83\nG1 Z0.3 F600\n\
+        G1 X5 Y60 E5 F1200\nG1 E-0.8 F2100\n\
+        G0 Z0.2\nG0 X100 Y100\nG1 E0.8\nG1 X120 Y100 E1\nG1 X120 Y120 E1\n\
+        G1 Z0.4\nG0 X100 Y100\nG1 X120 Y100 E1\nG1 X118 Y100 E-0.2\n\
+        G1 Z0.6\nG0 X105 Y105\nG1 X115 Y105 E1\nG1 E-0.8\n\
+        G0 Z10\nG0 X0 Y200\n";
+
+    fn printer() -> MachineConfig {
+        MachineConfig::from_toml_str(MachineConfig::bundled_toml("printer").unwrap()).unwrap()
+    }
+
+    fn printer_path(text: &str) -> Toolpath {
+        follow_on(&printer(), text, false)
+    }
+
+    /// A polyline's kind, layer, first and last point.
+    type Outline = (PathKind, Option<usize>, [f64; 2], [f64; 2]);
+
+    /// The outline of each polyline.
+    fn outline(p: &Toolpath) -> Vec<Outline> {
+        p.polylines
+            .iter()
+            .map(|l| (l.kind, l.layer, l.points[0], *l.points.last().unwrap()))
+            .collect()
+    }
+
+    #[test]
+    fn a_printer_path_is_extrusion_and_travel_in_layers() {
+        use PathKind::{Extrusion, Travel};
+        let p = printer_path(PRINTER_JOB);
+        assert!(p.printer);
+        // Homing leaves X and Y 5 mm off their switches, Z 2 mm: the path starts there.
+        assert_eq!(
+            outline(&p),
+            [
+                (Travel, Some(0), [5.0, 5.0], [5.0, 5.0]),
+                (Extrusion, Some(0), [5.0, 5.0], [5.0, 60.0]),
+                (Travel, Some(0), [5.0, 60.0], [100.0, 100.0]),
+                (Extrusion, Some(0), [100.0, 100.0], [120.0, 120.0]),
+                (Travel, Some(1), [120.0, 120.0], [100.0, 100.0]),
+                (Extrusion, Some(1), [100.0, 100.0], [120.0, 100.0]),
+                (Travel, Some(2), [120.0, 100.0], [105.0, 105.0]),
+                (Extrusion, Some(2), [105.0, 105.0], [115.0, 105.0]),
+                (Travel, Some(2), [115.0, 105.0], [0.0, 200.0]),
+            ]
+        );
+        // The purge line at 0.3 mm comes before the first layer at 0.2 mm: it is layer 1's.
+        assert_eq!(
+            p.layers,
+            [
+                Layer {
+                    z_mm: [0.2, 0.3],
+                    extrusion_mm: 55.0 + 40.0
+                },
+                Layer {
+                    z_mm: [0.4, 0.4],
+                    extrusion_mm: 20.0
+                },
+                Layer {
+                    z_mm: [0.6, 0.6],
+                    extrusion_mm: 10.0
+                },
+            ]
+        );
+        assert_eq!(p.retractions, 2, "the wipe moves the tool: it is travel");
+        assert!((p.filament_mm - 9.0).abs() < 1e-9, "{}", p.filament_mm);
+        assert!((p.extrusion_mm - 125.0).abs() < 1e-9, "{}", p.extrusion_mm);
+        assert_eq!(p.bed, Some([0.0, 0.0, 235.0, 235.0]));
+        assert_eq!(p.end, [0.0, 200.0, 10.0]);
+        // The same moves on a machine without an extruder are feeds and rapids, in no layer.
+        let cnc = path("G0 X100 Y100\nG1 X120 F600\n");
+        assert!(!cnc.printer && cnc.layers.is_empty());
+        assert_eq!(
+            outline(&cnc),
+            [
+                (PathKind::Rapid, None, [0.0, 0.0], [100.0, 100.0]),
+                (PathKind::Feed, None, [100.0, 100.0], [120.0, 100.0]),
+            ]
+        );
+    }
+
+    #[test]
+    fn layer_ranges_read_check_and_describe() {
+        let range = |text: &str| LayerRange::from_str(text);
+        for text in ["3", "2..5", "2.."] {
+            assert_eq!(range(text).unwrap().to_string(), text);
+        }
+        assert_eq!(range("..4").unwrap().to_string(), "1..4");
+        let ok = |first, last| Ok::<_, String>(LayerRange { first, last });
+        for (text, want) in [
+            ("3", ok(3, Some(3))),
+            ("2..5", ok(2, Some(5))),
+            (" 2 .. 5 ", ok(2, Some(5))),
+            ("2..", ok(2, None)),
+            ("..4", ok(1, Some(4))),
+            ("..", ok(1, None)),
+            ("4..4", ok(4, Some(4))),
+        ] {
+            assert_eq!(range(text).map_err(|e| e.to_string()), want, "{text}");
+        }
+        for (text, why) in [
+            ("0", "numbered from 1"),
+            ("0..3", "numbered from 1"),
+            ("5..2", "ends before it starts"),
+            ("x", "give a layer (3) or a range"),
+            ("", "give a layer"),
+            ("-1", "give a layer"),
+            ("2..=5", "give a layer"),
+            ("1.5", "give a layer"),
+        ] {
+            let e = range(text).unwrap_err().to_string();
+            assert!(e.contains(why), "{text}: {e}");
+        }
+
+        let p = printer_path(PRINTER_JOB);
+        let select = |text: &str| p.select_layers(range(text).unwrap());
+        assert_eq!(select("2").unwrap(), 1..=1);
+        assert_eq!(select("2..").unwrap(), 1..=2);
+        assert_eq!(select("..3").unwrap(), 0..=2);
+        for text in ["4", "3..4", "4.."] {
+            assert_eq!(
+                select(text).unwrap_err().to_string(),
+                "the job has 3 layers, Z 0.2 to 0.6 mm"
+            );
+        }
+        assert_eq!(p.describe_layers(None), "3 layers, Z 0.2 to 0.6 mm");
+        assert_eq!(
+            p.describe_layers(Some(0..=0)),
+            "layer 1 of 3, Z 0.2 to 0.3 mm"
+        );
+        assert_eq!(p.describe_layers(Some(1..=1)), "layer 2 of 3, Z 0.4 mm");
+        assert_eq!(
+            p.describe_layers(Some(1..=2)),
+            "layers 2 to 3 of 3, Z 0.4 to 0.6 mm"
+        );
+        let e = path("G1 X1\n")
+            .select_layers(range("1").unwrap())
+            .unwrap_err();
+        assert!(e.to_string().contains("the machine has no extruder"), "{e}");
+        let e = printer_path("G0 X10\n")
+            .select_layers(range("1").unwrap())
+            .unwrap_err();
+        assert_eq!(e.to_string(), "the job extrudes nothing: it has no layers");
+    }
+
+    #[test]
+    fn the_view_frames_the_part_and_an_overview_shows_the_rest() {
+        let p = printer_path(PRINTER_JOB);
+        let scene = |layers: Option<&str>| {
+            let options = PlotOptions {
+                layers: layers.map(|t| LayerRange::from_str(t).unwrap()),
+                hide_travel: false,
+            };
+            Scene::new("part", &p, None, &options).unwrap()
+        };
+        // All layers: the part (100..120 x 100..120) with a margin, not the purge line at X5,
+        // the park at (0, 200) or the bed; the overview holds the bed and the purge line.
+        let all = scene(None);
+        let [x0, y0, x1, y1] = all.layout.bounds;
+        assert!(
+            (98.0..100.0).contains(&x0) && (98.0..100.0).contains(&y0),
+            "{x0} {y0}"
+        );
+        assert!(
+            (120.0..122.0).contains(&x1) && (120.0..122.0).contains(&y1),
+            "{x1} {y1}"
+        );
+        assert_eq!(all.layout.overview, Some([0.0, 0.0, 235.0, 235.0]));
+        assert_eq!(all.title, "part: 3 layers, Z 0.2 to 0.6 mm");
+        // Layer 3 alone: its extrusion, 105..115 along Y 105; nothing outside, no overview.
+        let top = scene(Some("3"));
+        let [x0, y0, x1, y1] = top.layout.bounds;
+        assert!(
+            (104.0..105.0).contains(&x0) && (115.0..=116.0).contains(&x1),
+            "{x0} {x1}"
+        );
+        assert!(y0 < 105.0 && 105.0 < y1, "{y0} {y1}");
+        assert_eq!(top.layout.overview, None);
+        assert_eq!(top.title, "part: layer 3 of 3, Z 0.6 mm");
+        // Its travel is drawn (the move to its start, the park), no other layer's extrusion.
+        let solid: Vec<&Vec<[f64; 2]>> = top
+            .strokes
+            .iter()
+            .filter(|(_, pen)| matches!(pen, Pen::Solid(..)))
+            .map(|(points, _)| points)
+            .collect();
+        assert_eq!(solid, [&vec![[105.0, 105.0], [115.0, 105.0]]]);
+        assert_eq!(top.strokes.len(), 3);
+        // Layer 1 holds the purge line: the view is still the part, the purge in the overview.
+        let first = scene(Some("1"));
+        assert!(first.layout.bounds[0] > 90.0, "{:?}", first.layout.bounds);
+        assert!(first.layout.overview.is_some());
+    }
+
+    #[test]
+    fn executed_paths_are_cut_to_the_layers_heights() {
+        let ex = Executed {
+            points: vec![
+                [0.0, 0.0, 0.2],
+                [1.0, 0.0, 0.2],
+                [1.0, 0.0, 0.4],
+                [2.0, 0.0, 0.4],
+                [2.0, 0.0, 0.6],
+                [3.0, 0.0, 0.2],
+            ],
+            ..Executed::default()
+        };
+        assert_eq!(
+            ex.within([0.2, 0.2]),
+            [vec![[0.0, 0.0], [1.0, 0.0]], vec![[3.0, 0.0]]]
+        );
+        assert_eq!(
+            ex.within([0.4, 0.6]),
+            [vec![[1.0, 0.0], [2.0, 0.0], [2.0, 0.0]]]
+        );
+    }
+
+    #[test]
+    fn clipping_keeps_what_is_inside_the_view() {
+        let view = [0.0, 0.0, 10.0, 10.0];
+        assert_eq!(
+            clip([-5.0, 5.0], [15.0, 5.0], view),
+            Some(([0.0, 5.0], [10.0, 5.0]))
+        );
+        assert_eq!(clip([-5.0, -5.0], [-1.0, 20.0], view), None);
+        assert_eq!(
+            clip([2.0, 2.0], [3.0, 3.0], view),
+            Some(([2.0, 2.0], [3.0, 3.0]))
+        );
+        // In, out and in again: two stretches.
+        assert_eq!(
+            clip_polyline(&[[5.0, 5.0], [5.0, 20.0], [6.0, 20.0], [6.0, 5.0]], view),
+            [vec![[5.0, 5.0], [5.0, 10.0]], vec![[6.0, 10.0], [6.0, 5.0]]]
+        );
+    }
+
+    #[test]
+    fn layer_colours_run_from_the_ramps_start_to_its_end() {
+        assert_eq!(layer_colour(0.0), LAYER_RAMP[0]);
+        assert_eq!(layer_colour(1.0), LAYER_RAMP[3]);
+        assert_eq!(layer_colour(2.0), LAYER_RAMP[3]);
+        assert_ne!(layer_colour(0.5), layer_colour(0.6));
     }
 
     #[test]

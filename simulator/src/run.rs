@@ -41,6 +41,8 @@ pub struct JobOptions {
     pub trace: Option<PathBuf>,
     /// Keep the board's flash in this state file ([`crate::state`]).
     pub state: Option<PathBuf>,
+    /// Keep the board's SD card in this directory (`None`: a fresh temporary one).
+    pub sd_dir: Option<PathBuf>,
 }
 
 impl Default for JobOptions {
@@ -56,6 +58,7 @@ impl Default for JobOptions {
             pacing: Pacing::AsFastAsPossible,
             trace: None,
             state: None,
+            sd_dir: None,
         }
     }
 }
@@ -182,7 +185,8 @@ pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Resul
         Program::parse(job.text().as_bytes()).map_err(|e| format!("{}: {e}", job.name()))?;
     let machine = SimMachine::new(config);
     machine.set_tracing(options.trace.is_some());
-    let board_config = crate::state::board_config(options.state.as_deref())?;
+    let mut board_config = crate::state::board_config(options.state.as_deref())?;
+    board_config.sd_dir = options.sd_dir.clone();
     let mut board = SimBoard::new(&machine, board_config).map_err(|e| e.to_string())?;
     let (link, host) = MemoryLink::pair();
     let link = FaultInjector::new(link, options.faults).map_err(|e| e.to_string())?;
@@ -392,6 +396,8 @@ pub struct ListenOptions {
     pub trace: Option<PathBuf>,
     /// Keep the board's flash in this state file ([`crate::state`]).
     pub state: Option<PathBuf>,
+    /// Keep the board's SD card in this directory (`None`: a fresh temporary one).
+    pub sd_dir: Option<PathBuf>,
     /// What a host that is not in control is sent: a TCP client that connects while another
     /// host is in control (it is then closed), and a terminal host whose input is refused.
     /// Every board sends [`busy_message`].
@@ -460,7 +466,8 @@ pub fn listen(
 
     let machine = SimMachine::new(config);
     machine.set_tracing(options.trace.is_some());
-    let board_config = crate::state::board_config(options.state.as_deref())?;
+    let mut board_config = crate::state::board_config(options.state.as_deref())?;
+    board_config.sd_dir = options.sd_dir.clone();
     let mut board = SimBoard::new(&machine, board_config).map_err(|e| e.to_string())?;
     let tcp_port = board.add_port(watched("tcp", tcp, &machine, options.faults)?, true);
     let pty_port = board.add_port(watched("pty", pty, &machine, options.faults)?, false);

@@ -39,7 +39,7 @@
 //!   line that had finished more than 14 s before (the 10 s checkpoint period, the step
 //!   queue's settling and frame 52's whole seconds, with room to spare), so past the run's
 //!   start after a checkpoint;
-//! - after the restart, `M1000` is refused before homing (`!! E187 not-homed`) and nothing
+//! - after the restart, `M1000` is refused before homing (`echo:E187 not-homed`) and nothing
 //!   moves (frames 51 and 52 the same 20 ms later); after `G28` (back at the same home),
 //!   `M1000` answers `ok` and frame 52 reports the line after the record the cut left: the
 //!   job resumes after the last checkpoint, which is no later than the last line finished;
@@ -49,7 +49,7 @@
 //! - a resumed run is, one time in two, cut and resumed again; the last one runs to the
 //!   program's end (frame 51 at its final position, which a wrongly replayed distance mode or
 //!   offset would miss, frame 52 at its last line), after which `M1000` has nothing to resume
-//!   (`!! E186 no-resume`) and the flash keeps no record.
+//!   (`echo:E186 no-resume`) and the flash keeps no record.
 //!
 //! One turn in four, with recovery off (`M413 S0`): `M1000` at once has nothing to resume
 //! (`E186`) and moves nothing; the job, cut the same way, leaves no record in the flash; after
@@ -223,7 +223,7 @@ enum Reply {
     Confirm,
     Connected,
     Error(u16, String),
-    /// A line that is not a frame: the answer to a G-code line (`ok`, `!! E186 no-resume`).
+    /// A line that is not a frame: the answer to a G-code line (`ok`, `echo:E186 no-resume`).
     Text(String),
     Other,
 }

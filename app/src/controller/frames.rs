@@ -282,6 +282,8 @@ where
                 .begin(total)
                 .map_err(|e| Refusal::with(&StoreRefusal(e), format_args!("{total:04}")))?;
             self.load_total = Some(total);
+            // What is uploaded now is what `Start` runs, rather than a selected file.
+            let _ = self.job.select_program();
             let _ = self.job.rewind();
         }
         self.program
@@ -329,9 +331,13 @@ where
     X: Peripherals<N>,
     S: RecordStorage,
 {
-    /// `M20` (list the stored program), `M413` (power-loss recovery), `M1000` (resume the
-    /// interrupted job, `M1000 C` forget it): answered here, `true`; any other line, `false`.
+    /// A line of an upload in progress (`M28` to `M29`, `files.rs`), `M20` (list the stored
+    /// program and the files), `M413` (power-loss recovery), `M1000` (resume the interrupted
+    /// job, `M1000 C` forget it): answered here, `true`; any other line, `false`.
     pub(super) fn program_command<W: Write>(&mut self, line: &Line<'_>, out: &mut W) -> bool {
+        if self.upload_line(line, out) {
+            return true;
+        }
         let Some(w) = line.command() else {
             return false;
         };
@@ -352,7 +358,7 @@ where
         }
         let result = match number {
             Some(20) => {
-                self.list_program(out);
+                self.list_files(out);
                 Ok(())
             }
             Some(413) => self.recovery_command(line, out),
@@ -368,30 +374,6 @@ where
             Err(r) => self.refuse(&r, out),
         }
         true
-    }
-
-    /// `Begin file list`, the program as `program <stored>/<total> complete|incomplete` (no
-    /// line with no program), `End file list`; the caller sends `ok`.
-    fn list_program<W: Write>(&mut self, out: &mut W) {
-        use core::fmt::Write as _;
-        let _ = out.write_all(b"Begin file list\n");
-        if self.program.total() > 0 {
-            let mut t = Text::<48>::new();
-            let state = if self.program.is_complete() {
-                "complete"
-            } else {
-                "incomplete"
-            };
-            let _ = write!(
-                t,
-                "program {}/{} {state}",
-                self.program.len(),
-                self.program.total()
-            );
-            let _ = out.write_all(t.as_bytes());
-            let _ = out.write_all(b"\n");
-        }
-        let _ = out.write_all(b"End file list\n");
     }
 
     /// `M413`: report; `M413 S0|S1`: switch power-loss recovery off (forgetting the record)

@@ -10,6 +10,7 @@ use forja_protocol::reply::{
     Axes, Counts, FORJA_CAPABILITIES, Heat, KeyValues, LINE_CHECK, Reply, Word,
 };
 
+use super::files::FileCommand;
 use super::host::{HostProgress, MESSAGE_LEN};
 use super::peripherals::{Devices, HeatWait, HeatZones, PeripheralError, Peripherals, Reading};
 use super::text::{self, Refusal, Text};
@@ -19,7 +20,7 @@ use super::{
 use crate::error::JobError;
 use forja_hal_abstraction::program::ProgramStore;
 use forja_motion::config::{AxisKind, HomeDirection};
-use forja_motion::effect::{Effect, Heater, StopKind, Storage, TemperatureWait};
+use forja_motion::effect::{Effect, Heater, StopKind, TemperatureWait};
 use forja_motion::error::{Alarm, CommandError};
 use forja_motion::{MachineState, PositionReport, Reply as KernelReply};
 
@@ -28,8 +29,6 @@ use forja_motion::{MachineState, PositionReport, Reply as KernelReply};
 enum Done {
     Ok,
     Refused(Refusal),
-    /// `M<n>`, a command the board does not have.
-    Unknown(u32),
     Temperatures,
     Firmware,
     Endstops,
@@ -49,6 +48,8 @@ enum Done {
     AutoReport(u8),
     /// `M113`.
     BusyInterval(Option<u8>),
+    /// `M20`–`M32`: the SD-card commands, served by the board's file store (`files.rs`).
+    Files(FileCommand),
 }
 
 /// `bytes` as far as they fit `C` bytes of printable ASCII.
@@ -58,33 +59,22 @@ fn copied<const C: usize>(bytes: &[u8]) -> Text<C> {
     t
 }
 
-/// The `M` number of a storage command (`M20`–`M29`).
-fn storage_number(s: &Storage<'_>) -> u32 {
-    match s {
-        Storage::List => 20,
-        Storage::Init => 21,
-        Storage::Release => 22,
-        Storage::Select(_) => 23,
-        Storage::Start => 24,
-        Storage::Pause => 25,
-        Storage::SetPosition(_) => 26,
-        Storage::Report => 27,
-        Storage::BeginWrite(_) => 28,
-        Storage::EndWrite(_) => 29,
-    }
-}
-
 /// What a link line may be while a stored program runs: nothing that moves or changes the
-/// program's modal state; reports, temperature targets, line numbering and `M112`.
+/// program's modal state; reports, temperature targets, line numbering and `M112`; and the
+/// SD-card commands, which decide for themselves (`files.rs`: `M25` pauses the file, `M27`
+/// reports it, `M23` is refused…). `M30` is one only with a file name: alone, it ends a
+/// program.
 fn allowed_during_job(line: &Line<'_>) -> bool {
     if line.is_empty() {
         return true;
     }
     match line.command() {
-        Some(w) if w.letter == b'M' => matches!(
-            w.value.as_integer(),
-            Some(104 | 105 | 110 | 112 | 114 | 115 | 119 | 140)
-        ),
+        Some(w) if w.letter == b'M' => match w.value.as_integer() {
+            Some(104 | 105 | 110 | 112 | 114 | 115 | 119 | 140) => true,
+            Some(20..=29 | 32) => true,
+            Some(30) => line.text_arg().is_some(),
+            _ => false,
+        },
         _ => false,
     }
 }
@@ -143,8 +133,19 @@ pub fn realtime(bytes: &[u8]) -> Option<Realtime> {
     of(n)
 }
 
-/// The `Cap:` lines of `M115`, each with whether it needs a heater: what this firmware does,
-/// under the names Marlin gives it and OctoPrint and CNCjs look for.
+/// What a capability needs the board to have.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Needs {
+    /// Nothing: every board has it.
+    Nothing,
+    /// A heater.
+    Heaters,
+    /// A file store.
+    Files,
+}
+
+/// The `Cap:` lines of `M115`, each with what it needs: what this firmware does, under the
+/// names Marlin gives it and OctoPrint and CNCjs look for.
 ///
 /// | name | what |
 /// |---|---|
@@ -154,13 +155,19 @@ pub fn realtime(bytes: &[u8]) -> Option<Realtime> {
 /// | `HOST_ACTION_COMMANDS` | `// action:notification …` when a halted machine is connected to |
 /// | `AUTOREPORT_TEMP` | `M155` |
 /// | `THERMAL_PROTECTION` | heater runaway and sensor faults stop the machine |
-const CAPABILITIES: &[(&str, bool)] = &[
-    ("EMERGENCY_PARSER", false),
-    ("ARCS", false),
-    ("BUILD_PERCENT", false),
-    ("HOST_ACTION_COMMANDS", false),
-    ("AUTOREPORT_TEMP", true),
-    ("THERMAL_PROTECTION", true),
+/// | `SDCARD` | `M20`–`M32`: files uploaded, listed and printed |
+/// | `AUTOREPORT_SD_STATUS` | `M27 S<seconds>` |
+/// | `LFN_WRITE` | `M28` takes long names (up to 63 bytes), not only 8.3 ones |
+const CAPABILITIES: &[(&str, Needs)] = &[
+    ("EMERGENCY_PARSER", Needs::Nothing),
+    ("ARCS", Needs::Nothing),
+    ("BUILD_PERCENT", Needs::Nothing),
+    ("HOST_ACTION_COMMANDS", Needs::Nothing),
+    ("AUTOREPORT_TEMP", Needs::Heaters),
+    ("THERMAL_PROTECTION", Needs::Heaters),
+    ("SDCARD", Needs::Files),
+    ("AUTOREPORT_SD_STATUS", Needs::Files),
+    ("LFN_WRITE", Needs::Files),
 ];
 
 /// A temperature in tenths of a degree, for replies.
@@ -283,7 +290,7 @@ where
     pub(super) fn drop_waiting<W: Write>(&mut self, why: &Refusal, out: &mut W) {
         match self.link.held.take() {
             Some(Held::Line) => self.refuse(why, out),
-            Some(Held::Homing | Held::Heat { .. }) => self.ok(out),
+            Some(Held::Homing | Held::Dwell | Held::Heat { .. }) => self.ok(out),
             None => {}
         }
         let mut lb = LineBuf::EMPTY;
@@ -419,8 +426,13 @@ where
             self.executed();
             return self.ok(out);
         }
-        // `M20`, `M413`, `M1000`: the stored program and power-loss recovery (frames.rs).
+        // A file being written (`M28`) takes the line; `M20`, `M413`, `M1000`: the stored
+        // program and power-loss recovery (frames.rs).
         if self.program_command(line, out) {
+            return;
+        }
+        // `M500`–`M503`: the planner settings kept (planner_settings.rs).
+        if self.settings_command(line, bytes, out) {
             return;
         }
         if self.job_active() && !allowed_during_job(line) {
@@ -431,6 +443,8 @@ where
                 self.executed();
                 if self.kernel.state() == MachineState::Homing {
                     self.link.held = Some(Held::Homing);
+                } else if line.is_command(b'G', 4) && !self.kernel.is_idle() {
+                    self.link.held = Some(Held::Dwell);
                 } else {
                     self.ok(out);
                 }
@@ -492,7 +506,7 @@ where
                         return;
                     }
                 }
-                Some(Held::Heat { .. } | Held::Homing) => return,
+                Some(Held::Heat { .. } | Held::Homing | Held::Dwell) => return,
                 None => {}
             }
             let mut lb = LineBuf::EMPTY;
@@ -576,7 +590,7 @@ where
             },
             Effect::ReportFirmware => Done::Firmware,
             Effect::ReportEndstops => Done::Endstops,
-            Effect::Storage(s) => Done::Unknown(storage_number(&s)),
+            Effect::Storage(s) => Done::Files(FileCommand::new(&s)),
             Effect::SelectTool(t) if t < config.extruders.max(1) => Done::Ok,
             Effect::SelectTool(t) => Done::Refused(Refusal::with(
                 &CommandError::BadValue { letter: b'T' },
@@ -624,13 +638,6 @@ where
         match done {
             Done::Ok => self.ok(out),
             Done::Refused(r) => self.refuse(&r, out),
-            Done::Unknown(n) => {
-                self.stats.refused = self.stats.refused.wrapping_add(1);
-                let mut command = Text::<12>::new();
-                let _ = write!(command, "M{n}");
-                let _ = wire::reply(out, &Reply::Unknown(command.as_str()));
-                self.ok(out);
-            }
             Done::Temperatures => {
                 self.stats.oks = self.stats.oks.wrapping_add(1);
                 if !self.write_temperatures(true, out) {
@@ -699,6 +706,7 @@ where
             Done::HostMessage(t) => self.host_message(t.as_bytes(), out),
             Done::AutoReport(s) => self.set_auto_report(s),
             Done::BusyInterval(s) => self.busy_interval(s, out),
+            Done::Files(command) => self.file_command(command, out),
             _ => return false,
         }
         true
@@ -762,8 +770,14 @@ where
         self.halted_notice(out);
         let heaters = self.devices.temperatures();
         let has_heaters = heaters.hot_end.is_some() || heaters.bed.is_some();
-        for &(name, needs_heaters) in CAPABILITIES {
-            if has_heaters || !needs_heaters {
+        let has_files = self.has_files();
+        for &(name, needs) in CAPABILITIES {
+            let present = match needs {
+                Needs::Nothing => true,
+                Needs::Heaters => has_heaters,
+                Needs::Files => has_files,
+            };
+            if present {
                 let enabled = true;
                 let _ = wire::reply(out, &Reply::Capability { name, enabled });
             }
@@ -859,7 +873,7 @@ where
             };
             let fed = self.job.next_line().wrapping_sub(before);
             if fed > 0 {
-                self.stats.program_lines = self.stats.program_lines.wrapping_add(u32::from(fed));
+                self.stats.program_lines = self.stats.program_lines.wrapping_add(fed);
                 self.taken = true;
             }
             let Some(done) = done else { return };
@@ -867,15 +881,6 @@ where
                 Done::Refused(r) => {
                     self.job.stop(&mut self.kernel);
                     self.error_frame(&r, out);
-                    return;
-                }
-                Done::Unknown(n) => {
-                    let e = CommandError::Unsupported {
-                        letter: b'M',
-                        number: Some(n),
-                    };
-                    self.job.stop(&mut self.kernel);
-                    self.error_frame(&text::command_refusal(&e, &[]), out);
                     return;
                 }
                 Done::Wait(wait) => {

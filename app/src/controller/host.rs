@@ -156,7 +156,10 @@ where
             self.host.next_auto_report_ms = now.wrapping_add(self.host.auto_report_ms);
             self.report_temperatures(out);
         }
-        let waiting = matches!(self.link.held, Some(Held::Line | Held::Homing));
+        let waiting = matches!(
+            self.link.held,
+            Some(Held::Line | Held::Homing | Held::Dwell)
+        );
         if !waiting || self.host.busy_interval_ms == 0 {
             self.host.next_busy_ms = None;
             return;

@@ -84,10 +84,12 @@
 //! Everything else carries the code of the layer that refused it: the protocol (1–99), the
 //! kernel and jobs (100–189), the drivers (200–299).
 
+mod files;
 mod frames;
 mod gcode;
 mod host;
 pub mod peripherals;
+mod planner_settings;
 pub mod settings;
 pub mod store;
 mod text;
@@ -648,6 +650,10 @@ enum Held {
     /// A `G28` runs the homing cycle; its `ok` is sent when the cycle ends, as a RepRap host
     /// expects (an `M114` after it then reports the homed position).
     Homing,
+    /// A `G4` waits for the moves before it and its own dwell, as Marlin and grbl answer it:
+    /// its `ok` is sent when the machine is at rest (a host that ends its job on that `ok`,
+    /// CNCjs, ends it when the machine has).
+    Dwell,
     /// An `M109`/`M190`/`M116` waits for its heaters; its `ok` is sent when they are there.
     Heat {
         /// What it waits for.
@@ -720,6 +726,8 @@ struct Core<'q, const N: usize, const B: usize, const Q: usize, P, X, S> {
     host: HostReports,
     next_peripherals_ms: u32,
     load_total: Option<u16>,
+    /// The SD card as the link's host sees it (`files.rs`).
+    card: files::Card,
     /// Something was given to the kernel during this poll: poll it again before returning.
     taken: bool,
     stats: Stats,
@@ -777,6 +785,7 @@ where
                 host: HostReports::new(),
                 next_peripherals_ms: 0,
                 load_total: None,
+                card: files::Card::new(),
                 taken: false,
                 stats: Stats::default(),
             },
@@ -797,7 +806,12 @@ where
         settings: Settings<N>,
         storage: S2,
     ) -> Controller<'q, N, B, Q, P, X, S2> {
-        let c = self.core;
+        let mut c = self.core;
+        // The stored path limits (`M204`, `M205 S T`): the kernel was built from the
+        // machine configuration alone, and is idle.
+        let mut planner = c.kernel.planner_settings();
+        planner.path = settings.path_limits();
+        let _ = c.kernel.set_planner_settings(&planner);
         Controller {
             decoder: self.decoder,
             input: self.input,
@@ -818,6 +832,7 @@ where
                 host: c.host,
                 next_peripherals_ms: c.next_peripherals_ms,
                 load_total: c.load_total,
+                card: c.card,
                 taken: c.taken,
                 stats: c.stats,
             },
@@ -864,8 +879,9 @@ where
         self.input.clear();
         let started = self.core.link.started;
         self.core.link = Link::new();
-        // An upload belongs to the host that sent its line 1.
+        // An upload belongs to the host that sent its line 1 (or its `M28`).
         self.core.load_total = None;
+        self.core.end_upload();
         self.core.link.started = started;
     }
 
@@ -883,6 +899,7 @@ where
         core.enable_motors_if_needed();
         let mut arm = core.kernel.poll(now);
         core.supervise(link);
+        core.serve_files(link);
         core.feed_job(link);
         core.record_checkpoint(link);
         core.release_held(link);
@@ -1156,6 +1173,10 @@ where
         if matches!(self.link.held, Some(Held::Homing))
             && self.kernel.state() != MachineState::Homing
         {
+            self.link.held = None;
+            self.ok(out);
+        }
+        if matches!(self.link.held, Some(Held::Dwell)) && self.kernel.is_idle() {
             self.link.held = None;
             self.ok(out);
         }

@@ -19,6 +19,7 @@ use core::fmt;
 use forja_hal_abstraction::device::{
     CoolantControl, DeviceError, FanControl, Rotation, SpindleControl, TemperatureControl,
 };
+use forja_hal_abstraction::files::FileStore;
 use forja_protocol::error::WireError;
 
 use forja_motion::effect::{Coolant, Heater, Spindle};
@@ -155,6 +156,13 @@ pub trait Peripherals<const N: usize> {
         let _ = axis;
         None
     }
+
+    /// The file store that serves the SD-card commands (`M20`–`M32`): an SD card, a
+    /// directory, RAM. `None` (the default): the board has no card, and answers those
+    /// commands as Marlin without one does.
+    fn files(&mut self) -> Option<&mut dyn FileStore> {
+        None
+    }
 }
 
 impl<const N: usize, T: Peripherals<N> + ?Sized> Peripherals<N> for &mut T {
@@ -178,6 +186,9 @@ impl<const N: usize, T: Peripherals<N> + ?Sized> Peripherals<N> for &mut T {
     }
     fn endstop(&mut self, axis: usize) -> Option<bool> {
         T::endstop(self, axis)
+    }
+    fn files(&mut self) -> Option<&mut dyn FileStore> {
+        T::files(self)
     }
 }
 

@@ -24,6 +24,11 @@
 //! | `link.ssid` | network name for a WiFi board, at most 32 bytes | `0x0206` |
 //! | `link.password` | its password, at most 35 bytes; read back as `<hidden>` | `0x0207` |
 //! | `power_loss_recovery` | `1` (the default): a running program records its progress for `M1000`; `0`: not (`M413 S0|S1` sets it too) | `0x0208` |
+//! | `print_accel` | `M204 P`: acceleration of printing moves, mm/s², `> 0`; `0` (the default): the per-axis limits alone | `0x0209` |
+//! | `retract_accel` | `M204 R`: of retracting moves, as `print_accel` | `0x020A` |
+//! | `travel_accel` | `M204 T`: of travel moves, as `print_accel` | `0x020B` |
+//! | `min_print_feed` | `M205 S`: the slowest feed of printing moves, mm/s, `>= 0` | `0x020C` |
+//! | `min_travel_feed` | `M205 T`: the slowest feed of travel moves, mm/s, `>= 0` | `0x020D` |
 //!
 //! `<axis>` is the axis letter in lower case (`x.steps_per_mm`); keys are matched without
 //! regard to case. A value is refused (and nothing changes) when it does not parse, or when the
@@ -32,7 +37,10 @@
 //! string), one record per key.
 //!
 //! Settings take effect when the board next builds the kernel (at its next start): the kernel
-//! is built once from [`Settings::machine`]. Frame 50 answers with the stored value.
+//! is built once from [`Settings::machine`] and given [`Settings::path_limits`]. `M500` stores
+//! the planner settings the kernel runs with (`M92`, `M201`, `M203`, `M204`, `M205`), `M501`
+//! gives it the stored ones, `M502` the board's defaults ([`Settings::defaults`]), `M503`
+//! reports them (`forja_app::controller`). Frame 50 answers with the stored value.
 //! Frames carry no `*`, so a password containing `*` cannot be set over the link.
 
 use core::fmt;
@@ -47,6 +55,7 @@ use serde::de::DeserializeOwned;
 use super::text::Text;
 use crate::error::StoreRefusal;
 use forja_hal_abstraction::program::StoreError;
+use forja_motion::PathLimits;
 use forja_motion::config::{MachineConfig, SoftLimits};
 use forja_motion::error::ConfigError;
 
@@ -128,9 +137,19 @@ pub enum Key {
     LinkPassword,
     /// `power_loss_recovery`.
     PowerLossRecovery,
+    /// `print_accel`.
+    PrintAccel,
+    /// `retract_accel`.
+    RetractAccel,
+    /// `travel_accel`.
+    TravelAccel,
+    /// `min_print_feed`.
+    MinPrintFeed,
+    /// `min_travel_feed`.
+    MinTravelFeed,
 }
 
-const GLOBALS: [(&str, Key); 9] = [
+const GLOBALS: [(&str, Key); 14] = [
     ("jog_feed", Key::JogFeed),
     ("default_feed", Key::DefaultFeed),
     ("junction_deviation", Key::JunctionDeviation),
@@ -140,6 +159,11 @@ const GLOBALS: [(&str, Key); 9] = [
     ("link.ssid", Key::LinkSsid),
     ("link.password", Key::LinkPassword),
     ("power_loss_recovery", Key::PowerLossRecovery),
+    ("print_accel", Key::PrintAccel),
+    ("retract_accel", Key::RetractAccel),
+    ("travel_accel", Key::TravelAccel),
+    ("min_print_feed", Key::MinPrintFeed),
+    ("min_travel_feed", Key::MinTravelFeed),
 ];
 
 impl Key {
@@ -287,6 +311,10 @@ pub struct LoadReport {
 #[derive(Debug, Clone)]
 pub struct Settings<const N: usize> {
     machine: MachineConfig<N>,
+    /// The board's configuration before any stored value (`M502`).
+    defaults: MachineConfig<N>,
+    /// `M204`, `M205 S`/`T`.
+    path: PathLimits,
     keep_alive_ms: u32,
     ssid: Text<MAX_SSID_LEN>,
     password: Text<MAX_PASSWORD_LEN>,
@@ -301,6 +329,16 @@ enum Value<'a> {
     Limits(SoftLimits),
     Millis(u32),
     Text(&'a str),
+}
+
+/// A setting's number as frame 50 and `M500` write it: an `f32`'s seven significant digits
+/// (`80`, `0.013`), written as a decimal, not with the float formatting of `core`, which the
+/// firmware image then leaves out.
+pub(crate) fn write_number(out: &mut impl fmt::Write, v: f32) -> fmt::Result {
+    match Decimal::from_f32_significant(v) {
+        Some(d) => write!(out, "{d}"),
+        None => out.write_str("?"),
+    }
 }
 
 fn encode<'b>(value: &impl Serialize, buf: &'b mut [u8]) -> Option<&'b [u8]> {
@@ -323,6 +361,8 @@ impl<const N: usize> Settings<N> {
     /// [`DEFAULT_KEEP_ALIVE_MS`], no network name or password) and power-loss recovery on.
     pub fn new(machine: MachineConfig<N>) -> Self {
         Self {
+            defaults: machine.clone(),
+            path: PathLimits::NONE,
             machine,
             keep_alive_ms: DEFAULT_KEEP_ALIVE_MS,
             ssid: Text::new(),
@@ -376,6 +416,16 @@ impl<const N: usize> Settings<N> {
         (settings, report)
     }
 
+    /// The board's machine configuration, before any stored value (what `M502` goes back to).
+    pub fn defaults(&self) -> &MachineConfig<N> {
+        &self.defaults
+    }
+
+    /// The path limits (`M204`, `M205 S`/`T`) to give the kernel after it is built.
+    pub fn path_limits(&self) -> PathLimits {
+        self.path
+    }
+
     /// The machine configuration to build the kernel from.
     pub fn machine(&self) -> &MachineConfig<N> {
         &self.machine
@@ -419,6 +469,26 @@ impl<const N: usize> Settings<N> {
             (Key::JunctionDeviation, Value::Number(v)) => m.junction_deviation_mm = v,
             (Key::HardLimits, Value::Flag(v)) => m.hard_limits = v,
             (Key::PowerLossRecovery, Value::Flag(v)) => self.power_loss_recovery = v,
+            (Key::PrintAccel | Key::RetractAccel | Key::TravelAccel, Value::Number(v)) => {
+                if v < 0.0 {
+                    return Err(SettingError::BadValue);
+                }
+                let cap = (v > 0.0).then_some(v);
+                match key {
+                    Key::PrintAccel => self.path.print_accel_mm_s2 = cap,
+                    Key::RetractAccel => self.path.retract_accel_mm_s2 = cap,
+                    _ => self.path.travel_accel_mm_s2 = cap,
+                }
+            }
+            (Key::MinPrintFeed | Key::MinTravelFeed, Value::Number(v)) => {
+                if v < 0.0 {
+                    return Err(SettingError::BadValue);
+                }
+                match key {
+                    Key::MinPrintFeed => self.path.min_extruding_feed_mm_s = v,
+                    _ => self.path.min_travel_feed_mm_s = v,
+                }
+            }
             (Key::SoftLimits, Value::Limits(v)) => m.soft_limits = v,
             (Key::KeepAliveMs, Value::Millis(v)) if (100..=600_000).contains(&v) => {
                 self.keep_alive_ms = v;
@@ -522,11 +592,11 @@ impl<const N: usize> Settings<N> {
                     AxisField::Min => a.min_mm,
                     AxisField::Max => a.max_mm,
                 };
-                write!(out, "{v}")
+                write_number(out, v)
             }
-            Key::JogFeed => write!(out, "{}", m.jog_feed_mm_min),
-            Key::DefaultFeed => write!(out, "{}", m.default_feed_mm_min),
-            Key::JunctionDeviation => write!(out, "{}", m.junction_deviation_mm),
+            Key::JogFeed => write_number(out, m.jog_feed_mm_min),
+            Key::DefaultFeed => write_number(out, m.default_feed_mm_min),
+            Key::JunctionDeviation => write_number(out, m.junction_deviation_mm),
             Key::HardLimits => out.write_str(if m.hard_limits { "1" } else { "0" }),
             Key::SoftLimits => out.write_str(match m.soft_limits {
                 SoftLimits::Off => "off",
@@ -539,6 +609,11 @@ impl<const N: usize> Settings<N> {
             Key::PowerLossRecovery => {
                 out.write_str(if self.power_loss_recovery { "1" } else { "0" })
             }
+            Key::PrintAccel => write_number(out, self.path.print_accel_mm_s2.unwrap_or(0.0)),
+            Key::RetractAccel => write_number(out, self.path.retract_accel_mm_s2.unwrap_or(0.0)),
+            Key::TravelAccel => write_number(out, self.path.travel_accel_mm_s2.unwrap_or(0.0)),
+            Key::MinPrintFeed => write_number(out, self.path.min_extruding_feed_mm_s),
+            Key::MinTravelFeed => write_number(out, self.path.min_travel_feed_mm_s),
         }
     }
 }

@@ -18,6 +18,7 @@ use crate::job::JobState;
 use forja_hal_abstraction::device::{
     CoolantControl, DeviceError, FanControl, Rotation, SpindleControl, TemperatureControl,
 };
+use forja_hal_abstraction::files::{FileStore, RamFileStore};
 use forja_hal_abstraction::program::{ProgramStore, RamStore};
 use forja_motion::StepQueue;
 use forja_motion::config::{AxisConfig, HomeDirection, HomingConfig, MachineConfig};
@@ -29,6 +30,7 @@ use forja_sim_hal::SimLimitSwitch;
 mod bench;
 use bench::Wiring;
 
+mod files;
 mod marlin;
 mod numbering;
 mod programs;
@@ -200,8 +202,11 @@ impl CoolantControl for FakeCoolant {
     }
 }
 
+/// The test board's SD card: 16 KiB for at most 8 files, in RAM.
+type FakeCard = RamFileStore<16384, 8>;
+
 /// The test board's devices: two heaters, two fans, a spindle and coolant that record what
-/// they are told, motor power, end-stops read from the simulated switches.
+/// they are told, motor power, end-stops read from the simulated switches, an SD card.
 struct Fake {
     hot: FakeZone,
     bed: FakeZone,
@@ -212,6 +217,8 @@ struct Fake {
     motors: bool,
     motor_calls: u32,
     switches: Vec<SimLimitSwitch>,
+    /// `None`: the board has no card.
+    card: Option<Box<FakeCard>>,
 }
 
 impl Fake {
@@ -225,6 +232,7 @@ impl Fake {
             motors: false,
             motor_calls: 0,
             switches,
+            card: Some(Box::new(FakeCard::new())),
         }
     }
 }
@@ -254,6 +262,10 @@ impl Peripherals<3> for Fake {
     }
     fn endstop(&mut self, axis: usize) -> Option<bool> {
         self.switches.get_mut(axis)?.is_triggered().ok()
+    }
+    fn files(&mut self) -> Option<&mut dyn FileStore> {
+        let card = self.card.as_mut()?;
+        Some(&mut **card)
     }
 }
 
@@ -589,7 +601,7 @@ fn unnumbered_lines_run_without_numbering_checks() {
 fn refused_commands_get_a_fault_line_and_ok_and_change_nothing() {
     let mut b = Bench::new();
     b.take();
-    assert_eq!(b.ask("M21"), ["echo:Unknown command: \"M21\"", "ok"]);
+    assert_eq!(b.ask("M31"), ["echo:Unknown command: \"M31\"", "ok"]);
     assert_eq!(b.ask("G38.2 X1"), ["echo:Unknown command: \"G38.2\"", "ok"]);
     assert_eq!(b.ask("M106 P7 S100"), ["echo:E194 no-device fan 7", "ok"]);
     assert_eq!(b.ask("T3"), ["echo:E121 bad-value T3", "ok"]);
@@ -1372,11 +1384,12 @@ fn a_program_line_that_fails_stops_the_job_with_an_error_frame() {
     b.send_frame(&ClientMessage::Action(Action::Start));
     b.run_ms(2000);
     let out = b.take();
-    assert_eq!(error_codes(&out), [120], "{out:?}");
-    // The job stops at the refused line, and so does the motion.
+    // A file command is the host's, not a program's: `E183 job-line 0002`.
+    assert_eq!(error_codes(&out), [183], "{out:?}");
+    // The job stops at the refused line: nothing after it runs.
     assert_eq!(b.ctl.job().state(), JobState::Idle);
     assert!(b.position_mm()[0] <= 5.0);
-    assert_eq!(b.ctl.stats().program_lines, 2);
+    assert_eq!(b.ctl.job().next_line(), 2);
 }
 
 #[test]

@@ -51,18 +51,25 @@ impl<const C: usize> Text<C> {
 
 impl<const C: usize> fmt::Write for Text<C> {
     fn write_str(&mut self, s: &str) -> fmt::Result {
-        for &b in s.as_bytes() {
-            let slot = self.buf.get_mut(self.len).ok_or(fmt::Error)?;
-            // Only printable ASCII goes on the wire.
-            *slot = if (b' '..=b'~').contains(&b) && b != b'*' {
-                b
-            } else {
-                b'?'
-            };
-            self.len += 1;
-        }
-        Ok(())
+        append_printable(&mut self.buf, &mut self.len, s)
     }
+}
+
+/// Append `s` to the text `buf[..*len]`: printable ASCII, `?` for any other byte and for `*`;
+/// what does not fit is dropped with an error. One copy for every capacity of [`Text`].
+#[inline(never)]
+fn append_printable(buf: &mut [u8], len: &mut usize, s: &str) -> fmt::Result {
+    for &b in s.as_bytes() {
+        let slot = buf.get_mut(*len).ok_or(fmt::Error)?;
+        // Only printable ASCII goes on the wire.
+        *slot = if (b' '..=b'~').contains(&b) && b != b'*' {
+            b
+        } else {
+            b'?'
+        };
+        *len += 1;
+    }
+    Ok(())
 }
 
 impl<const C: usize> fmt::Debug for Text<C> {
@@ -97,6 +104,7 @@ impl Refusal {
     }
 
     /// `error`'s code and name, then a space and `detail`.
+    #[inline(never)]
     pub(crate) fn with(error: &dyn WireError, detail: fmt::Arguments<'_>) -> Self {
         let mut r = Self::new(error);
         let _ = fmt::Write::write_str(&mut r.text, " ");
@@ -115,6 +123,7 @@ pub(crate) fn letter(b: u8) -> char {
 }
 
 /// A command error, its detail naming what was wrong: the command, the word or the axis.
+#[inline(never)]
 pub(crate) fn command_refusal(e: &CommandError, letters: &[u8]) -> Refusal {
     let axis = |i: u8| letters.get(usize::from(i)).copied().map_or('?', letter);
     match *e {
@@ -137,6 +146,7 @@ pub(crate) fn command_refusal(e: &CommandError, letters: &[u8]) -> Refusal {
 }
 
 /// An alarm, naming its axis where it has one.
+#[inline(never)]
 pub(crate) fn alarm_refusal(a: &Alarm, letters: &[u8]) -> Refusal {
     let axis = |i: u8| letters.get(usize::from(i)).copied().map_or('?', letter);
     match *a {
@@ -149,6 +159,7 @@ pub(crate) fn alarm_refusal(a: &Alarm, letters: &[u8]) -> Refusal {
 }
 
 /// A job error, naming the program line and, for a refused line, the inner error.
+#[inline(never)]
 pub(crate) fn job_refusal(e: &JobError) -> Refusal {
     match *e {
         JobError::Line { line, error } => {
@@ -160,6 +171,7 @@ pub(crate) fn job_refusal(e: &JobError) -> Refusal {
 }
 
 /// A program store error, naming the line expected next when the order was wrong.
+#[inline(never)]
 pub(crate) fn store_refusal(e: &StoreError) -> Refusal {
     match *e {
         StoreError::OutOfOrder { expected, got } => Refusal::with(

@@ -32,8 +32,10 @@
 //!
 //! Besides the machine: [`flash::SimFlash`], a NOR flash (the drivers' in-RAM model, on the
 //! heap) whose operations can be written through to a file; the board's two flashes and the
-//! state file that keeps them across restarts ([`state`]); the board's static RAM
-//! ([`ram::StaticRam`]); and the host links ([`link`]).
+//! state file that keeps them across restarts ([`state`]); its SD card, a directory of the
+//! host ([`DirFileStore`], the firmware's `FileStore`: [`files`]); the stores as the firmware
+//! uses them, records in the flashes and the card ([`stores::BoardStores`]); the board's
+//! static RAM ([`ram::StaticRam`]); and the host links ([`link`]).
 //!
 //! ## The contract
 //!
@@ -119,6 +121,7 @@
 #![deny(unsafe_code)]
 
 pub mod config;
+pub mod files;
 pub mod flash;
 pub mod limit;
 pub mod link;
@@ -128,10 +131,12 @@ pub mod ram;
 pub mod simulation;
 pub mod state;
 pub mod stepper;
+pub mod stores;
 pub mod thermal;
 pub mod trace;
 
 pub use config::{MachineConfig, MachineFileError};
+pub use files::DirFileStore;
 pub use limit::{SimLimitSwitch, SimSwitchPin, SwitchEdges};
 pub use machine::{NoSuchDevice, SimAlarm, SimClock, SimMachine};
 pub use pwm::{DutyChange, SimPwm};

@@ -6,7 +6,7 @@
 //! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`SimStepDirPins`](forja_sim_hal::SimStepDirPins), and `forja_drivers::limit::LimitInput`s on the homing switches' [`SimSwitchPin`]s; the switches' pin-change interrupt ([`SwitchEdges`]) reports their edges to it |
 //! | thread side | [`Firmware::poll`]: the ports' links, one controlling host across them and `Controller::poll` on its link, by [`forja_app::hosts::Arbiter`] (see [Links](#links)) |
 //! | peripherals | `forja_app::peripherals::Parts`: PID `HeaterChannel`s over the simulated heaters, `Fan`s and the `Spindle` on the PWM outputs (kept in the board's static RAM beside the step queue, as a firmware board keeps its devices in statics), the drivers' enable lines, the switches read again for `M119`; no coolant (the simulated machine has no switched outputs) |
-//! | storage | the board's two flashes ([`BoardFlash`]): `FlashRecordStorage` for the settings, `RecordProgramStore` for the uploaded program; kept in a state file with `BoardFlash::open` |
+//! | storage | the board's two flashes ([`BoardFlash`]): `FlashRecordStorage` for the settings, `RecordProgramStore` for the uploaded program; kept in a state file with `BoardFlash::open`; the SD card, a directory of the host ([`BoardConfig::sd_dir`]); opened together as [`BoardStores`] |
 //! | read back | what tests and the `forja-sim` program read of the firmware, whatever its number of axes ([`SimBoard::status`], [`SimBoard::program_line`], [`SimBoard::settings`], [`SimBoard::load_report`]): the controller's own accessors (`Controller::status`, `Controller::read_program_line`, the settings' `Display`), adapted |
 //!
 //! The kernel's [`forja_motion::MachineConfig`] is the machine file read as the board's
@@ -42,16 +42,14 @@ use forja_drivers::limit::LimitInput;
 use forja_drivers::pin::NoPin;
 use forja_drivers::pwm::{Fan, FanConfig, Spindle};
 use forja_drivers::stepper::StepDir;
-use forja_drivers::storage::FlashRecordStorage;
 use forja_hal_abstraction::clock::Alarm as _;
 use forja_hal_abstraction::program::{MAX_LINE_LEN, MAX_LINES};
 use forja_hal_abstraction::time::Instant;
 use forja_motion::{StepGenerator, StepQueue, SwitchAlert};
 use forja_sim_hal::link::RX_CAPACITY;
 use forja_sim_hal::ram::StaticRam;
-use forja_sim_hal::state::{
-    BoardFlash, PROGRAM_FLASH_LEN, ProgramFlash, SETTINGS_FLASH_LEN, SettingsFlash,
-};
+use forja_sim_hal::state::BoardFlash;
+use forja_sim_hal::stores::{BoardStores, ProgramRecords, SettingsRecords, StoresError};
 use forja_sim_hal::{
     Firmware, Flow, RunError, RunReport, SimDriverPin, SimMachine, SimSwitchPin, Simulation,
     SwitchEdges,
@@ -80,6 +78,8 @@ pub enum BoardError {
     Config(forja_motion::ConfigError),
     /// A flash region could not be opened.
     Storage(String),
+    /// A store of the board could not be opened: its flashes' records, its SD card.
+    Stores(StoresError),
 }
 
 impl fmt::Display for BoardError {
@@ -88,6 +88,7 @@ impl fmt::Display for BoardError {
             Self::AxisCount(n) => write!(f, "the motion kernel takes 1 to 8 axes, not {n}"),
             Self::Config(e) => write!(f, "the machine file does not suit the kernel: {e}"),
             Self::Storage(e) => write!(f, "flash: {e}"),
+            Self::Stores(e) => write!(f, "{e}"),
         }
     }
 }
@@ -131,8 +132,8 @@ trait Wiring {
 
 type SimFirmware<const N: usize, X> =
     firmware::Firmware<'static, N, PLANNER_BLOCKS, QUEUE_EVENTS, ProgramStore, X, SettingsStore>;
-type ProgramStore = RecordProgramStore<FlashRecordStorage<ProgramFlash>>;
-type SettingsStore = FlashRecordStorage<SettingsFlash>;
+type ProgramStore = RecordProgramStore<ProgramRecords>;
+type SettingsStore = SettingsRecords;
 
 /// The firmware of `N` axes with its peripherals `X`, the queue and the devices in `R`.
 struct Wired<const N: usize, X, R> {
@@ -182,21 +183,20 @@ fn wire<const N: usize>(
         .map(|h| h.map(|h| HeaterChannel::new(h.sensor, h.heater, h.config)));
     let fans = pins.fans.map(|f| Fan::new(f?, FanConfig::DIRECT).ok());
     let spindle = pins.spindle.and_then(|(p, c)| Spindle::new(p, c).ok());
-    let program = FlashRecordStorage::new(config.flash.program, 0..PROGRAM_FLASH_LEN as u32)
-        .map_err(storage_error)?;
+    let stores = BoardStores::open(config.flash, config.sd_dir).map_err(BoardError::Stores)?;
     #[allow(unsafe_code)]
     // SAFETY: the RAM is the last field of `Wired`: everything that borrows the queue and the
     // devices in it (the firmware, the step interrupt, the switch alert) drops before it.
-    let (ram, (queue, [hot_end, bed], fans, spindle)) =
-        unsafe { StaticRam::new((StepQueue::new(), heaters, fans, spindle)) };
+    let (ram, (queue, [hot_end, bed], fans, spindle, card)) =
+        unsafe { StaticRam::new((StepQueue::new(), heaters, fans, spindle, stores.card)) };
     let (isr, firmware, _) = firmware::assemble(FirmwareParts {
         machine: parts::machine(machine.config())?,
-        settings: FlashRecordStorage::new(config.flash.settings, 0..SETTINGS_FLASH_LEN as u32)
-            .map_err(storage_error)?,
+        settings: stores.settings,
         queue,
         tick_hz: machine.tick_hz(),
         config: parts::controller(machine.config()),
-        program: RecordProgramStore::open(program, config.program_lines).map_err(storage_error)?,
+        program: RecordProgramStore::open(stores.program, config.program_lines)
+            .map_err(storage_error)?,
         peripherals: Parts::<_, _, N, MAX_FANS, LocalDevices> {
             hot_end: hot_end.as_mut().map(|z| z as _),
             bed: bed.as_mut().map(|z| z as _),
@@ -205,6 +205,7 @@ fn wire<const N: usize>(
             coolant: None,
             motors: MotorEnables(array::<_, N>(enables)?),
             endstops: pins.homing_switches.each_ref().map(switch),
+            files: Some(card),
         },
     })
     .map_err(BoardError::Config)?;
@@ -280,10 +281,7 @@ impl<const N: usize, X: Peripherals<N>, R> Wiring for Wired<N, X, R> {
 
     fn into_flash(self: Box<Self>) -> BoardFlash {
         let (_, program, _, settings) = self.firmware.into_controller().release();
-        BoardFlash {
-            program: program.into_inner().into_flash(),
-            settings: settings.into_flash(),
-        }
+        BoardStores::into_flash(program.into_inner(), settings)
     }
 }
 
@@ -296,6 +294,10 @@ pub struct BoardConfig {
     /// one (a restart keeps the settings and the program), or a state file's
     /// ([`BoardFlash::open`]).
     pub flash: BoardFlash,
+    /// The directory that is the SD card (`M20`–`M32`,
+    /// [`DirFileStore`](forja_sim_hal::DirFileStore)); `None`: a fresh temporary directory,
+    /// removed with the board.
+    pub sd_dir: Option<std::path::PathBuf>,
 }
 
 impl Default for BoardConfig {
@@ -303,6 +305,7 @@ impl Default for BoardConfig {
         Self {
             program_lines: MAX_LINES,
             flash: BoardFlash::erased(),
+            sd_dir: None,
         }
     }
 }

@@ -1,14 +1,16 @@
 //! The simulator as the tests run it: the `forja-sim` binary listening on TCP and a
 //! pseudo-terminal, its virtual time four times as fast as the wall clock (the moves take less
-//! waiting), and the `forja` binary run against it.
+//! waiting) unless a test asks for another pace, and the `forja` binary run against it; and the
+//! Python environments in which the tests install the hosts they drive (Printrun, OctoPrint).
 
 #![allow(dead_code)]
 
 use std::io::{BufRead, BufReader};
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::sync::mpsc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// The `forja-sim` binary, built if the workspace build did not build it yet.
 pub fn sim_binary() -> PathBuf {
@@ -29,6 +31,64 @@ pub fn sim_binary() -> PathBuf {
     }
     assert!(bin.exists(), "{} was not built", bin.display());
     bin
+}
+
+/// The Python of a virtual environment inside the checkout (`target/<name>`), with
+/// `packages` installed by pip (`--no-deps` when `no_deps`) if `ready` (a Python statement
+/// that exits non-zero when they are not there) fails. The test fails, saying why, when pip
+/// cannot install them.
+pub fn venv_python(name: &str, packages: &[&str], no_deps: bool, ready: &str) -> PathBuf {
+    let venv = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../target")
+        .join(name);
+    let python = venv.join("bin").join("python");
+    let is_ready = |python: &Path| {
+        Command::new(python)
+            .args(["-c", ready])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    };
+    if python.exists() && is_ready(&python) {
+        return python;
+    }
+    let made = Command::new("python3")
+        .args(["-m", "venv"])
+        .arg(&venv)
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run python3 to make {}: {e}", venv.display()));
+    assert!(
+        made.status.success(),
+        "python3 -m venv {} failed: {}",
+        venv.display(),
+        String::from_utf8_lossy(&made.stderr)
+    );
+    let pip = Command::new(&python)
+        .args([
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+        ])
+        .args(no_deps.then_some("--no-deps"))
+        .args(packages)
+        .output()
+        .expect("the virtual environment's python runs");
+    assert!(
+        pip.status.success(),
+        "pip could not install {} into {}: {}{}",
+        packages.join(" "),
+        venv.display(),
+        String::from_utf8_lossy(&pip.stdout),
+        String::from_utf8_lossy(&pip.stderr)
+    );
+    assert!(
+        is_ready(&python),
+        "{} was installed into {} but `{ready}` fails",
+        packages.join(" "),
+        venv.display()
+    );
+    python
 }
 
 /// A scratch directory for one test.
@@ -53,12 +113,17 @@ pub struct Sim {
 impl Sim {
     /// Start `forja-sim --listen` with `extra` arguments, and wait for its addresses.
     pub fn start(dir: &Path, extra: &[&str]) -> Sim {
+        Self::start_paced(dir, "4", extra)
+    }
+
+    /// [`Sim::start`] with virtual time `time_scale` times as fast as the wall clock.
+    pub fn start_paced(dir: &Path, time_scale: &str, extra: &[&str]) -> Sim {
         let pty = dir.join("tty");
         let mut child = Command::new(sim_binary())
             .args([
                 "--listen",
                 "--time-scale",
-                "4",
+                time_scale,
                 "--tcp-port",
                 "0",
                 "--pty-link",
@@ -210,5 +275,86 @@ pub fn settle(link: &[String], limit: Duration) -> Vec<(char, f64)> {
             return now;
         }
         last = now;
+    }
+}
+
+/// A program that drives a host (OctoPrint, CNCjs) in a process group of its own, the host's
+/// processes in it too, its output kept in a file: however the test ends, the whole group is
+/// killed.
+pub struct Driver {
+    child: Child,
+    out: PathBuf,
+    name: &'static str,
+    /// Whether `child` was waited for: its process group may then no longer be ours.
+    reaped: bool,
+}
+
+impl Driver {
+    /// Start `command` in a new process group, its standard output and error to `out`.
+    /// `name` names it in the report.
+    pub fn start(mut command: Command, out: PathBuf, name: &'static str) -> Driver {
+        let log = std::fs::File::create(&out).expect("the scratch directory is writable");
+        let child = command
+            .stdin(Stdio::null())
+            .stdout(log.try_clone().unwrap())
+            .stderr(log)
+            .process_group(0)
+            .spawn()
+            .unwrap_or_else(|e| panic!("{name} does not start: {e}"));
+        Driver {
+            child,
+            out,
+            name,
+            reaped: false,
+        }
+    }
+
+    /// Signal the whole group; only while the driver is not yet waited for, so that the group
+    /// id is still its own.
+    fn signal(&self, signal: &str) {
+        if !self.reaped {
+            let _ = Command::new("kill")
+                .args([signal, "--", &format!("-{}", self.child.id())])
+                .status();
+        }
+    }
+
+    /// Wait for the driver to end, at most `limit` (plus 10 s), then `grace` after asking its
+    /// group to stop; whether it succeeded and what it printed.
+    pub fn finish(mut self, limit: Duration, grace: Duration) -> (bool, String) {
+        let started = Instant::now();
+        let mut asked_to_stop = false;
+        let success = loop {
+            if let Some(status) = self.child.try_wait().expect("the driver can be waited for") {
+                self.reaped = true;
+                break status.success();
+            }
+            let spent = started.elapsed();
+            if !asked_to_stop && spent > limit + Duration::from_secs(10) {
+                self.signal("-TERM");
+                asked_to_stop = true;
+            }
+            if spent > limit + grace {
+                self.signal("-KILL");
+                let _ = self.child.wait();
+                self.reaped = true;
+                break false;
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        };
+        let mut report = std::fs::read_to_string(&self.out).unwrap_or_default();
+        if asked_to_stop {
+            report.push_str(&format!("({} was stopped at the time limit)\n", self.name));
+        }
+        (success, report)
+    }
+}
+
+impl Drop for Driver {
+    fn drop(&mut self) {
+        if !self.reaped {
+            self.signal("-KILL");
+            let _ = self.child.wait();
+        }
     }
 }

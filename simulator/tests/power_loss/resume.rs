@@ -260,8 +260,9 @@ fn look(host: &mut Host) -> Option<Look> {
     })
 }
 
-/// Send a G-code line and return the text lines that answer it, up to and with its `ok`;
-/// `None` if the link closes or nothing comes in time.
+/// Send a G-code line and return the text lines that answer it, up to and with its `ok`
+/// (without the `echo:busy: processing` of a long command); `None` if the link closes or
+/// nothing comes in time.
 fn command(host: &mut Host, line: &str) -> Option<Vec<String>> {
     host.send(format!("{line}\n").as_bytes());
     collect_until_ok(host)
@@ -271,7 +272,9 @@ fn collect_until_ok(host: &mut Host) -> Option<Vec<String>> {
     let deadline = Instant::now() + TIMEOUT;
     let mut lines = Vec::new();
     loop {
-        if let Reply::Text(t) = host.next(deadline)? {
+        if let Reply::Text(t) = host.next(deadline)?
+            && t != "echo:busy: processing"
+        {
             let ok = t == "ok" || t.starts_with("ok ");
             lines.push(t);
             if ok {
@@ -649,7 +652,7 @@ impl Resume<'_> {
         }
     }
 
-    /// `M1000` refused with `code`: the answer is `!! E<code> <name>` then `ok`, and the
+    /// `M1000` refused with `code`: the answer is `echo:E<code> <name>` then `ok`, and the
     /// machine has neither moved nor started a job a moment later.
     fn refused_resume(&mut self, host: &mut Host, code: &str, name: &str) {
         let Some(before) = look(host) else {

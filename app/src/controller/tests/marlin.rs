@@ -210,3 +210,86 @@ fn releasing_some_axes_keeps_the_drivers_energised_until_all_are_released() {
     assert_eq!(b.ask("M18 Z"), ["ok"]);
     assert!(!b.ctl.peripherals().motors);
 }
+
+#[test]
+fn planner_settings_are_stored_loaded_reset_and_reported() {
+    let mut b = Bench::new();
+    b.take();
+    let report = b.ask("M503");
+    assert_eq!(report.last().map(String::as_str), Some("ok"));
+    assert!(
+        report.contains(&"echo:  M92 X80.00 Y80.00 Z400.00".to_string()),
+        "{report:?}"
+    );
+    assert!(report.contains(&"echo:  M204".to_string()), "{report:?}");
+    assert_eq!(b.ask("M92 X100"), ["ok"]);
+    assert_eq!(b.ask("M204 P500 T900"), ["ok"]);
+    assert_eq!(b.ask("M500"), ["echo:Settings stored", "ok"]);
+    assert_eq!(
+        b.ask("M502"),
+        ["echo:Hardcoded default settings loaded", "ok"]
+    );
+    let report = b.ask("M503");
+    assert!(
+        report.contains(&"echo:  M92 X80.00 Y80.00 Z400.00".to_string()),
+        "{report:?}"
+    );
+    assert!(report.contains(&"echo:  M204".to_string()), "{report:?}");
+    assert_eq!(b.ask("M501"), ["echo:Stored settings retrieved", "ok"]);
+    let report = b.ask("M503");
+    assert!(
+        report.contains(&"echo:  M92 X100.00 Y80.00 Z400.00".to_string()),
+        "{report:?}"
+    );
+    assert!(
+        report.contains(&"echo:  M204 P500.00 T900.00".to_string()),
+        "{report:?}"
+    );
+    assert_eq!(b.ask("M500 X1"), ["echo:E127 unknown-axis X", "ok"]);
+    // Switched off and on: the stored path limits are the kernel's at once.
+    let (program, storage, physical) = b.power_off();
+    let mut b = Bench::boot(machine(), program, storage, physical);
+    b.take();
+    let report = b.ask("M503");
+    assert!(
+        report.contains(&"echo:  M204 P500.00 T900.00".to_string()),
+        "{report:?}"
+    );
+}
+
+#[test]
+fn m501_waits_for_the_motion_before_it() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("M92 X160"), ["ok"]);
+    assert_eq!(b.ask("M500"), ["echo:Settings stored", "ok"]);
+    assert_eq!(
+        b.ask("M502"),
+        ["echo:Hardcoded default settings loaded", "ok"]
+    );
+    assert_eq!(b.ask("G1 X10 F600"), ["ok"]);
+    b.send("M501");
+    b.run_ms(5);
+    assert!(b.take().is_empty(), "held while X moves");
+    b.run_until(5_000, |b| b.ctl.stats().oks == 5);
+    assert_eq!(b.take(), ["echo:Stored settings retrieved", "ok"]);
+    assert_eq!(b.position_mm()[0], 10.0);
+    assert_eq!(b.ctl.kernel().machine_steps()[0], 1600);
+}
+
+#[test]
+fn g4_answers_after_the_motion_before_it_and_its_dwell() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("G1 X20 F1200"), ["ok"]);
+    b.send("G4 P500");
+    b.send("M105");
+    b.run_ms(50);
+    assert!(b.take().is_empty(), "held while X moves");
+    b.run_until(10_000, |b| b.ctl.stats().oks == 3);
+    assert!(b.ctl.kernel().is_idle());
+    assert_eq!(b.position_mm()[0], 20.0);
+    let out = b.take();
+    assert_eq!(out[0], "ok", "{out:?}");
+    assert!(out[1].starts_with("ok T:"), "{out:?}");
+}
