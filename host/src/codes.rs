@@ -54,6 +54,13 @@ pub fn meaning(code: u16) -> Option<&'static str> {
             "no upload is in progress on this link (the controller restarted, or another host \
              took over): upload the program again (forja upload FILE)"
         }
+        176 => "no file of that name on the controller's card",
+        177 => "the controller's card has no room for the file",
+        178 => {
+            "the file name is not one the card takes (1 to 63 printable characters, no \
+                spaces, slashes or * : < > ? | ;)"
+        }
+        179 => "a file is being written on the card already",
         180 => "no program is stored: upload one first (forja upload FILE)",
         181 => "no job is running",
         182 => "a job is running: stop it first (forja stop)",
@@ -66,6 +73,7 @@ pub fn meaning(code: u16) -> Option<&'static str> {
         186 => "there is no interrupted job to resume",
         187 => "home the machine before resuming the job (forja home)",
         188 => "the stored program changed since the job was interrupted: it cannot be resumed",
+        189 => "no file is selected: select one first (M23 name)",
         190 => "the controller has no such setting",
         191 => "the setting's value is not valid",
         192 => "the controller does not send that message on request",
@@ -75,6 +83,8 @@ pub fn meaning(code: u16) -> Option<&'static str> {
         196 => "a device output failed",
         197 => "the controller's receive queue was full: the line was not run",
         198 => "the line was waiting when the machine was stopped or reset: it was not run",
+        199 => "no file is being written on the card (M29 without M28)",
+        220 => "the controller's card failed",
         210..=214 => "a heater shut itself down (thermal fault)",
         215 => "the temperature is above the heater's maximum target",
         230..=238 => "the controller's settings storage failed",

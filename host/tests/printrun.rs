@@ -92,3 +92,36 @@ fn printrun_streams_a_job_through_a_damaging_link_and_every_move_runs_once() {
         .unwrap_or(0);
     assert!(corrupted > 0, "the link damaged nothing: {summary:?}");
 }
+
+#[test]
+fn printrun_streams_a_sliced_job_with_no_line_refused() {
+    let python = printrun_python();
+    let dir = scratch("printrun-sliced");
+    let sim = Sim::start_paced(&dir, "8", &["--machine", "builtin:printer"]);
+    let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/corpus/slicers/cura.gcode");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/printrun/stream.py");
+    let out = Command::new(&python)
+        .arg(&script)
+        .arg(&sim.pty)
+        .arg(&job)
+        .arg("240")
+        .output()
+        .expect("the Printrun script runs");
+    let report = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "Printrun failed:\n{report}");
+    assert!(report.contains("printrun: done"), "{report}");
+    let summary = sim.stop();
+    let controller = summary
+        .iter()
+        .find(|l| l.starts_with("controller:"))
+        .unwrap_or_else(|| panic!("no controller summary: {summary:?}"));
+    println!("{report}{controller}");
+    assert!(
+        controller.contains(" 0 refused"),
+        "a line of the sliced job was refused: {controller}\n{report}"
+    );
+}
