@@ -33,6 +33,27 @@ fn printrun_python() -> PathBuf {
     )
 }
 
+/// Stream `file` to the pseudo-terminal `pty` with Printrun's `printcore`, within `seconds`;
+/// what it printed. The test fails if printcore does not finish the job.
+fn stream(python: &Path, pty: &Path, file: &Path, seconds: u32) -> String {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/printrun/stream.py");
+    let out = Command::new(python)
+        .arg(&script)
+        .arg(pty)
+        .arg(file)
+        .arg(seconds.to_string())
+        .output()
+        .expect("the Printrun script runs");
+    let report = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "Printrun failed:\n{report}");
+    assert!(report.contains("printrun: done"), "{report}");
+    report
+}
+
 #[test]
 fn printrun_streams_a_job_through_a_damaging_link_and_every_move_runs_once() {
     let python = printrun_python();
@@ -54,21 +75,7 @@ fn printrun_streams_a_job_through_a_damaging_link_and_every_move_runs_once() {
     let link = with(&sim.pty_args(), &[]);
     let before = positions(&link);
     let (x0, y0) = (axis(&before, 'X'), axis(&before, 'Y'));
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/printrun/stream.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .arg(&sim.pty)
-        .arg(&file)
-        .arg("120")
-        .output()
-        .expect("the Printrun script runs");
-    let report = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(out.status.success(), "Printrun failed:\n{report}");
-    assert!(report.contains("printrun: done"), "{report}");
+    let report = stream(&python, &sim.pty, &file, 120);
     let at = settle(&link, Duration::from_secs(30));
     let (x, y) = (axis(&at, 'X'), axis(&at, 'Y'));
     assert!(
@@ -99,21 +106,7 @@ fn printrun_streams_a_sliced_job_with_no_line_refused() {
     let dir = scratch("printrun-sliced");
     let sim = Sim::start_paced(&dir, "8", &["--machine", "builtin:printer"]);
     let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/corpus/slicers/cura.gcode");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/printrun/stream.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .arg(&sim.pty)
-        .arg(&job)
-        .arg("240")
-        .output()
-        .expect("the Printrun script runs");
-    let report = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(out.status.success(), "Printrun failed:\n{report}");
-    assert!(report.contains("printrun: done"), "{report}");
+    let report = stream(&python, &sim.pty, &job, 240);
     let summary = sim.stop();
     let controller = summary
         .iter()

@@ -1,10 +1,6 @@
 //! `forja-sim --plot` on printer jobs: the slicer corpus, layers chosen with `--plot-layers`,
 //! and the errors of a bad choice.
 
-#[allow(
-    dead_code,
-    reason = "only `sim` is needed here: no simulator is kept running"
-)]
 mod common;
 
 use std::path::{Path, PathBuf};

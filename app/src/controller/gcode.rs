@@ -650,13 +650,7 @@ where
                 if self.heat_done(wait) {
                     self.ok(out);
                 } else {
-                    self.link.held = Some(Held::Heat {
-                        wait,
-                        next_report_ms: self
-                            .clock
-                            .ms
-                            .wrapping_add(self.config.report_period_ms.max(1)),
-                    });
+                    self.hold_for_heat(wait);
                 }
             }
             Done::Stop(kind) => {

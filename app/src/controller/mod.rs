@@ -1188,17 +1188,23 @@ where
             if self.heat_done(wait) {
                 self.end_heat_wait(out);
             } else if self.clock.reached(next_report_ms) {
-                self.link.held = Some(Held::Heat {
-                    wait,
-                    next_report_ms: self
-                        .clock
-                        .ms
-                        .wrapping_add(self.config.report_period_ms.max(1)),
-                });
+                self.hold_for_heat(wait);
                 self.report_temperatures(out);
             }
         }
         self.host_reports(out);
+    }
+
+    /// Hold the link's lines for the heating wait `wait`, its next report one report period
+    /// from now.
+    fn hold_for_heat(&mut self, wait: HeatWait) {
+        self.link.held = Some(Held::Heat {
+            wait,
+            next_report_ms: self
+                .clock
+                .ms
+                .wrapping_add(self.config.report_period_ms.max(1)),
+        });
     }
 
     /// End an `M109`/`M190`/`M116` of the link: its `ok` goes out.

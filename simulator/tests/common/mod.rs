@@ -1,4 +1,6 @@
-//! What the tests that run the `forja-sim` binary share.
+//! What the tests that run the `forja-sim` binary share. Each test uses what it needs.
+
+#![allow(dead_code)]
 
 use std::process::{Child, Command};
 
