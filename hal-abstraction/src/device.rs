@@ -4,7 +4,9 @@
 //! Each trait is one thing a driver can do, object-safe, so that the application holds a
 //! board's devices uniformly (`&mut dyn FanControl`, …) and a board lists what it has. Motor
 //! power ([`crate::stepper::StepperEnable`]) and end-stops ([`crate::limit::LimitSwitch`]) are
-//! devices too, with their own traits.
+//! devices too, with their own traits. A touch probe is a switch read by the step interrupt as
+//! an end-stop is, and fulfils [`crate::limit::LimitSwitch`]; a file store (an SD card) is
+//! [`crate::files::FileStore`].
 //!
 //! # Contract
 //!
@@ -24,7 +26,7 @@
 //!
 //! | trait | what | G-code (in `forja-app`) |
 //! |---|---|---|
-//! | [`TemperatureControl`] | one controlled zone: a hot end, a bed | `M104`/`M109`/`M140`/`M116`/`M105` |
+//! | [`TemperatureControl`] | one controlled zone: a hot end, a bed | `M104`/`M109`/`M140`/`M190`/`M116`/`M105`/`M155` |
 //! | [`FanControl`] | a fan, duty 0–255 | `M106`/`M107` |
 //! | [`SpindleControl`] | a spindle (or a laser), direction and speed | `M3`/`M4`/`M5` |
 //! | [`CoolantControl`] | mist and flood coolant | `M7`/`M8`/`M9` |
