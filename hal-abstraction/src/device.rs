@@ -30,7 +30,7 @@
 //! | [`FanControl`] | a fan, duty 0–255 | `M106`/`M107` |
 //! | [`SpindleControl`] | a spindle (or a laser), direction and speed | `M3`/`M4`/`M5` |
 //! | [`CoolantControl`] | mist and flood coolant | `M7`/`M8`/`M9` |
-//! | [`DigitalOutput`] | one general-purpose output, on or off | (none yet) |
+//! | [`DigitalOutput`] | one general-purpose output, on or off; the power supply's switch | `M42`; `M80`/`M81` |
 
 use core::fmt;
 

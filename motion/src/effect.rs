@@ -34,8 +34,10 @@ pub enum Sync {
 pub enum Heater {
     /// An extruder's hot end: the `T` word of the command, or the current tool (`None`).
     Extruder(Option<u8>),
-    /// The bed (`M140`).
+    /// The bed (`M140`, `M190`).
     Bed,
+    /// The chamber (`M141`).
+    Chamber,
 }
 
 /// Whether and how a heater command holds further lines (`M109`, `M190`).
@@ -200,6 +202,19 @@ pub enum Effect<'l> {
     /// `M113 S<seconds>`: the period of `busy: processing` while a command blocks (0: never);
     /// `None` (no `S`) asks for the period.
     BusyInterval(Option<u8>),
+    /// `M42 P<index> S<0–255>`: a general-purpose output on (`S` above 0) or off, at once.
+    Output {
+        /// The output's index (`P`).
+        index: u8,
+        /// On or off.
+        on: bool,
+    },
+    /// `M80` (on, at once), `M81` (off, after the motion before it): the machine's power
+    /// supply.
+    PowerSupply {
+        /// On or off.
+        on: bool,
+    },
     /// `M226`: the program pauses here (motion before it is done); [`crate::Kernel::resume`]
     /// continues.
     Paused,
@@ -221,6 +236,7 @@ impl Effect<'_> {
             | Self::Stopped(StopKind::Program)
             | Self::Paused
             | Self::MotionDone
+            | Self::PowerSupply { on: false }
             | Self::ProgramEnd => Sync::AfterMotion,
             _ => Sync::Now,
         }
@@ -290,6 +306,8 @@ impl Effect<'_> {
             Effect::HostMessage(t) => Effect::HostMessage(r(t)),
             Effect::AutoReport { seconds } => Effect::AutoReport { seconds },
             Effect::BusyInterval(s) => Effect::BusyInterval(s),
+            Effect::Output { index, on } => Effect::Output { index, on },
+            Effect::PowerSupply { on } => Effect::PowerSupply { on },
         }
     }
 }

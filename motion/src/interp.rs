@@ -28,6 +28,7 @@
 //! | `M0`, `M112`, `M226` | stop, emergency stop, pause |
 //! | `M3`–`M5`, `M7`–`M9`, `M73`, `M104`–`M107`, `M109`, `M110`, `M113`, `M115`–`M119`, `M140`, `M155`, `M190`, `M400`, `M410`, `M20`–`M30`, `M32`, `T` | returned as [`crate::Effect`]s |
 //! | `M900` | linear advance: `K0` (none, what this planner does) is taken, another factor refused |
+//! | `M42`, `M80`, `M81`, `M141` | an output, the power supply, the chamber: returned as [`crate::Effect`]s |
 //!
 //! ## Planner settings and overrides
 //!
@@ -894,7 +895,21 @@ impl<const N: usize> Interpreter<N> {
             (b'M', 7) => Action::Effect(Effect::Coolant(Coolant::Mist)),
             (b'M', 8) => Action::Effect(Effect::Coolant(Coolant::Flood)),
             (b'M', 9) => Action::Effect(Effect::Coolant(Coolant::Off)),
-            (b'M', 104 | 109 | 140 | 190) => {
+            (b'M', 42) => {
+                let index = line
+                    .get(b'P')
+                    .ok_or(CommandError::MissingValue { letter: b'P' })?;
+                let value = match s {
+                    Some(v) => small_int(v, b'S', 255)?,
+                    None => return Err(CommandError::MissingValue { letter: b'S' }),
+                };
+                Action::Effect(Effect::Output {
+                    index: small_int(index, b'P', 255)? as u8,
+                    on: value > 0,
+                })
+            }
+            (b'M', 80 | 81) => Action::Effect(Effect::PowerSupply { on: n == 80 }),
+            (b'M', 104 | 109 | 140 | 141 | 190) => {
                 let waits = matches!(n, 109 | 190);
                 let (celsius, wait) = match (s, line.get(b'R')) {
                     (Some(s), _) if waits => (s, TemperatureWait::Heating),
@@ -902,7 +917,9 @@ impl<const N: usize> Interpreter<N> {
                     (None, Some(r)) if waits => (r, TemperatureWait::Reach),
                     _ => return Err(CommandError::MissingValue { letter: b'S' }),
                 };
-                let heater = if matches!(n, 140 | 190) {
+                let heater = if n == 141 {
+                    Heater::Chamber
+                } else if matches!(n, 140 | 190) {
                     Heater::Bed
                 } else {
                     let t = match line.get(b'T') {

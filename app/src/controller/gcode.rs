@@ -554,9 +554,16 @@ where
                 }
                 let zones = match heater {
                     Heater::Bed => HeatZones::Bed,
+                    Heater::Chamber => HeatZones::Chamber,
                     Heater::Extruder(_) => HeatZones::HotEnd,
                 };
                 match (devices.set_temperature(heater, mc), wait) {
+                    (Err(e @ PeripheralError::NoDevice), _) => match heater {
+                        Heater::Extruder(Some(t)) => device(e, format_args!("hot end {t}")),
+                        Heater::Extruder(None) => device(e, format_args!("hot end")),
+                        Heater::Bed => device(e, format_args!("bed")),
+                        Heater::Chamber => device(e, format_args!("chamber")),
+                    },
                     (Err(e), _) => Done::Refused(Refusal::new(&e)),
                     (Ok(()), TemperatureWait::No) => Done::Ok,
                     (Ok(()), TemperatureWait::Heating) => Done::Wait(HeatWait {
@@ -602,6 +609,14 @@ where
             },
             Effect::Stopped(kind) => Done::Stop(kind),
             Effect::MotionDone => Done::Ok,
+            Effect::Output { index, on } => match devices.set_output(index, on) {
+                Ok(()) => Done::Ok,
+                Err(e) => device(e, format_args!("output {index}")),
+            },
+            Effect::PowerSupply { on } => match devices.set_power_supply(on) {
+                Ok(()) => Done::Ok,
+                Err(e) => device(e, format_args!("power-supply")),
+            },
             Effect::QuickStop => Done::QuickStop,
             Effect::Progress {
                 percent,

@@ -17,7 +17,8 @@
 use core::fmt;
 
 use forja_hal_abstraction::device::{
-    CoolantControl, DeviceError, FanControl, Rotation, SpindleControl, TemperatureControl,
+    CoolantControl, DeviceError, DigitalOutput, FanControl, Rotation, SpindleControl,
+    TemperatureControl,
 };
 use forja_hal_abstraction::files::FileStore;
 use forja_protocol::error::WireError;
@@ -127,6 +128,22 @@ pub trait Peripherals<const N: usize> {
         None
     }
 
+    /// The heated chamber (`M141`).
+    fn chamber(&mut self) -> Option<&mut dyn TemperatureControl> {
+        None
+    }
+
+    /// General-purpose output `index`, the `P` word of `M42` (0 to 255).
+    fn output(&mut self, index: u8) -> Option<&mut dyn DigitalOutput> {
+        let _ = index;
+        None
+    }
+
+    /// The output that switches the machine's power supply (`M80`, `M81`).
+    fn power_supply(&mut self) -> Option<&mut dyn DigitalOutput> {
+        None
+    }
+
     /// Fan `index`, the `P` word of `M106`/`M107` (0 to 255).
     fn fan(&mut self, index: u8) -> Option<&mut dyn FanControl> {
         let _ = index;
@@ -171,6 +188,15 @@ impl<const N: usize, T: Peripherals<N> + ?Sized> Peripherals<N> for &mut T {
     }
     fn bed(&mut self) -> Option<&mut dyn TemperatureControl> {
         T::bed(self)
+    }
+    fn chamber(&mut self) -> Option<&mut dyn TemperatureControl> {
+        T::chamber(self)
+    }
+    fn output(&mut self, index: u8) -> Option<&mut dyn DigitalOutput> {
+        T::output(self, index)
+    }
+    fn power_supply(&mut self) -> Option<&mut dyn DigitalOutput> {
+        T::power_supply(self)
     }
     fn fan(&mut self, index: u8) -> Option<&mut dyn FanControl> {
         T::fan(self, index)
@@ -235,6 +261,8 @@ pub(crate) enum HeatZones {
     HotEnd,
     /// `M190`: the bed.
     Bed,
+    /// The chamber.
+    Chamber,
     /// `M116`: every heater.
     All,
 }
@@ -299,6 +327,7 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
         match heater {
             Heater::Extruder(None | Some(0)) => self.parts.hot_end(),
             Heater::Bed => self.parts.bed(),
+            Heater::Chamber => self.parts.chamber(),
             Heater::Extruder(Some(_)) => None,
         }
     }
@@ -333,7 +362,25 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
             || self.parts.hot_end().is_none_or(check);
         let bed = !matches!(wait.zones, HeatZones::Bed | HeatZones::All)
             || self.parts.bed().is_none_or(check);
-        hot_end && bed
+        let chamber = !matches!(wait.zones, HeatZones::Chamber | HeatZones::All)
+            || self.parts.chamber().is_none_or(check);
+        hot_end && bed && chamber
+    }
+
+    /// Switch general-purpose output `index` (`M42`).
+    ///
+    /// Errors: [`PeripheralError::NoDevice`], a device fault.
+    pub(crate) fn set_output(&mut self, index: u8, on: bool) -> Result<(), PeripheralError> {
+        let output = self.parts.output(index).ok_or(PeripheralError::NoDevice)?;
+        Ok(output.set_on(on)?)
+    }
+
+    /// Switch the power supply (`M80`, `M81`).
+    ///
+    /// Errors: [`PeripheralError::NoDevice`], a device fault.
+    pub(crate) fn set_power_supply(&mut self, on: bool) -> Result<(), PeripheralError> {
+        let supply = self.parts.power_supply().ok_or(PeripheralError::NoDevice)?;
+        Ok(supply.set_on(on)?)
     }
 
     /// Run fan `index` at `duty` out of 255 (`M106`, `M107`).
@@ -421,6 +468,9 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
             f(zone);
         }
         if let Some(zone) = self.parts.bed() {
+            f(zone);
+        }
+        if let Some(zone) = self.parts.chamber() {
             f(zone);
         }
     }

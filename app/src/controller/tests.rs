@@ -16,7 +16,8 @@ use super::settings::tests::VecStorage;
 use super::*;
 use crate::job::JobState;
 use forja_hal_abstraction::device::{
-    CoolantControl, DeviceError, FanControl, Rotation, SpindleControl, TemperatureControl,
+    CoolantControl, DeviceError, DigitalOutput, FanControl, Rotation, SpindleControl,
+    TemperatureControl,
 };
 use forja_hal_abstraction::files::{FileStore, RamFileStore};
 use forja_hal_abstraction::program::{ProgramStore, RamStore};
@@ -148,6 +149,17 @@ impl TemperatureControl for FakeZone {
     }
 }
 
+/// An output that records whether it is on.
+#[derive(Default)]
+struct FakeOutput(bool);
+
+impl DigitalOutput for FakeOutput {
+    fn set_on(&mut self, on: bool) -> Result<(), DeviceError> {
+        self.0 = on;
+        Ok(())
+    }
+}
+
 /// A fan that records its duty.
 struct FakeFan(u8);
 
@@ -211,6 +223,10 @@ struct Fake {
     hot: FakeZone,
     bed: FakeZone,
     fans: [FakeFan; 2],
+    /// `M42` outputs 0 and 1.
+    outputs: [FakeOutput; 2],
+    /// The power supply's switch (`M80`, `M81`).
+    psu: FakeOutput,
     spindle: FakeSpindle,
     /// `None`: the board has no coolant.
     coolant: Option<FakeCoolant>,
@@ -227,6 +243,8 @@ impl Fake {
             hot: FakeZone::ambient(),
             bed: FakeZone::ambient(),
             fans: [FakeFan(0), FakeFan(0)],
+            outputs: [FakeOutput(false), FakeOutput(false)],
+            psu: FakeOutput(false),
             spindle: FakeSpindle::default(),
             coolant: Some(FakeCoolant::default()),
             motors: false,
@@ -247,6 +265,13 @@ impl Peripherals<3> for Fake {
     fn fan(&mut self, index: u8) -> Option<&mut dyn FanControl> {
         let fan = self.fans.get_mut(usize::from(index))?;
         Some(fan)
+    }
+    fn output(&mut self, index: u8) -> Option<&mut dyn DigitalOutput> {
+        let output = self.outputs.get_mut(usize::from(index))?;
+        Some(output)
+    }
+    fn power_supply(&mut self) -> Option<&mut dyn DigitalOutput> {
+        Some(&mut self.psu)
     }
     fn spindle(&mut self) -> Option<&mut dyn SpindleControl> {
         Some(&mut self.spindle)

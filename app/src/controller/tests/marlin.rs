@@ -293,3 +293,31 @@ fn g4_answers_after_the_motion_before_it_and_its_dwell() {
     assert_eq!(out[0], "ok", "{out:?}");
     assert!(out[1].starts_with("ok T:"), "{out:?}");
 }
+
+#[test]
+fn outputs_the_power_supply_and_a_device_the_board_lacks() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("M42 P1 S255"), ["ok"]);
+    assert!(b.ctl.peripherals().outputs[1].0 && !b.ctl.peripherals().outputs[0].0);
+    assert_eq!(b.ask("M42 P1 S0"), ["ok"]);
+    assert!(!b.ctl.peripherals().outputs[1].0);
+    assert_eq!(b.ask("M42 P7 S1"), ["echo:E194 no-device output 7", "ok"]);
+    assert_eq!(b.ask("M42 S1"), ["echo:E122 missing-value P", "ok"]);
+    assert_eq!(b.ask("M80"), ["ok"]);
+    assert!(b.ctl.peripherals().psu.0);
+    // `M81` waits for the motion before it.
+    assert_eq!(b.ask("G1 X20 F1200"), ["ok"]);
+    b.send("M81");
+    b.run_ms(50);
+    assert!(b.take().is_empty() && b.ctl.peripherals().psu.0);
+    b.run_until(10_000, |b| b.ctl.stats().oks == 7);
+    assert_eq!(b.take(), ["ok"]);
+    assert!(!b.ctl.peripherals().psu.0);
+    assert_eq!(b.position_mm()[0], 20.0);
+    assert_eq!(b.ask("M141 S40"), ["echo:E194 no-device chamber", "ok"]);
+    assert_eq!(
+        b.ask("M104 T1 S200"),
+        ["echo:E194 no-device hot end 1", "ok"]
+    );
+}
