@@ -133,7 +133,7 @@ pub struct Config {
     /// With no line in flight by the count but some not known to be accepted, and no answer
     /// for this long, the first of them is sent again.
     pub quiet_timeout: Duration,
-    /// A `!!` not followed by a line's `ok` within this long is an alarm.
+    /// An `Error:` (or `!!`) not followed by a line's `ok` within this long is an alarm.
     pub alarm_grace: Duration,
     /// The check written after `*` on every numbered line, the handshake's `M110` included:
     /// [`Check::Crc16`] for a controller that announces `LINE_CHECK:CRC16` in its `M115`

@@ -1,7 +1,7 @@
 //! Errors of the motion kernel and their stable wire codes.
 //!
 //! Every error has a numeric code in `100..=199` that never changes meaning: it goes on the
-//! wire as `!! E<code> <text>` on a G-code link and as `Error:<text>` in a frame (message 56).
+//! wire as `echo:E<code> <text>` (a refusal) or `Error:E<code> <text>` (a fault) on a G-code link and as `Error:<text>` in a frame (message 56).
 //! Senders may match on the code; the text is for people.
 //!
 //! | code | error | meaning |

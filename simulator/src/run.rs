@@ -89,7 +89,7 @@ pub struct JobRun {
     pub accepted: usize,
     /// The streamer's counters.
     pub sender: Stats,
-    /// The `!!` lines received (refused lines and faults), in order.
+    /// The refusals (`echo:E…`, `echo:Unknown command`) and faults (`Error:`) received, in order.
     pub faults: Vec<String>,
     /// The controller's view.
     pub controller: ControllerStats,

@@ -35,7 +35,7 @@ where
     /// - a G-code host that numbers its lines is asked to resend the expected line, which the
     ///   garbage may have held;
     /// - a G-code host that does not number its lines gets, when text was lost (its line was
-    ///   dropped, not run), `!! E8 bad-character` then `ok`, so that it is not left waiting;
+    ///   dropped, not run), `echo:E8 bad-character` then `ok`, so that it is not left waiting;
     ///   control bytes alone between its lines cost no line and get no reply (an `ok` it did
     ///   not ask for would be taken for the answer to its next line).
     pub(super) fn on_garbage_run<W: Write>(&mut self, text: bool, out: &mut W) {

@@ -379,7 +379,7 @@ where
     }
 
     /// A line that failed its transport checks (`rs <expected>` alone) or that cannot be run
-    /// (`!!` then `ok`), as [`forja_protocol::gcode::LineNumbering::recover`] decides — except
+    /// (`echo:E<code>` then `ok`), as [`forja_protocol::gcode::LineNumbering::recover`] decides — except
     /// that a numbered line that passed its checksum but is not G-code is asked for once more
     /// first: the XOR checksum misses some double faults (two equal bytes dropped), which a
     /// resend repairs; a line that comes back the same is refused and its number used up. The

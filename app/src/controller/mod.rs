@@ -36,22 +36,25 @@
 //! - **Frames** (pause, stop, start, positions and progress on request, …) are carried out at
 //!   once, and so is **`M112`**, recognised by its command word alone (after an optional `N`
 //!   number, whatever its checksum), as Marlin's emergency parser does: the machine stops and
-//!   `!! E153 emergency-stop` goes out; every line received before it and not yet taken is then
-//!   answered in order without being run (`!! E125 alarm-locked` then `ok`; a `G28`, `M109` or
-//!   `M116` that was waiting gets its `ok`, since it ran), and the `M112` line gets its `ok` last,
-//!   after its number was checked like any line's.
+//!   `Error:E153 emergency-stop` goes out; every line received before it and not yet taken is
+//!   then answered in order without being run (`echo:E125 alarm-locked` then `ok`; a `G28`,
+//!   `G4`, `M109`, `M190` or `M116` that was waiting gets its `ok`, since it ran), and the
+//!   `M112` line gets its `ok` last, after its number was checked like any line's.
 //! - **Frame `Stop` and frame `Reset`** likewise answer every line received before them and
-//!   not yet taken in order without running it (`!! E198 stopped` then `ok`, with the same
+//!   not yet taken in order without running it (`echo:E198 stopped` then `ok`, with the same
 //!   exceptions as after `M112`), so that nothing sent before the stop moves the machine after
 //!   it: a waiting line damaged on the link is refused too, not asked again, its number used
 //!   up. Lines received after the frame run as usual.
-//! - **`M108`** ends an `M109`/`M116` wait (of the link or of the stored program) at once; the
-//!   line itself then waits its turn and gets its `ok` in order.
+//! - **`M108`** ends an `M109`/`M190`/`M116` wait (of the link or of the stored program) at
+//!   once, and **`M410`** stops the motion as frame `Stop` does; the line itself then waits its
+//!   turn and gets its `ok` in order.
 //! - **Other G-code lines** run at once when nothing is waiting. When the kernel answers
 //!   [`Reply::Busy`](forja_motion::Reply::Busy) (the planner is full, an effect waits for the motion
 //!   before it, `M226` paused the machine), the line is copied aside and offered again at each
-//!   poll; `G28` waits for the end of its homing cycle, `M109` and `M116` for the heaters (with a
-//!   `// T:… B:…` line every [`ControllerConfig::report_period_ms`]). Meanwhile the lines that
+//!   poll; `G28` waits for the end of its homing cycle, `G4` for the motion before it and its
+//!   dwell (`echo:busy: processing` every 2 s meanwhile), `M109`, `M190` and `M116` for the
+//!   heaters (with a ` T:… /… B:… /…` report every [`ControllerConfig::report_period_ms`]).
+//!   Meanwhile the lines that
 //!   follow go to a receive queue, in order, with over-long lines and runs of garbage: each is
 //!   checked (syntax, line number, checksum) and answered only when its turn comes, exactly as
 //!   if it arrived then, so each gets exactly one `ok` (or `rs`), in the order received, and
@@ -271,13 +274,13 @@ pub struct PollOutcome {
 /// Counters of what the controller did, wrapping.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Stats {
-    /// G-code lines answered with `ok` (taken, done, or refused with `!!` first).
+    /// G-code lines answered with `ok` (taken, done, or refused with `echo:E<code>` first).
     pub oks: u32,
     /// G-code lines taken by the kernel (carried out or queued).
     pub executed: u32,
     /// `rs` replies sent.
     pub resends: u32,
-    /// G-code lines refused (`!!` then `ok`).
+    /// G-code lines refused (`echo:E<code>` or `echo:Unknown command` then `ok`).
     pub refused: u32,
     /// Frames received.
     pub frames: u32,
@@ -287,7 +290,7 @@ pub struct Stats {
     pub garbage_runs: u32,
     /// Stored program lines fed to the kernel by the job.
     pub program_lines: u32,
-    /// Faults reported unsolicited (`!!` or 56): alarms, thermal faults, `M112`.
+    /// Faults reported unsolicited (`Error:` or 56): alarms, thermal faults, `M112`.
     pub faults: u32,
 }
 
