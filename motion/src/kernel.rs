@@ -754,11 +754,12 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
     }
 
-    /// Take a whole set of planner settings at once (the steps per unit, maximum accelerations
-    /// and rates, path limits and junction deviation of `settings`; its letters and overrides
-    /// are not read): what a controller's `M501` (the stored settings) and `M502` (the
-    /// defaults) do, and a board's start with stored path limits. Steps per unit change by
-    /// `M92`'s rule (the machine keeps its millimetres).
+    /// Take a whole set of planner settings at once: the steps per unit, maximum accelerations
+    /// and rates and the junction deviation of `machine` (its other fields are not read), and
+    /// the path limits `path`. What a controller's `M501` (the stored settings) and `M502`
+    /// (the defaults) do, and a board's start with stored path limits. Steps per unit change
+    /// by `M92`'s rule (the machine keeps its millimetres); a rate below an axis's homing
+    /// speeds lowers them, as `M203` does.
     ///
     /// Returns [`Reply::Busy`] until the machine is idle (nothing changes meanwhile), like
     /// `M92`. Errors: the configuration it makes is not valid, or cannot be stepped
@@ -767,27 +768,29 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// nothing changes.
     pub fn set_planner_settings(
         &mut self,
-        settings: &PlannerSettings<N>,
+        machine: &MachineConfig<N>,
+        path: PathLimits,
     ) -> Result<Reply<'static, N>, CommandError> {
         if !self.is_idle() || self.homing.is_some() {
             return Ok(Reply::Busy);
         }
         let mut c = self.config.clone();
         let change = [
-            LimitChange::AxisAccel(settings.max_accel_mm_s2.map(Some)),
-            LimitChange::AxisRate(settings.max_rate_mm_s.map(|r| Some(r * 60.0))),
+            LimitChange::AxisAccel(core::array::from_fn(|i| Some(machine.axes[i].accel_mm_s2))),
+            LimitChange::AxisRate(core::array::from_fn(|i| {
+                Some(machine.axes[i].max_rate_mm_min)
+            })),
         ];
-        let mut limits = settings.path;
+        let mut limits = path;
         for ch in &change {
             ch.apply(&mut c, &mut limits);
         }
-        for (a, spm) in c.axes.iter_mut().zip(settings.steps_per_mm) {
-            a.steps_per_mm = spm;
+        for (a, from) in c.axes.iter_mut().zip(&machine.axes) {
+            a.steps_per_mm = from.steps_per_mm;
         }
-        c.junction_deviation_mm = settings.junction_deviation_mm;
+        c.junction_deviation_mm = machine.junction_deviation_mm;
         let accel_ok = |v: Option<f32>| v.is_none_or(|v| v.is_finite() && v > 0.0);
         let feed_ok = |v: f32| v.is_finite() && v >= 0.0;
-        let path = settings.path;
         if !(accel_ok(path.print_accel_mm_s2)
             && accel_ok(path.retract_accel_mm_s2)
             && accel_ok(path.travel_accel_mm_s2)

@@ -368,25 +368,30 @@ fn a_whole_set_of_settings_waits_for_idle_and_keeps_the_millimetres() {
     let mut q = StepQueue::<4, 256>::new();
     let mut s = sim(&mut q, printer(), HZ);
     assert_eq!(exec(&mut s, "G1 X10 F3000"), Ok(Reply::Ok));
-    let mut settings = s.kernel.planner_settings();
-    settings.steps_per_mm[0] = 160.0;
-    settings.max_accel_mm_s2[1] = 500.0;
-    settings.path = PathLimits {
+    let mut machine = printer();
+    machine.axes[0].steps_per_mm = 160.0;
+    machine.axes[1].accel_mm_s2 = 500.0;
+    let path = PathLimits {
         print_accel_mm_s2: Some(800.0),
         ..PathLimits::NONE
     };
-    assert_eq!(s.kernel.set_planner_settings(&settings), Ok(Reply::Busy));
+    assert_eq!(
+        s.kernel.set_planner_settings(&machine, path),
+        Ok(Reply::Busy)
+    );
     assert_eq!(s.kernel.planner_settings().steps_per_mm[0], 80.0);
     assert!(s.run_until_idle(10 * u64::from(HZ)));
-    let mut bad = settings;
-    bad.path.travel_accel_mm_s2 = Some(f32::NAN);
-    assert!(s.kernel.set_planner_settings(&bad).is_err());
+    let bad = PathLimits {
+        travel_accel_mm_s2: Some(f32::NAN),
+        ..path
+    };
+    assert!(s.kernel.set_planner_settings(&machine, bad).is_err());
     assert_eq!(s.kernel.planner_settings().path, PathLimits::NONE);
-    assert_eq!(s.kernel.set_planner_settings(&settings), Ok(Reply::Ok));
+    assert_eq!(s.kernel.set_planner_settings(&machine, path), Ok(Reply::Ok));
     let now = s.kernel.planner_settings();
     assert_eq!(
         (now.steps_per_mm[0], now.max_accel_mm_s2[1], now.path),
-        (160.0, 500.0, settings.path)
+        (160.0, 500.0, path)
     );
     assert_eq!(s.kernel.machine_steps()[0], 1600, "X10 at 160 steps/mm");
     assert!((s.kernel.position().work_mm[0] - 10.0).abs() < 1e-9);

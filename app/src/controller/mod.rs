@@ -812,9 +812,10 @@ where
         let mut c = self.core;
         // The stored path limits (`M204`, `M205 S T`): the kernel was built from the
         // machine configuration alone, and is idle.
-        let mut planner = c.kernel.planner_settings();
-        planner.path = settings.path_limits();
-        let _ = c.kernel.set_planner_settings(&planner);
+        let machine = c.kernel.config().clone();
+        let _ = c
+            .kernel
+            .set_planner_settings(&machine, settings.path_limits());
         Controller {
             decoder: self.decoder,
             input: self.input,

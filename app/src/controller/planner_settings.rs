@@ -159,15 +159,7 @@ where
         path: PathLimits,
         message: &'static str,
     ) -> Result<Option<&'static str>, Refusal> {
-        let mut settings = self.kernel.planner_settings();
-        for (i, a) in machine.axes.iter().enumerate() {
-            settings.steps_per_mm[i] = a.steps_per_mm;
-            settings.max_accel_mm_s2[i] = a.accel_mm_s2;
-            settings.max_rate_mm_s[i] = a.max_rate_mm_min / 60.0;
-        }
-        settings.junction_deviation_mm = machine.junction_deviation_mm;
-        settings.path = path;
-        match self.kernel.set_planner_settings(&settings) {
+        match self.kernel.set_planner_settings(machine, path) {
             Ok(KernelReply::Busy) => Ok(None),
             Ok(_) => Ok(Some(message)),
             Err(e) => Err(text::command_refusal(&e, &self.letters())),
