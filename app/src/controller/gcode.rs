@@ -711,7 +711,7 @@ where
         match done {
             Done::QuickStop => self.quick_stop(out),
             Done::Progress(p) => self.set_host_progress(p),
-            Done::Message(t) => self.set_message(t.as_bytes()),
+            Done::Message(t) => self.set_message(t),
             Done::HostMessage(t) => self.host_message(t.as_bytes(), out),
             Done::AutoReport(s) => self.set_auto_report(s),
             Done::BusyInterval(s) => self.busy_interval(s, out),

@@ -103,13 +103,9 @@ where
         kept.layer = progress.layer.or(kept.layer);
     }
 
-    /// `M117`: `text` is kept as far as it fits, in printable ASCII.
-    pub(super) fn set_message(&mut self, text: &[u8]) {
-        self.host.message = Text::new();
-        let _ = self
-            .host
-            .message
-            .write_str(core::str::from_utf8(text).unwrap_or("?"));
+    /// `M117`: the message, as far as it fit, in printable ASCII.
+    pub(super) fn set_message(&mut self, message: Text<MESSAGE_LEN>) {
+        self.host.message = message;
     }
 
     /// `M118`: the line to the host.
