@@ -23,7 +23,6 @@ mod common;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use std::sync::Mutex;
 use std::time::Duration;
 
 use common::{Driver, Sim, axis, positions, scratch, settle, venv_python, with};
@@ -37,16 +36,12 @@ const OCTOPRINT: &str = "octoprint==1.11.8";
 const DRIVE_LIMIT: Duration = Duration::from_secs(300);
 const STOP_GRACE: Duration = Duration::from_secs(30);
 
-/// One installer at a time: the tests of this file run in parallel and share the venv.
-static VENV: Mutex<()> = Mutex::new(());
-
 fn manifest_dir() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
 /// The virtual environment's Python with OctoPrint installed, created and filled if needed.
 fn octoprint_python() -> PathBuf {
-    let _one = VENV.lock().unwrap_or_else(|e| e.into_inner());
     let wanted = OCTOPRINT.split("==").nth(1).expect("a pinned version");
     let ready = format!(
         "import importlib.metadata as m, sys; sys.exit(m.version('octoprint') != '{wanted}')"

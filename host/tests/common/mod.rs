@@ -9,7 +9,7 @@ use std::io::{BufRead, BufReader};
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
-use std::sync::mpsc;
+use std::sync::{Mutex, mpsc};
 use std::time::{Duration, Instant};
 
 /// The `forja-sim` binary, built if the workspace build did not build it yet.
@@ -36,8 +36,11 @@ pub fn sim_binary() -> PathBuf {
 /// The Python of a virtual environment inside the checkout (`target/<name>`), with
 /// `packages` installed by pip (`--no-deps` when `no_deps`) if `ready` (a Python statement
 /// that exits non-zero when they are not there) fails. The test fails, saying why, when pip
-/// cannot install them.
+/// cannot install them. One test at a time makes or fills an environment: the tests of a file
+/// run in parallel and share theirs.
 pub fn venv_python(name: &str, packages: &[&str], no_deps: bool, ready: &str) -> PathBuf {
+    static INSTALLING: Mutex<()> = Mutex::new(());
+    let _one = INSTALLING.lock().unwrap_or_else(|e| e.into_inner());
     let venv = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../target")
         .join(name);
