@@ -24,9 +24,15 @@ impl OutputPin for NoPin {
 /// from pin to pin and cannot be carried in one driver error).
 ///
 /// Context: either; as cheap as the pin write.
-#[inline]
+#[inline(always)]
 pub(crate) fn drive<P: OutputPin>(pin: &mut P, level: PinState) -> Result<(), digital::ErrorKind> {
-    pin.set_state(level).map_err(|e| digital::Error::kind(&e))
+    // `set_state` spelled out: the trait's provided method is not inlined in a build for size,
+    // and this runs in the step interrupt.
+    match level {
+        PinState::High => pin.set_high(),
+        PinState::Low => pin.set_low(),
+    }
+    .map_err(|e| digital::Error::kind(&e))
 }
 
 /// The other level.

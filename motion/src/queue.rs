@@ -231,6 +231,7 @@ impl<const N: usize, const Q: usize> StepQueue<N, Q> {
         out
     }
 
+    #[inline(always)]
     fn slot(&self, counter: u32) -> Option<&[AtomicU32; 2]> {
         // `Q` is a power of two, so the mask keeps the index in range.
         self.slots.get(counter as usize & (Q - 1))
@@ -346,7 +347,7 @@ impl<'q, const N: usize, const Q: usize> Consumer<'q, N, Q> {
     }
 
     /// The oldest event, without removing it.
-    #[inline]
+    #[inline(always)]
     pub(crate) fn peek(&self) -> Option<Raw> {
         let head = self.q.head.load(Ordering::Acquire);
         if head == self.tail {
@@ -360,7 +361,7 @@ impl<'q, const N: usize, const Q: usize> Consumer<'q, N, Q> {
     }
 
     /// Remove the oldest event (after a successful [`Consumer::peek`]).
-    #[inline]
+    #[inline(always)]
     pub(crate) fn advance(&mut self) {
         self.tail = self.tail.wrapping_add(1);
         self.q.tail.store(self.tail, Ordering::Release);

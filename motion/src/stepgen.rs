@@ -261,8 +261,13 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         if fall != 0 {
             self.high &= !fall;
             self.late &= !fall;
-            for (i, s) in steppers.iter_mut().enumerate() {
-                if fall & (1 << i) != 0 {
+            // Only the axes whose bit is set, lowest first: the cost follows the axes that
+            // step, not the machine's axis count.
+            let mut axes = fall;
+            while axes != 0 {
+                let i = axes.trailing_zeros() as usize;
+                axes &= axes.wrapping_sub(1);
+                if let Some(s) = steppers.get_mut(i) {
                     s.step_end().map_err(|_| StopCause::Fault(i as u8))?;
                 }
             }
@@ -279,12 +284,15 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         if self.watch || q.switch_edges.load(Ordering::Relaxed) != self.edges_seen {
             self.check_switches(rise, switches)?;
         }
-        for ((i, s), (p, d)) in steppers
-            .iter_mut()
-            .enumerate()
-            .zip(q.positions.iter().zip(self.step_sign.iter()))
-        {
-            if rise & (1 << i) != 0 {
+        let mut axes = rise;
+        while axes != 0 {
+            let i = axes.trailing_zeros() as usize;
+            axes &= axes.wrapping_sub(1);
+            if let (Some(s), Some(p), Some(d)) = (
+                steppers.get_mut(i),
+                q.positions.get(i),
+                self.step_sign.get(i),
+            ) {
                 s.step_begin().map_err(|_| StopCause::Fault(i as u8))?;
                 p.store(
                     p.load(Ordering::Relaxed).wrapping_add(*d),
