@@ -12,6 +12,9 @@
 //! - **Context**: thread, never an interrupt. Every method may block on its medium (a flash
 //!   erase, an SD card's busy time); reads should take about as long as the bytes asked for,
 //!   since a running job reads its file a few hundred bytes at a time while the machine moves.
+//!   Writes ([`FileStore::create`], [`FileStore::append`], [`FileStore::finish`],
+//!   [`FileStore::remove`]) may hold the whole chip up (a NOR flash erase runs with interrupts
+//!   off on some parts): the application writes only while the machine is at rest.
 //! - **A stored thing is complete, or it is absent.** A file being written is not seen by
 //!   [`FileStore::file`], [`FileStore::size`] or [`FileStore::read`] until it is finished;
 //!   finishing makes it seen whole, replacing a file of the same name at once. A power cut, a
@@ -167,6 +170,27 @@ pub trait FileStore {
 
     /// The name of the file being written, if one is.
     fn writing(&self) -> Option<FileName>;
+
+    /// Whether [`FileStore::create`] takes every [`FileName`] (`true`, the default), or only
+    /// the 8.3 ones (`PART.GCO`), refusing the others with [`FileError::BadName`]: a FAT card
+    /// whose driver writes no long names. Hosts learn it from `Cap:LFN_WRITE`.
+    fn writes_long_names(&self) -> bool {
+        true
+    }
+
+    /// Make the medium ready (`M21`): an SD card initialised and its volume mounted. A store
+    /// that is always ready (the default) answers `Ok`; one that mounts lazily mounts here, so
+    /// that a missing card is told at once.
+    ///
+    /// Errors: [`FileError::Device`] (no card, a volume it cannot read).
+    fn mount(&mut self) -> Result<(), FileError> {
+        Ok(())
+    }
+
+    /// Let the medium go (`M22`): a write in progress is abandoned, nothing is held open, and
+    /// the card may be taken out; the next operation, or [`FileStore::mount`], mounts it again.
+    /// The default does nothing.
+    fn release(&mut self) {}
 }
 
 impl<T: FileStore + ?Sized> FileStore for &mut T {
@@ -196,6 +220,15 @@ impl<T: FileStore + ?Sized> FileStore for &mut T {
     }
     fn writing(&self) -> Option<FileName> {
         T::writing(self)
+    }
+    fn writes_long_names(&self) -> bool {
+        T::writes_long_names(self)
+    }
+    fn mount(&mut self) -> Result<(), FileError> {
+        T::mount(self)
+    }
+    fn release(&mut self) {
+        T::release(self)
     }
 }
 

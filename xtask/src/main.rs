@@ -265,15 +265,16 @@ fn test() -> Result<(), String> {
                 "warnings",
             ],
         ),
-        // The TCP host link of the embassy-net boards is a feature of the drivers.
+        // The TCP host link of the embassy-net boards and the SD card are features of the
+        // drivers.
         Step::cargo(
-            "clippy of the drivers' embassy-net link (-D warnings)",
+            "clippy of the drivers' embassy-net link and SD card (-D warnings)",
             &[
                 "clippy",
                 "-p",
                 "forja-drivers",
                 "--features",
-                "embassy-net",
+                "embassy-net,sd-card",
                 "--all-targets",
                 "--",
                 "-D",
@@ -282,15 +283,17 @@ fn test() -> Result<(), String> {
         ),
         Step::cargo("host tests", &["test", "--workspace", "--all-targets"]),
         Step::cargo(
-            "host tests of the drivers' embassy-net link",
+            "host tests of the drivers' embassy-net link and SD card",
             &[
                 "test",
                 "-p",
                 "forja-drivers",
                 "--features",
-                "embassy-net",
+                "embassy-net,sd-card",
                 "--lib",
+                "--",
                 "tcp",
+                "sd_card",
             ],
         ),
         Step::cargo("doc tests", &["test", "--workspace", "--doc"]),

@@ -5,17 +5,17 @@
 //! | command | effect | answer (then `ok`) |
 //! |---|---|---|
 //! | `M20` | list: the uploaded program (frame 03) as `program <stored>/<total> complete\|incomplete`, then each file | `Begin file list`, `<NAME> <size>` …, `End file list` |
-//! | `M21` | mount the card | `echo:SD card ok` |
-//! | `M22` | release the card (not while a file prints): the file commands answer `echo:No media` until `M21` | `echo:SD card released` |
+//! | `M21` | mount the card ([`FileStore::mount`]) | `echo:SD card ok`, or `echo:SD init fail` (no card, a volume it cannot read) |
+//! | `M22` | release the card (not while a file prints; [`FileStore::release`]): the file commands answer `echo:No media` until `M21` | `echo:SD card released` |
 //! | `M23 <name>` | select a file: frame `Start`, `Pause`, `Stop`, `Rewind` and 52 act on it | `File opened: <name> Size: <size>`, `File selected` |
 //! | `M24` | start the selected file, or resume it after `M25` or a pause | — |
 //! | `M25` | pause: no more lines are read, the motion already queued finishes; other commands run meanwhile | — |
 //! | `M26 S<byte>` | go on from byte `S` (not while printing) | — |
 //! | `M27` | where the print is | `SD printing byte <byte>/<size>` or `Not SD printing` |
 //! | `M27 S<s>` | the same report every `s` seconds (0: off) | — |
-//! | `M28 <name>` | write the lines that follow to the file, up to `M29` | `Writing to file: <name>` |
+//! | `M28 <name>` | write the lines that follow to the file, up to `M29` (not while the machine moves) | `Writing to file: <name>` |
 //! | `M29` | finish the file: it replaces one of the same name | `Done saving file.` |
-//! | `M30 <name>` | delete a file (not the one printing) | `File deleted:<name>` |
+//! | `M30 <name>` | delete a file (not the one printing, not while the machine moves) | `File deleted:<name>` |
 //! | `M32 <name>` | select and start a file (Marlin's `M32 !<name>#` too) | as `M23` |
 //!
 //! When a file has run to its end `Done printing file` goes out. A name may start with `/` (the
@@ -241,11 +241,6 @@ where
         self.devices.parts.files()
     }
 
-    /// Whether the board has a file store (the `Cap:` lines of `M115`).
-    pub(super) fn has_files(&mut self) -> bool {
-        self.devices.parts.files().is_some()
-    }
-
     /// `echo:E<code> …` for a command whose `ok` the caller sends.
     fn refused<W: Write>(&mut self, r: &Refusal, out: &mut W) {
         self.stats.refused = self.stats.refused.wrapping_add(1);
@@ -263,9 +258,9 @@ where
             FileCommand::List => self.list_files(out),
             FileCommand::Init => {
                 self.card.released = false;
-                let text = match self.card() {
-                    Some(_) => "SD card ok",
-                    None => "SD init fail",
+                let text = match self.card().map(|files| files.mount()) {
+                    Some(Ok(())) => "SD card ok",
+                    Some(Err(_)) | None => "SD init fail",
                 };
                 let _ = wire::reply(out, &Reply::Echo(text));
             }
@@ -285,6 +280,9 @@ where
                     return self.refused(&Refusal::new(&JobError::Busy), out);
                 }
                 let _ = self.job.select_program();
+                if let Some(files) = self.card() {
+                    files.release();
+                }
                 self.card.released = true;
                 let _ = wire::reply(out, &Reply::Echo("SD card released"));
             }
@@ -317,6 +315,17 @@ where
                     say(out, format_args!("File deleted:{}", given.as_str()));
                 }
             }
+        }
+    }
+
+    /// The card is written (`M28`, `M30`) only while the machine is at rest, as the file
+    /// store's contract asks: a flash erase holds the step interrupt off on some boards. An
+    /// upload holds every line until `M29`, so nothing moves while it is open.
+    fn at_rest_for_writes(&self) -> Result<(), Refusal> {
+        if self.kernel.is_idle() {
+            Ok(())
+        } else {
+            Err(Refusal::new(&CommandError::NotIdle))
         }
     }
 
@@ -458,6 +467,7 @@ where
         if selected && self.job_active() {
             return Err(Refusal::new(&JobError::Busy));
         }
+        self.at_rest_for_writes()?;
         let files = self.card().ok_or_else(no_card)?;
         files
             .remove(&name)
@@ -490,6 +500,7 @@ where
         if self.file_printing() && self.job.file().is_some_and(|f| f.name == name) {
             return Err(Refusal::new(&JobError::Busy));
         }
+        self.at_rest_for_writes()?;
         let files = self.card().ok_or_else(no_card)?;
         // A write left by a host that went is dropped (there is one link's upload at a time).
         let _ = files.abandon();

@@ -142,6 +142,8 @@ enum Needs {
     Heaters,
     /// A file store.
     Files,
+    /// A file store: enabled when it writes long names.
+    LongNames,
 }
 
 /// The `Cap:` lines of `M115`, each with what it needs: what this firmware does, under the
@@ -157,7 +159,7 @@ enum Needs {
 /// | `THERMAL_PROTECTION` | heater runaway and sensor faults stop the machine |
 /// | `SDCARD` | `M20`–`M32`: files uploaded, listed and printed |
 /// | `AUTOREPORT_SD_STATUS` | `M27 S<seconds>` |
-/// | `LFN_WRITE` | `M28` takes long names (up to 63 bytes), not only 8.3 ones |
+/// | `LFN_WRITE` | `M28` takes long names (up to 63 bytes), not only 8.3 ones (`:0` on a card that takes 8.3 names only) |
 const CAPABILITIES: &[(&str, Needs)] = &[
     ("EMERGENCY_PARSER", Needs::Nothing),
     ("ARCS", Needs::Nothing),
@@ -167,7 +169,7 @@ const CAPABILITIES: &[(&str, Needs)] = &[
     ("THERMAL_PROTECTION", Needs::Heaters),
     ("SDCARD", Needs::Files),
     ("AUTOREPORT_SD_STATUS", Needs::Files),
-    ("LFN_WRITE", Needs::Files),
+    ("LFN_WRITE", Needs::LongNames),
 ];
 
 /// A temperature in tenths of a degree, for replies.
@@ -779,15 +781,15 @@ where
         self.halted_notice(out);
         let heaters = self.devices.temperatures();
         let has_heaters = heaters.hot_end.is_some() || heaters.bed.is_some();
-        let has_files = self.has_files();
+        let files = self.devices.parts.files().map(|f| f.writes_long_names());
         for &(name, needs) in CAPABILITIES {
-            let present = match needs {
-                Needs::Nothing => true,
-                Needs::Heaters => has_heaters,
-                Needs::Files => has_files,
+            let (present, enabled) = match needs {
+                Needs::Nothing => (true, true),
+                Needs::Heaters => (has_heaters, true),
+                Needs::Files => (files.is_some(), true),
+                Needs::LongNames => (files.is_some(), files == Some(true)),
             };
             if present {
-                let enabled = true;
                 let _ = wire::reply(out, &Reply::Capability { name, enabled });
             }
         }

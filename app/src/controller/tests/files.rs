@@ -338,8 +338,6 @@ fn a_line_that_does_not_fit_abandons_the_file() {
 fn realtime_commands_act_during_an_upload_and_are_not_stored() {
     let mut b = Bench::new();
     b.take();
-    assert_eq!(b.ask("G1 X50 F600"), ["ok"]);
-    b.run_ms(100);
     let out = b.ask_all(&[
         "M28 r.g", "G1 X1", "M410", "M108", "M110 N7", "G1 X2", "M29",
     ]);
@@ -357,8 +355,6 @@ fn realtime_commands_act_during_an_upload_and_are_not_stored() {
             "ok"
         ]
     );
-    b.idle();
-    assert!(b.position_mm()[0] < 50.0, "M410 stopped the move");
     assert_eq!(b.file_text("r.g"), "G1 X1\nG1 X2\n");
     b.send("M28 s.g");
     b.send("M112");
@@ -536,12 +532,52 @@ fn file_commands_refuse_what_they_cannot_do() {
     // Moves of the link are refused while it prints, reports answered.
     assert_eq!(b.ask("G1 X9"), ["echo:E182 job-busy", "ok"]);
     assert!(b.sd_position().is_some());
-    // Another file may be uploaded meanwhile.
-    assert!(
-        b.upload("next.g", &["G1 X1".to_string()])
-            .contains(&"Done saving file.".to_string())
+    // No other file is written while the machine moves (a flash erase would stall it).
+    assert_eq!(
+        b.ask_all(&["M28 next.g", "G1 X1", "M29"]),
+        [
+            "echo:E128 not-idle",
+            "open failed, File: next.g.",
+            "ok",
+            "echo:E128 not-idle",
+            "ok",
+            "ok"
+        ]
     );
     assert_eq!(b.ask("M21"), ["echo:SD card ok", "ok"]);
+}
+
+#[test]
+fn the_card_is_written_only_while_the_machine_is_at_rest() {
+    let mut b = Bench::new();
+    b.take();
+    b.upload("a.g", &["G1 X1".to_string()]);
+    assert_eq!(b.ask("G1 X50 F600"), ["ok"]);
+    b.run_ms(100);
+    assert_eq!(
+        b.ask("M30 a.g"),
+        ["echo:E128 not-idle", "Deletion failed, File: a.g.", "ok"]
+    );
+    assert_eq!(
+        b.ask_all(&["M28 b.g", "G1 X2", "M29"]),
+        [
+            "echo:E128 not-idle",
+            "open failed, File: b.g.",
+            "ok",
+            "echo:E128 not-idle",
+            "ok",
+            "ok"
+        ]
+    );
+    b.idle();
+    assert_eq!(b.position_mm()[0], 50.0, "the refused lines moved nothing");
+    assert_eq!(b.file_text("a.g"), "G1 X1\n");
+    assert_eq!(b.card().writing(), None);
+    assert_eq!(b.ask("M30 a.g"), ["File deleted:a.g", "ok"]);
+    assert!(
+        b.upload("b.g", &["G1 X2".to_string()])
+            .contains(&"Done saving file.".to_string())
+    );
 }
 
 #[test]
@@ -648,6 +684,7 @@ fn m30_deletes_a_file_and_m32_selects_and_starts_one() {
         ["echo:E182 job-busy", "Deletion failed, File: long.g.", "ok"]
     );
     assert_eq!(b.ask_all(&["M25"]), ["ok"]);
+    b.idle();
     assert_eq!(b.ask("M30 long.g"), ["File deleted:long.g", "ok"]);
     assert!(b.ctl.job().file().is_none());
     assert_eq!(b.ask("M24"), ["echo:E189 no-file-selected", "ok"]);
