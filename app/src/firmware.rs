@@ -44,6 +44,7 @@
 use core::fmt;
 use embedded_io::{Read, ReadReady, Write};
 
+use forja_hal_abstraction::files::FileStore;
 use forja_hal_abstraction::limit::LimitSwitch;
 use forja_hal_abstraction::program::ProgramStore;
 use forja_hal_abstraction::stepper::{Stepper, StepperEnable};
@@ -54,7 +55,7 @@ use forja_motion::{ConfigError, MachineConfig, StepGenerator, StepQueue, SwitchA
 use crate::controller::{
     Controller, ControllerConfig, LoadReport, Peripherals, PollOutcome, Settings,
 };
-use crate::peripherals::MotorPeripherals;
+use crate::peripherals::{MotorPeripherals, NoCard, NoLimit};
 use crate::session::SessionAction;
 
 /// What a board hands to [`assemble`]: its machine and its parts.
@@ -240,9 +241,10 @@ impl<'q, const N: usize, const Q: usize, S: Stepper, L: LimitSwitch, const K: us
 }
 
 /// What a motion board hands to [`assemble_motion`]: its machine, the drivers and switches of
-/// its step interrupt, its motor power, its two stores and its host link. A board that has
-/// nothing else (no heater, fan or spindle) describes itself in this one value.
-pub struct MotionParts<'q, const N: usize, const Q: usize, const K: usize, T, M, L, P, S, W> {
+/// its step interrupt, its motor power, its two stores, its card if it has one, and its host
+/// link. A board that has nothing else (no heater, fan or spindle) describes itself in this
+/// one value.
+pub struct MotionParts<'q, const N: usize, const Q: usize, const K: usize, T, M, L, P, S, W, C> {
     /// The board's machine, before the stored settings are applied over it.
     pub machine: MachineConfig<N>,
     /// The controller's configuration (the drivers' step timing is its `timing`).
@@ -263,11 +265,23 @@ pub struct MotionParts<'q, const N: usize, const Q: usize, const K: usize, T, M,
     pub program: P,
     /// The host link.
     pub link: W,
+    /// The file store of the SD-card commands (`None::<NoCard>` for none).
+    pub files: Option<C>,
 }
 
-/// The thread side of a motion board: its [`Firmware`] with [`MotorPeripherals`].
-pub type MotionFirmware<'q, const N: usize, const B: usize, const Q: usize, P, M, S, W> =
-    LinkedFirmware<'q, N, B, Q, P, MotorPeripherals<M, N>, S, W>;
+/// The thread side of a motion board: its [`Firmware`] with [`MotorPeripherals`], and `C` its
+/// card ([`NoCard`]: none).
+pub type MotionFirmware<
+    'q,
+    const N: usize,
+    const B: usize,
+    const Q: usize,
+    P,
+    M,
+    S,
+    W,
+    C = NoCard,
+> = LinkedFirmware<'q, N, B, Q, P, MotorPeripherals<M, N, NoLimit, C>, S, W>;
 
 /// Build a motion board's firmware from its [`MotionParts`]: [`assemble`] over
 /// [`MotorPeripherals`] (motor power only), the step generator joined to the drivers and
@@ -289,12 +303,13 @@ pub fn assemble_motion<
     P,
     S,
     W,
+    C,
 >(
-    parts: MotionParts<'q, N, Q, K, T, M, L, P, S, W>,
+    parts: MotionParts<'q, N, Q, K, T, M, L, P, S, W, C>,
 ) -> Result<
     (
         StepSide<'q, N, Q, T, L, K>,
-        MotionFirmware<'q, N, B, Q, P, M, S, W>,
+        MotionFirmware<'q, N, B, Q, P, M, S, W, C>,
     ),
     SetupError,
 >
@@ -305,7 +320,13 @@ where
     P: ProgramStore,
     S: RecordStorage,
     W: Read + ReadReady + Write,
+    C: FileStore,
 {
+    let peripherals = MotorPeripherals {
+        motors: parts.motors,
+        endstops: [None; N],
+        files: parts.files,
+    };
     let (generator, firmware, _) = assemble(Parts {
         machine: parts.machine,
         settings: parts.settings,
@@ -313,7 +334,7 @@ where
         tick_hz: parts.tick_hz,
         config: parts.config,
         program: parts.program,
-        peripherals: MotorPeripherals::motors_only(parts.motors),
+        peripherals,
     })
     .map_err(|_| SetupError::Machine)?;
     Ok((
@@ -425,6 +446,7 @@ mod tests {
 
     use core::convert::Infallible;
     use forja_hal_abstraction::ErrorType;
+    use forja_hal_abstraction::files::RamFileStore;
     use forja_hal_abstraction::program::RamStore;
     use forja_hal_abstraction::stepper::{Direction, StepTiming};
     use forja_motion::{AxisConfig, HomeDirection, HomingConfig};
@@ -536,7 +558,17 @@ mod tests {
 
     type Board<'q> = (
         StepSide<'q, 2, 256, Counting, Switch, 1>,
-        MotionFirmware<'q, 2, 8, 256, RamStore<4>, MotorEnables<Power, 1>, VecStorage, MemLink>,
+        MotionFirmware<
+            'q,
+            2,
+            8,
+            256,
+            RamStore<4>,
+            MotorEnables<Power, 1>,
+            VecStorage,
+            MemLink,
+            RamFileStore<1024, 2>,
+        >,
     );
 
     /// What a test watches of the board: X's steps, the motors' power, the switch at X's
@@ -579,6 +611,7 @@ mod tests {
             settings: VecStorage::default(),
             program: RamStore::new(),
             link: MemLink::default(),
+            files: Some(RamFileStore::new()),
         })
         .unwrap();
         (parts, watch)
@@ -624,6 +657,12 @@ mod tests {
         assert_eq!(watch.steps.get(), 80, "1 mm of X at 80 steps/mm");
         assert!(b.1.link.replies().contains("ok"));
         assert_eq!(b.1.firmware().controller().stats().oks, 1);
+        // Its card holds what `M28` uploads.
+        b.1.link.rx.extend(b"M28 a.g\nG1 X2\nM29\nM20\n");
+        run(&mut b, Instant::from_ticks(0), None, || false);
+        let replies = b.1.link.replies();
+        assert!(replies.contains("Done saving file."), "{replies}");
+        assert!(replies.contains("a.g 6"), "{replies}");
     }
 
     #[test]

@@ -58,7 +58,7 @@ use forja_hal_abstraction::ErrorType;
 use forja_hal_abstraction::device::{
     CoolantControl, DeviceError, FanControl, SpindleControl, TemperatureControl,
 };
-use forja_hal_abstraction::files::FileStore;
+use forja_hal_abstraction::files::{FileError, FileInfo, FileName, FileStore};
 use forja_hal_abstraction::limit::LimitSwitch;
 use forja_hal_abstraction::stepper::StepperEnable;
 
@@ -189,17 +189,20 @@ where
     }
 }
 
-/// The peripherals of a board whose parts are motion alone: motor power, and the end-stops as
-/// the thread side reads them for `M119` ([`NoLimit`]: none). It has no heater, fan, spindle,
-/// coolant or file store: their commands are refused (`E194 no-device`; the SD-card commands
-/// are answered as Marlin without a card answers them), and the code that drives them is left
-/// out of the board's image.
+/// The peripherals of a board whose parts are motion alone: motor power, the end-stops as
+/// the thread side reads them for `M119` ([`NoLimit`]: none), and perhaps a card `C` for the
+/// SD-card commands ([`NoCard`]: none). It has no heater, fan, spindle or coolant: their
+/// commands are refused (`E194 no-device`; without a card the SD-card commands are answered
+/// as Marlin without one answers them), and the code that drives them is left out of the
+/// board's image. Every part is held by value and called without a trait object.
 #[derive(Debug, Clone)]
-pub struct MotorPeripherals<M, const N: usize, L = NoLimit> {
+pub struct MotorPeripherals<M, const N: usize, L = NoLimit, C = NoCard> {
     /// Motor power.
     pub motors: M,
     /// Each axis's switch as the thread side reads it, for `M119`.
     pub endstops: [Option<L>; N],
+    /// The file store of the SD-card commands, if any.
+    pub files: Option<C>,
 }
 
 impl<M, const N: usize> MotorPeripherals<M, N> {
@@ -209,15 +212,19 @@ impl<M, const N: usize> MotorPeripherals<M, N> {
     }
 }
 
-impl<M, const N: usize, L> MotorPeripherals<M, N, L> {
-    /// The peripherals of a board with `motors` and `endstops`.
+impl<M, const N: usize, L, C> MotorPeripherals<M, N, L, C> {
+    /// The peripherals of a board with `motors` and `endstops`, and no card.
     pub fn new(motors: M, endstops: [Option<L>; N]) -> Self {
-        Self { motors, endstops }
+        Self {
+            motors,
+            endstops,
+            files: None,
+        }
     }
 }
 
-impl<M: StepperEnable, const N: usize, L: LimitSwitch> Peripherals<N>
-    for MotorPeripherals<M, N, L>
+impl<M: StepperEnable, const N: usize, L: LimitSwitch, C: FileStore> Peripherals<N>
+    for MotorPeripherals<M, N, L, C>
 {
     fn set_motors(&mut self, enabled: bool) -> Result<(), DeviceError> {
         power(&mut self.motors, enabled)
@@ -225,6 +232,10 @@ impl<M: StepperEnable, const N: usize, L: LimitSwitch> Peripherals<N>
 
     fn endstop(&mut self, axis: usize) -> Option<bool> {
         read_endstop(&mut self.endstops, axis)
+    }
+
+    fn files(&mut self) -> Option<&mut dyn FileStore> {
+        self.files.as_mut().map(|f| f as _)
     }
 }
 
@@ -253,6 +264,41 @@ impl ErrorType for NoLimit {
 
 impl LimitSwitch for NoLimit {
     fn is_triggered(&mut self) -> Result<bool, Infallible> {
+        match *self {}
+    }
+}
+
+/// The type of a board's card when it has none (`None::<NoCard>`); it has no values, so the
+/// SD-card code is left out of the image.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NoCard {}
+
+impl FileStore for NoCard {
+    fn file(&mut self, _: usize) -> Result<Option<FileInfo>, FileError> {
+        match *self {}
+    }
+    fn size(&mut self, _: &FileName) -> Result<u32, FileError> {
+        match *self {}
+    }
+    fn read(&mut self, _: &FileName, _: u32, _: &mut [u8]) -> Result<usize, FileError> {
+        match *self {}
+    }
+    fn remove(&mut self, _: &FileName) -> Result<(), FileError> {
+        match *self {}
+    }
+    fn create(&mut self, _: &FileName) -> Result<(), FileError> {
+        match *self {}
+    }
+    fn append(&mut self, _: &[u8]) -> Result<(), FileError> {
+        match *self {}
+    }
+    fn finish(&mut self) -> Result<(), FileError> {
+        match *self {}
+    }
+    fn abandon(&mut self) -> Result<(), FileError> {
+        match *self {}
+    }
+    fn writing(&self) -> Option<FileName> {
         match *self {}
     }
 }
@@ -615,8 +661,10 @@ mod tests {
         assert_eq!(p.endstops(), [None, None]);
         p.poll(0).unwrap();
         // With its switches read for `M119`.
-        let mut p: Devices<_, 2> =
-            Devices::new(MotorPeripherals::new(NoMotors, [Some(Switch(true)), None]));
+        let mut p: Devices<_, 2> = Devices::new(MotorPeripherals::<_, 2, _>::new(
+            NoMotors,
+            [Some(Switch(true)), None],
+        ));
         assert_eq!(p.endstops(), [Some(true), None]);
         assert_eq!(p.set_fan(0, 1), Err(PeripheralError::NoDevice));
     }

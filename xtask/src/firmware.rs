@@ -178,10 +178,10 @@ pub const BOARDS: &[Firmware] = &[
         ],
         // The ESP32-C3 is the smallest of the four chips: 400 KiB of SRAM, of which esp-hal's
         // linker script gives the program about 320 KiB (the rest is cache and ROM data); a
-        // 4 MiB flash whose app partition (partitions.csv) is 3 MiB.
+        // 4 MiB flash whose app partition (partitions.csv) is 1.25 MiB, the rest the stores.
         budget: Budget {
             chip: "ESP32-C3, 4 MiB flash",
-            flash: 3 * 1024 * 1024,
+            flash: 1280 * 1024,
             ram: 320 * 1024,
             map: MemoryMap::Esp,
         },
@@ -696,7 +696,7 @@ pub fn check_sizes() -> Result<(), String> {
          byte used (code starts after the 48 KiB of vector table and store sectors); RAM = \
          .data + .bss + .uninit (the qemu image's 32 KiB RAM store included) + \
          stack reservation; other = CCM RAM.\n\
-         esp32: flash = the loaded segments, in the 3 MiB app partition; RAM = .trap + \
+         esp32: flash = the loaded segments, in the 1.25 MiB app partition; RAM = .trap + \
          .rwtext + .data + .bss + .noinit (code and statics in SRAM), the stack is the RAM \
          left; other = the boot loader's RAM reclaimed for the heap.\n\
          rp2040: as stm32f4, but the image starts at the flash's first byte (the 256-byte boot \

@@ -4,8 +4,8 @@
 //! | firmware part | on this board |
 //! |---|---|
 //! | step interrupt | `StepDir` drivers on the STEP/DIR outputs and debounced `LimitInput`s on the switch inputs, in the port's `StepContext` |
-//! | peripherals | `MotorPeripherals`: the shared enable line (released until the controller energises the motors), the switches read again for `M119`; no heater, fan, spindle or coolant |
-//! | stores | the `forja` partition: the settings in a `FlashRecordStorage`, the uploaded program in a `SlotProgramStore` |
+//! | peripherals | `Parts`: the shared enable line (released until the controller energises the motors), the switches read again for `M119`, the file store of the SD-card commands; no heater, fan, spindle or coolant |
+//! | stores | the `forja` partition: the settings in a `FlashRecordStorage`, the uploaded program in a `SlotProgramStore`, the files in a `FlashFileStore` |
 //! | kernel | [`board::MACHINE`] with the stored settings over it, [`PLANNER_BLOCKS`] blocks, a step queue of [`QUEUE_EVENTS`] events |
 //! | host link | the WiFi link (`forja_port_esp32::link`) |
 
@@ -13,7 +13,7 @@ use esp_hal::gpio::{Io, Output};
 use esp_hal::interrupt::InterruptHandler;
 use forja_app::controller::ControllerConfig;
 use forja_app::firmware::{self, Firmware, SetupError};
-use forja_app::peripherals::{MotorEnables, MotorPeripherals};
+use forja_app::peripherals::{MotorEnables, Parts};
 use forja_drivers::pin::NoPin;
 use forja_drivers::stepper::StepDir;
 use forja_hal_abstraction::clock::Clock;
@@ -21,7 +21,7 @@ use forja_motion::StepQueue;
 use forja_port_esp32::limits::{self, ThreadLimit};
 use forja_port_esp32::link::{LINK, WifiLink};
 use forja_port_esp32::step::{StepCell, StepContext, Stepper};
-use forja_port_esp32::storage::{self, ProgramFlash, Store, Stores};
+use forja_port_esp32::storage::{self, FileFlash, ProgramFlash, Store, Stores};
 use forja_port_esp32::system;
 use forja_port_esp32::timer::{StepClock, StepTimer};
 use forja_port_esp32::watchdog::Watchdog;
@@ -41,8 +41,8 @@ pub const PLANNER_BLOCKS: usize = 32;
 /// a driver with no STEP or DIR line, as the simulator's enables.
 pub type EnableLine = StepDir<NoPin, NoPin, Output<'static>>;
 
-/// The board's peripherals: motor power and the switches for `M119`.
-pub type BoardPeripherals = MotorPeripherals<MotorEnables<EnableLine, 1>, AXES, ThreadLimit>;
+/// The board's peripherals: motor power, the switches for `M119` and the files.
+pub type BoardPeripherals = Parts<'static, MotorEnables<EnableLine, 1>, ThreadLimit, AXES>;
 
 /// The firmware of this board, as the application layer assembles it.
 pub type BoardFirmware =
@@ -62,7 +62,7 @@ pub struct Hardware {
     pub enable: EnableLine,
     /// The limit switches as the controller reads them, in axis order.
     pub limits: [ThreadLimit; LIMITS],
-    /// The settings and program stores.
+    /// The settings, program and file stores.
     pub stores: Stores,
     /// The WiFi driver and its interfaces.
     pub radio: Radio,
@@ -130,9 +130,11 @@ pub fn init(
 }
 
 static QUEUE: StaticCell<StepQueue<AXES, QUEUE_EVENTS>> = StaticCell::new();
+static FILES: StaticCell<FileFlash> = StaticCell::new();
 
 /// The board's parts handed to the application layer: the firmware from [`board::MACHINE`]
-/// and the stored settings, its step generator attached to `step`.
+/// and the stored settings, its step generator attached to `step`, the file store lent to
+/// its peripherals for good.
 ///
 /// Context: init, after the step context is installed and its alarm passed the self-test;
 /// call once. Errors: [`SetupError::Machine`] when the stored settings make a machine the
@@ -147,7 +149,11 @@ pub fn firmware(
     let queue = QUEUE
         .try_init(StepQueue::new())
         .ok_or(SetupError::Storage)?;
-    let peripherals = MotorPeripherals::new(MotorEnables([enable]), limits.map(Some));
+    let files = FILES.try_init(stores.files).ok_or(SetupError::Storage)?;
+    let peripherals = BoardPeripherals {
+        files: Some(files),
+        ..Parts::new(MotorEnables([enable]), limits.map(Some))
+    };
     let (generator, firmware, _) = firmware::assemble(firmware::Parts {
         machine: board::MACHINE,
         settings: stores.settings,

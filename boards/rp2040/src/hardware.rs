@@ -94,6 +94,8 @@ pub fn init(mut dp: pac::Peripherals, queue: &'static mut Queue) -> Result<Board
         settings,
         program,
         link,
+        // The SKR Pico has no SD card slot.
+        files: None,
     })?;
     // The stores are open (opening may repair, erasing sectors): the watchdog may start.
     watchdog::start(&mut watchdog);

@@ -55,6 +55,8 @@ pub fn init(
         gpioc: dp.GPIOC,
         usart1: dp.USART1,
         usart6: dp.USART6,
+        spi1: dp.SPI1,
+        tim5: dp.TIM5,
     };
     let pins = board::pins(ports, &mut rcc);
 
@@ -95,6 +97,7 @@ pub fn init(
         settings,
         program,
         link,
+        files: pins.card,
     })?;
     limits.attach(step.switch_alert());
 

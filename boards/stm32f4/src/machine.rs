@@ -5,7 +5,7 @@
 //! |---|---|
 //! | step interrupt | [`StepSide`]: `StepGenerator::on_alarm` over the `StepDir` drivers on the STEP/DIR pins and the `LimitInput`s on the limit inputs |
 //! | thread side | [`Firmware`]: the controller on the host UART (the port's `HostLink`) |
-//! | peripherals | motor power only: the enable line shared by every driver ([`Motors`]); no heater, fan or spindle output on these pin maps |
+//! | peripherals | motor power: the enable line shared by every driver ([`Motors`]); the pin map's SD card ([`Card`]) for the SD-card commands; no heater, fan or spindle output on these pin maps |
 //! | storage | the port's record store in flash sectors 1–2, shared by the settings and the uploaded program (`RecordProgramStore`) |
 //!
 //! The kernel's `MachineConfig` is the pin map's [`crate::board::machine`] with the settings
@@ -31,7 +31,7 @@ use forja_port_stm32f4::limits::Limit;
 use forja_port_stm32f4::uart::HostLink;
 use stm32f4xx_hal::gpio::{ErasedPin, Output};
 
-use crate::board::{AXES, LIMITS};
+use crate::board::{AXES, Card, LIMITS};
 
 /// Planner blocks of the kernel.
 pub const PLANNER_BLOCKS: usize = 16;
@@ -64,4 +64,5 @@ pub type Firmware = MotionFirmware<
     Motors,
     StoreHandle,
     HostLink,
+    Card,
 >;

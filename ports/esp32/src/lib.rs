@@ -39,7 +39,7 @@
 //! | [`timer`] | [`StepTimer`](timer::StepTimer) (the one-shot step [`Alarm`](forja_hal_abstraction::clock::Alarm)) and [`StepClock`](timer::StepClock) (a lock-free [`Clock`](forja_hal_abstraction::clock::Clock)) | alarm: step interrupt and thread, under the step context's lock; clock: any |
 //! | [`step`] | [`StepCell`](step::StepCell): the step context and the step and switch interrupts' bodies, the arming of the alarm, the boot self-test | interrupts: integer-only, allocation-free, panic-free, a few µs |
 //! | [`limits`] | the switches' readers for the step interrupt (debounced) and the thread (`M119`), the GPIO interrupt's listening and acknowledgement | init, switch interrupt, thread |
-//! | [`storage`] | the settings' record store and the program's slot store in the `forja` partition | thread; flash operations stall every interrupt (see there) |
+//! | [`storage`] | the settings' record store, the program's slot store and the file store of the SD-card commands in the `forja` partition | thread; flash operations stall every interrupt (see there) |
 //! | [`wifi`] | the radio ([`wifi::radio`]) and the connection task ([`wifi::run`]): station, reconnection, fallback access point | a task |
 //! | [`net`] | the station and access point IP stacks, the access point's DHCP server | tasks |
 //! | [`link`] | the host link on TCP port 2323 (`forja_drivers::tcp`), its listening tasks' body | tasks; the controller's end in the controller task |

@@ -14,18 +14,33 @@
 //! | drivers enable (active low, shared) | PB0 | Steppers enable |
 //! | X / Y / Z limit (to ground, pull-up) | PB12 / PB13 / PB14 | X, Y, Z Limit |
 //! | host UART TX / RX (USART1) | PA9 / PA10 | (M4 Step / Direction) |
+//! | SD card SCK / MISO / MOSI (SPI1), CS | PB3 / PB4 / PB5, PA15 | (Spindle Index, –, –, Spindle Pulse) |
+//!
+//! The SD card (a microSD breakout: 3.3 V, SPI mode) takes the pins grblHAL leaves to the
+//! spindle encoder, which Forja does not read; PB3, PB4 and PA15 are JTAG pins after reset
+//! and become SPI pins here (SWD on PA13/PA14 stays). SPI1 runs at 400 kHz, the rate every
+//! card accepts before and after its initialisation (50 KB/s: far above what a job reads or a
+//! 115,200-baud upload writes); TIM5 times the card's waits. The card is initialised and its
+//! FAT volume mounted at the first SD-card command, so a board without a card starts as fast
+//! and answers those commands with the card's error.
 //!
 //! Clock: the board's 25 MHz crystal through the PLL to 96 MHz (a multiple of USB's 48 MHz);
 //! APB1 runs at 48 MHz, so TIM2 counts at 96 MHz before its prescaler.
 
-use stm32f4xx_hal::gpio::GpioExt;
+use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
+use forja_drivers::limit::Polarity;
+use forja_drivers::sd_card::SdFileStore;
+use forja_drivers::sd_card::embedded_sdmmc::SdCard;
 use stm32f4xx_hal::gpio::gpioa::{PA9, PA10};
+use stm32f4xx_hal::gpio::{ErasedPin, GpioExt, Output, PinState};
+use stm32f4xx_hal::hal::spi::MODE_0;
 use stm32f4xx_hal::pac::{self, Interrupt};
 use stm32f4xx_hal::prelude::_fugit_RateExtU32;
 use stm32f4xx_hal::rcc::{self, Rcc};
+use stm32f4xx_hal::spi::{Spi, SpiExt};
+use stm32f4xx_hal::timer::{DelayUs, TimerExt};
 
 use super::{Pins, Ports};
-use forja_drivers::limit::Polarity;
 
 /// The board's name, as reported to hosts.
 pub const NAME: &str = "Black Pill STM32F411CE";
@@ -45,6 +60,11 @@ pub const STEP_TICK_HZ: u32 = 8_000_000;
 /// Switches close to ground at the limit, against the input's pull-up.
 pub const LIMIT_POLARITY: Polarity = Polarity::NormallyOpen;
 
+/// The SD card: a FAT volume on a card on SPI1, its chip select on PA15, TIM5 for its waits.
+pub type Card = SdFileStore<
+    SdCard<ExclusiveDevice<Spi<pac::SPI1>, ErasedPin<Output>, NoDelay>, DelayUs<pac::TIM5>>,
+>;
+
 /// 25 MHz crystal, PLL to 96 MHz.
 pub fn clocks() -> rcc::Config {
     rcc::Config::hse(25.MHz()).sysclk(96.MHz())
@@ -54,6 +74,16 @@ pub fn clocks() -> rcc::Config {
 pub fn pins(ports: Ports, rcc: &mut Rcc) -> Pins {
     let a = ports.gpioa.split(rcc);
     let b = ports.gpiob.split(rcc);
+    let sd_pins = (
+        Some(b.pb3.into_alternate()),
+        Some(b.pb4.into_alternate()),
+        Some(b.pb5.into_alternate()),
+    );
+    let sd_spi = ports.spi1.spi(sd_pins, MODE_0, 400.kHz(), rcc);
+    let sd_cs = a
+        .pa15
+        .into_push_pull_output_in_state(PinState::High)
+        .erase();
     Pins {
         step: [
             a.pa0.into_push_pull_output().erase(),
@@ -77,5 +107,18 @@ pub fn pins(ports: Ports, rcc: &mut Rcc) -> Pins {
             b.pb14.into_pull_up_input().erase(),
         ],
         uart: (ports.usart1, (a.pa9, a.pa10)),
+        card: card(sd_spi, sd_cs, ports.tim5, rcc),
     }
+}
+
+/// The SD card on `spi` (pins already in its alternate function), chip select `cs` driven
+/// high (released) from the start.
+fn card(
+    spi: Spi<pac::SPI1>,
+    cs: ErasedPin<Output>,
+    timer: pac::TIM5,
+    rcc: &mut Rcc,
+) -> Option<Card> {
+    let device = ExclusiveDevice::new_no_delay(spi, cs).ok()?;
+    Some(SdFileStore::new(SdCard::new(device, timer.delay_us(rcc))))
 }

@@ -11,6 +11,7 @@
 //! | `STEP_TICK_HZ` | the rate of the step clock (the port's `timer` module) |
 //! | `LIMIT_POLARITY` | how the limit switch inputs read |
 //! | `pins()` | the GPIO ports split into [`Pins`] |
+//! | `Card` | the SD card's file store, on its SPI bus (`NoCard` for a board without one) |
 //!
 //! Exactly one board is compiled in, chosen by a Cargo feature; `build.rs` rejects zero or two.
 //! Every pin map drives the same machine before its stored settings: [`machine`].
@@ -44,7 +45,7 @@ pub const HOST_BAUD: u32 = 115_200;
 /// that covers the A4988, DRV8825 and TMC2209 sticks of the usual carrier boards.
 pub const DRIVERS: StepDirConfig = StepDirConfig::new(StepTiming::CONSERVATIVE);
 
-/// The board's GPIO, split and configured.
+/// The board's GPIO, split and configured, and what hangs on it.
 pub struct Pins {
     /// STEP output of each motor, in axis order.
     pub step: [ErasedPin<Output>; AXES],
@@ -56,6 +57,8 @@ pub struct Pins {
     pub limits: [ErasedPin<Input>; LIMITS],
     /// The host UART and its transmit and receive pins.
     pub uart: (HostUsart, HostUartPins),
+    /// The SD card of the SD-card commands, if the board has one ([`Card`]).
+    pub card: Option<Card>,
 }
 
 /// The peripherals a pin map chooses from.
@@ -70,6 +73,10 @@ pub struct Ports {
     pub usart1: pac::USART1,
     /// USART6.
     pub usart6: pac::USART6,
+    /// SPI1.
+    pub spi1: pac::SPI1,
+    /// TIM5.
+    pub tim5: pac::TIM5,
 }
 
 /// Level of the shared enable line that releases every motor (the drivers' ENABLE is active

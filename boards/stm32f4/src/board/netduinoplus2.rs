@@ -36,6 +36,10 @@ use stm32f4xx_hal::rcc::{self, Rcc};
 use super::{Pins, Ports};
 use forja_drivers::limit::Polarity;
 
+/// No SD card: the SD-card commands are answered as Marlin without a card answers them (QEMU
+/// emulates no card on this machine).
+pub type Card = forja_app::peripherals::NoCard;
+
 /// The board's name, as reported to hosts.
 pub const NAME: &str = "Netduino Plus 2 (QEMU)";
 
@@ -87,5 +91,6 @@ pub fn pins(ports: Ports, rcc: &mut Rcc) -> Pins {
             b.pb15.into_pull_up_input().erase(),
         ],
         uart: (ports.usart6, (c.pc6, c.pc7)),
+        card: None,
     }
 }
