@@ -30,8 +30,14 @@
 //!   its room allows.
 //! - **Errors** are one [`FileError`] for every store. An operation that fails changes
 //!   nothing, except where its documentation says otherwise.
+//!
+//! The module `conformance` (feature `conformance`) checks a store against this contract in
+//! its tests.
 
 use core::fmt;
+
+#[cfg(any(test, feature = "conformance"))]
+pub mod conformance;
 
 /// The longest file name, bytes.
 pub const MAX_NAME_LEN: usize = 63;
@@ -189,8 +195,10 @@ pub trait FileStore {
 
     /// Let the medium go (`M22`): a write in progress is abandoned, nothing is held open, and
     /// the card may be taken out; the next operation, or [`FileStore::mount`], mounts it again.
-    /// The default does nothing.
-    fn release(&mut self) {}
+    /// The default abandons the write in progress.
+    fn release(&mut self) {
+        let _ = self.abandon();
+    }
 }
 
 impl<T: FileStore + ?Sized> FileStore for &mut T {
@@ -495,103 +503,44 @@ mod tests {
     }
 
     #[test]
-    fn a_file_is_seen_only_once_finished() {
-        let mut s = RamFileStore::<256, 4>::new();
-        s.create(&name("job.gco")).unwrap();
-        s.append(b"G1 X1\n").unwrap();
-        assert_eq!(s.writing(), Some(name("job.gco")));
-        assert_eq!(s.file(0), Ok(None));
-        assert_eq!(s.size(&name("job.gco")), Err(FileError::NotFound));
-        assert_eq!(
-            s.read(&name("job.gco"), 0, &mut [0; 8]),
-            Err(FileError::NotFound)
-        );
-        s.append(b"G1 X2\n").unwrap();
-        s.finish().unwrap();
-        assert_eq!(s.writing(), None);
-        let (files, count) = listed(&mut s);
-        assert_eq!(count, 1);
-        assert_eq!(
-            files[0],
-            Some(FileInfo {
-                name: name("job.gco"),
-                size: 12
-            })
-        );
-        let (buf, len) = contents(&mut s, "JOB.GCO").unwrap();
-        assert_eq!(&buf[..len], b"G1 X1\nG1 X2\n");
-        // Reads at an offset, past the end, and into a small buffer.
-        let mut small = [0; 4];
-        assert_eq!(s.read(&name("job.gco"), 3, &mut small), Ok(4));
-        assert_eq!(&small, b"X1\nG");
-        assert_eq!(s.read(&name("job.gco"), 10, &mut small), Ok(2));
-        assert_eq!(s.read(&name("job.gco"), 12, &mut small), Ok(0));
-        assert_eq!(s.read(&name("job.gco"), 99, &mut small), Ok(0));
+    fn keeps_the_file_store_contract() {
+        conformance::all(RamFileStore::<2048, 4>::new);
+    }
+
+    /// The store lists `names`, in this order and spelling.
+    fn assert_order<S: FileStore>(store: &mut S, names: &[&str]) {
+        let (files, count) = listed(store);
+        assert_eq!(count, names.len(), "{files:?}");
+        for (file, want) in files.iter().zip(names) {
+            assert_eq!(
+                file.map(|f| f.name).as_ref().map(FileName::as_str),
+                Some(*want)
+            );
+        }
     }
 
     #[test]
-    fn finishing_replaces_a_file_of_the_same_name_and_abandoning_keeps_the_old_one() {
-        let mut s = RamFileStore::<256, 4>::new();
-        write(&mut s, "a.g", b"first").unwrap();
-        write(&mut s, "b.g", b"bee").unwrap();
-        s.create(&name("A.G")).unwrap();
-        s.append(b"second version").unwrap();
-        // Until finished, the old file is the one seen.
-        let (buf, len) = contents(&mut s, "a.g").unwrap();
-        assert_eq!(&buf[..len], b"first");
-        s.abandon().unwrap();
-        assert_eq!(s.writing(), None);
-        let (buf, len) = contents(&mut s, "a.g").unwrap();
-        assert_eq!(&buf[..len], b"first");
-        write(&mut s, "A.G", b"second version").unwrap();
-        let (files, count) = listed(&mut s);
-        assert_eq!(count, 2, "replaced, not added");
-        assert_eq!(files[0].unwrap().name.as_str(), "b.g");
-        assert_eq!(files[1].unwrap().name.as_str(), "A.G", "the last spelling");
-        let (buf, len) = contents(&mut s, "a.g").unwrap();
-        assert_eq!(&buf[..len], b"second version");
-        let (buf, len) = contents(&mut s, "b.g").unwrap();
-        assert_eq!(&buf[..len], b"bee");
-    }
-
-    #[test]
-    fn one_write_at_a_time() {
-        let mut s = RamFileStore::<64, 4>::new();
-        assert_eq!(s.append(b"x"), Err(FileError::NotWriting));
-        assert_eq!(s.finish(), Err(FileError::NotWriting));
-        s.abandon().unwrap();
-        s.create(&name("a.g")).unwrap();
-        assert_eq!(s.create(&name("b.g")), Err(FileError::Busy));
-        s.finish().unwrap();
-        assert_eq!(s.size(&name("a.g")), Ok(0), "an empty file");
-        assert_eq!(s.append(b"x"), Err(FileError::NotWriting));
-    }
-
-    #[test]
-    fn removing_moves_the_others_down() {
+    fn files_are_listed_in_the_order_they_were_finished() {
         let mut s = RamFileStore::<64, 4>::new();
         write(&mut s, "a.g", b"aaaa").unwrap();
         write(&mut s, "b.g", b"bb").unwrap();
         write(&mut s, "c.g", b"cccccc").unwrap();
         s.create(&name("d.g")).unwrap();
         s.append(b"dd").unwrap();
-        s.remove(&name("B.g")).unwrap();
-        assert_eq!(s.remove(&name("b.g")), Err(FileError::NotFound));
-        s.append(b"d").unwrap();
+        s.remove(&name("b.g")).unwrap();
         s.finish().unwrap();
-        for (n, want) in [("a.g", &b"aaaa"[..]), ("c.g", b"cccccc"), ("d.g", b"ddd")] {
+        assert_order(&mut s, &["a.g", "c.g", "d.g"]);
+        write(&mut s, "A.G", b"second").unwrap();
+        assert_order(&mut s, &["c.g", "d.g", "A.G"]);
+        s.create(&name("c.g")).unwrap();
+        s.append(b"new").unwrap();
+        s.remove(&name("c.g")).unwrap();
+        s.finish().unwrap();
+        assert_order(&mut s, &["d.g", "A.G", "c.g"]);
+        for (n, want) in [("d.g", &b"dd"[..]), ("a.g", b"second"), ("c.g", b"new")] {
             let (buf, len) = contents(&mut s, n).unwrap();
             assert_eq!(&buf[..len], want, "{n}");
         }
-        assert_eq!(listed(&mut s).1, 3);
-        // Removing a file that is being written removes the finished one; the write goes on.
-        s.create(&name("a.g")).unwrap();
-        s.append(b"new").unwrap();
-        s.remove(&name("a.g")).unwrap();
-        assert_eq!(s.size(&name("a.g")), Err(FileError::NotFound));
-        s.finish().unwrap();
-        let (buf, len) = contents(&mut s, "a.g").unwrap();
-        assert_eq!(&buf[..len], b"new");
     }
 
     #[test]
@@ -615,14 +564,5 @@ mod tests {
         assert_eq!(s.size(&name("a.g")), Ok(2));
         write(&mut s, "c.g", b"123456").unwrap();
         assert_eq!(listed(&mut s).1, 2);
-    }
-
-    #[test]
-    fn the_store_is_usable_as_a_trait_object() {
-        let mut s = RamFileStore::<32, 2>::new();
-        let store: &mut dyn FileStore = &mut s;
-        write(store, "a.g", b"x").unwrap();
-        let mut lent = &mut *store;
-        assert_eq!(FileStore::size(&mut lent, &name("a.g")), Ok(1));
     }
 }

@@ -33,6 +33,14 @@
 //! ([`ErrorType`]); the [`device`] traits, which the application holds as trait objects
 //! (`&mut dyn FanControl`), share one error, [`device::DeviceError`], instead. Every trait is
 //! implemented for `&mut T` so that a driver can be lent without giving it away.
+//!
+//! ## Features
+//!
+//! | feature | adds |
+//! |---|---|
+//! | `defmt` | `defmt::Format` for the small value types: time, step direction and timing, link state, spindle rotation, errors |
+//! | `alloc` | [`link::LinkStatus`] for `Box<T>`, for a board that serves links of several types |
+//! | `conformance` | `files::conformance`: the [`files::FileStore`] contract as checks that a store's tests run (`no_std`, allocation-free) |
 #![no_std]
 #![deny(unsafe_code)]
 
