@@ -10,6 +10,7 @@
 //! | fans | `[Option<&mut dyn FanControl>; F]`, by `P` index (a [`Fan`](forja_drivers::pwm::Fan)) | `M106 P<i> S<duty>`, `M107` |
 //! | spindle | `Option<&mut dyn SpindleControl>` (a [`Spindle`](forja_drivers::pwm::Spindle)) | `M3`/`M4`/`M5` |
 //! | coolant | `Option<&mut dyn CoolantControl>` (a [`Coolant`](forja_drivers::coolant::Coolant)) | `M7`/`M8`/`M9` |
+//! | beeper | `Option<&mut dyn Beeper>` (a board's own: `forja-drivers` has none, since `embedded-hal` has no PWM whose frequency can be set) | `M300` |
 //! | motor power | any [`StepperEnable`] ([`MotorEnables`] for one line per driver, [`NoMotors`] for none) | `M17`/`M18`/`M84`, before motion |
 //! | end-stops | `[Option<L>; N]`, `L:` [`LimitSwitch`], the thread side's own reading of each axis's switch | `M119` |
 //! | file store | `Option<&mut dyn FileStore>` (an SD card, a directory, a [`RamFileStore`](forja_hal_abstraction::files::RamFileStore)) | `M20`–`M32` |
@@ -56,7 +57,7 @@ use core::convert::Infallible;
 
 use forja_hal_abstraction::ErrorType;
 use forja_hal_abstraction::device::{
-    CoolantControl, DeviceError, FanControl, SpindleControl, TemperatureControl,
+    Beeper, CoolantControl, DeviceError, FanControl, SpindleControl, TemperatureControl,
 };
 use forja_hal_abstraction::files::{FileError, FileInfo, FileName, FileStore};
 use forja_hal_abstraction::limit::LimitSwitch;
@@ -75,6 +76,8 @@ pub trait DeviceObjects {
     type Spindle: SpindleControl + ?Sized;
     /// Coolant.
     type Coolant: CoolantControl + ?Sized;
+    /// A beeper.
+    type Beeper: Beeper + ?Sized;
     /// A file store.
     type Files: FileStore + ?Sized;
 }
@@ -89,6 +92,7 @@ impl DeviceObjects for SendDevices {
     type Fan = dyn FanControl + Send;
     type Spindle = dyn SpindleControl + Send;
     type Coolant = dyn CoolantControl + Send;
+    type Beeper = dyn Beeper + Send;
     type Files = dyn FileStore + Send;
 }
 
@@ -102,6 +106,7 @@ impl DeviceObjects for LocalDevices {
     type Fan = dyn FanControl;
     type Spindle = dyn SpindleControl;
     type Coolant = dyn CoolantControl;
+    type Beeper = dyn Beeper;
     type Files = dyn FileStore;
 }
 
@@ -122,6 +127,8 @@ pub struct Parts<'a, M, L, const N: usize, const F: usize = 0, D: DeviceObjects 
     pub spindle: Option<&'a mut D::Spindle>,
     /// The coolant, if any.
     pub coolant: Option<&'a mut D::Coolant>,
+    /// The beeper, if any.
+    pub beeper: Option<&'a mut D::Beeper>,
     /// Motor power.
     pub motors: M,
     /// Each axis's switch as the thread side reads it, for `M119`.
@@ -140,6 +147,7 @@ impl<M, L, const N: usize, const F: usize, D: DeviceObjects> Parts<'_, M, L, N, 
             fans: core::array::from_fn(|_| None),
             spindle: None,
             coolant: None,
+            beeper: None,
             motors,
             endstops,
             files: None,
@@ -176,6 +184,10 @@ where
         self.coolant.as_mut().map(|c| c as _)
     }
 
+    fn beeper(&mut self) -> Option<&mut dyn Beeper> {
+        self.beeper.as_mut().map(|b| b as _)
+    }
+
     fn set_motors(&mut self, enabled: bool) -> Result<(), DeviceError> {
         power(&mut self.motors, enabled)
     }
@@ -191,7 +203,7 @@ where
 
 /// The peripherals of a board whose parts are motion alone: motor power, the end-stops as
 /// the thread side reads them for `M119` ([`NoLimit`]: none), and perhaps a card `C` for the
-/// SD-card commands ([`NoCard`]: none). It has no heater, fan, spindle or coolant: their
+/// SD-card commands ([`NoCard`]: none). It has no heater, fan, spindle, coolant or beeper: their
 /// commands are refused (`E194 no-device`; without a card the SD-card commands are answered
 /// as Marlin without one answers them), and the code that drives them is left out of the
 /// board's image. Every part is held by value and called without a trait object.
@@ -667,5 +679,35 @@ mod tests {
         ));
         assert_eq!(p.endstops(), [Some(true), None]);
         assert_eq!(p.set_fan(0, 1), Err(PeripheralError::NoDevice));
+        assert_eq!(p.tone(440, 200), Err(PeripheralError::NoDevice));
+    }
+
+    /// A beeper that records the tones handed to it.
+    #[derive(Default)]
+    struct Tones(std::vec::Vec<(u16, u16)>);
+
+    impl Beeper for Tones {
+        fn tone(&mut self, frequency_hz: u16, duration_ms: u16) -> Result<(), DeviceError> {
+            self.0.push((frequency_hz, duration_ms));
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn tones_go_to_the_boards_beeper_and_are_refused_without_one() {
+        let mut beeper = Tones::default();
+        {
+            let mut p: Devices<Parts<'_, NoMotors, NoLimit, 2, 0, LocalDevices>, 2> =
+                Devices::new(Parts {
+                    beeper: Some(&mut beeper),
+                    ..Parts::new(NoMotors, [None, None])
+                });
+            p.tone(440, 200).unwrap();
+            p.tone(0, 100).unwrap();
+        }
+        assert_eq!(beeper.0, [(440, 200), (0, 100)]);
+        let mut o = owned();
+        let mut p = board(&mut o);
+        assert_eq!(p.tone(440, 200), Err(PeripheralError::NoDevice));
     }
 }

@@ -1,5 +1,5 @@
 //! The machine's devices as the application commands them: temperature zones, fans, the
-//! spindle, coolant and general-purpose outputs.
+//! spindle, coolant, general-purpose outputs and the beeper.
 //!
 //! Each trait is one thing a driver can do, object-safe, so that the application holds a
 //! board's devices uniformly (`&mut dyn FanControl`, …) and a board lists what it has. Motor
@@ -31,6 +31,7 @@
 //! | [`SpindleControl`] | a spindle (or a laser), direction and speed | `M3`/`M4`/`M5` |
 //! | [`CoolantControl`] | mist and flood coolant | `M7`/`M8`/`M9` |
 //! | [`DigitalOutput`] | one general-purpose output, on or off; the power supply's switch | `M42`; `M80`/`M81` |
+//! | [`Beeper`] | a buzzer or a speaker that plays tones one after another | `M300` |
 
 use core::fmt;
 
@@ -238,6 +239,36 @@ impl<T: DigitalOutput + ?Sized> DigitalOutput for &mut T {
     }
 }
 
+/// The fewest tones a [`Beeper`] keeps waiting behind the one it sounds: Marlin's tone queue,
+/// so that a short tune of `M300` lines plays whole.
+pub const MIN_WAITING_TONES: usize = 4;
+
+/// A beeper: a buzzer or a speaker that plays tones one after another, as Marlin's beeper does
+/// (its tones are queued, so that consecutive `M300` lines make a tune).
+///
+/// The beeper times its tones itself (a timer, or hardware that stops on its own): the
+/// application hands it each tone and never waits for one.
+pub trait Beeper {
+    /// Sound `frequency_hz` for `duration_ms` once the tones handed over before it have
+    /// played (at once when none is sounding), then stop. A `frequency_hz` of 0 is silence
+    /// for `duration_ms`: a pause before the next tone. A pitch the beeper cannot sound is
+    /// sounded as near as it can (an active buzzer, which has one pitch, sounds its own).
+    ///
+    /// The beeper keeps at least [`MIN_WAITING_TONES`] tones waiting behind the one it
+    /// sounds; a tone beyond those it keeps is not played, and that is not an error: a tone
+    /// is a notice, not worth stopping a program for.
+    ///
+    /// Context: thread. Never blocks: returns before the tone has sounded. Errors:
+    /// [`DeviceError::Hardware`]: the output could not be driven.
+    fn tone(&mut self, frequency_hz: u16, duration_ms: u16) -> Result<(), DeviceError>;
+}
+
+impl<T: Beeper + ?Sized> Beeper for &mut T {
+    fn tone(&mut self, frequency_hz: u16, duration_ms: u16) -> Result<(), DeviceError> {
+        T::tone(self, frequency_hz, duration_ms)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     extern crate std;
@@ -265,6 +296,28 @@ mod tests {
             held.set_duty(128).unwrap();
         }
         assert_eq!(fan.0, 128);
+    }
+
+    /// A beeper that records the tones handed to it.
+    struct Tones(std::vec::Vec<(u16, u16)>);
+
+    impl Beeper for Tones {
+        fn tone(&mut self, frequency_hz: u16, duration_ms: u16) -> Result<(), DeviceError> {
+            self.0.push((frequency_hz, duration_ms));
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_beeper_is_lent_as_a_trait_object() {
+        let mut beeper = Tones(std::vec::Vec::new());
+        {
+            let mut lent = &mut beeper;
+            let held: &mut dyn Beeper = &mut lent;
+            held.tone(440, 200).unwrap();
+            held.tone(0, 100).unwrap();
+        }
+        assert_eq!(beeper.0, [(440, 200), (0, 100)]);
     }
 
     #[test]

@@ -13,7 +13,7 @@
 //! | [`link`] | [`link::LinkStatus`] | whether a host is connected (bytes move over `embedded-io`) |
 //! | [`thermal`] | [`thermal::Heater`], [`thermal::TemperatureSensor`] | heater power and temperature reading |
 //! | [`pwm`] | [`pwm::PwmOutput`] | fans and spindles (the `embedded-hal` PWM trait) |
-//! | [`device`] | [`device::TemperatureControl`], [`device::FanControl`], [`device::SpindleControl`], [`device::CoolantControl`], [`device::DigitalOutput`] | the machine's devices as the application commands them, with one [`device::DeviceError`] |
+//! | [`device`] | [`device::TemperatureControl`], [`device::FanControl`], [`device::SpindleControl`], [`device::CoolantControl`], [`device::DigitalOutput`], [`device::Beeper`] | the machine's devices as the application commands them, with one [`device::DeviceError`] |
 //! | [`storage`] | [`storage::RecordStorage`] | power-loss-safe keyed records (over `embedded-storage`) |
 //! | [`program`] | [`program::ProgramStore`] | where a program's lines are kept, stored whole or not at all |
 //! | [`files`] | [`files::FileStore`] | named files (an SD card, a directory), each stored whole or not at all |

@@ -1,14 +1,14 @@
 //! What the kernel hands back to the controller: commands for other subsystems, in order.
 //!
-//! Heaters, fans, spindles, coolant, the link's line numbering, storage and motor power are not
-//! the motion kernel's hardware, but their commands arrive in the same G-code stream and must take
-//! effect at the right place in it. The kernel therefore recognises them, parses their
-//! arguments, and returns each as an [`Effect`] from [`crate::Kernel::execute`] — at the moment
-//! it is to be carried out:
+//! Heaters, fans, spindles, coolant, the beeper, the link's line numbering, storage and motor
+//! power are not the motion kernel's hardware, but their commands arrive in the same G-code
+//! stream and must take effect at the right place in it. The kernel therefore recognises them,
+//! parses their arguments, and returns each as an [`Effect`] from [`crate::Kernel::execute`] —
+//! at the moment it is to be carried out:
 //!
 //! - an effect whose [`Effect::sync`] is [`Sync::Now`] is returned as soon as its line is
 //!   offered (motion already queued keeps running): temperature targets, reports, line numbers,
-//!   storage commands, motors on;
+//!   storage commands, motors on, tones;
 //! - an effect that is [`Sync::AfterMotion`] is returned only once every move before it has
 //!   finished: until then `execute` answers [`crate::Reply::Busy`] for that line. Spindle,
 //!   coolant, fan, tool change, motors off, program stop, pause and program end thus happen
@@ -215,6 +215,16 @@ pub enum Effect<'l> {
         /// On or off.
         on: bool,
     },
+    /// `M300 S<Hz> P<ms>`: a tone of the beeper, at once, as Marlin queues it to its beeper:
+    /// the moves queued before it go on (an `M400` before it sounds it after them).
+    Tone {
+        /// The pitch, Hz (`S`, 260 without it, at most 20 000); 0 is silence: a pause between
+        /// tones.
+        frequency_hz: u16,
+        /// How long, ms (`P`, 1000 without it; a longer one is cut to 5000, as Marlin cuts
+        /// it).
+        duration_ms: u16,
+    },
     /// `M226`: the program pauses here (motion before it is done); [`crate::Kernel::resume`]
     /// continues.
     Paused,
@@ -308,6 +318,13 @@ impl Effect<'_> {
             Effect::BusyInterval(s) => Effect::BusyInterval(s),
             Effect::Output { index, on } => Effect::Output { index, on },
             Effect::PowerSupply { on } => Effect::PowerSupply { on },
+            Effect::Tone {
+                frequency_hz,
+                duration_ms,
+            } => Effect::Tone {
+                frequency_hz,
+                duration_ms,
+            },
         }
     }
 }

@@ -29,6 +29,7 @@
 //! | `M3`–`M5`, `M7`–`M9`, `M73`, `M104`–`M107`, `M109`, `M110`, `M113`, `M115`–`M119`, `M140`, `M155`, `M190`, `M400`, `M410`, `M20`–`M30`, `M32`, `T` | returned as [`crate::Effect`]s |
 //! | `M900` | linear advance: `K0` (none, what this planner does) is taken, another factor refused |
 //! | `M42`, `M80`, `M81`, `M141` | an output, the power supply, the chamber: returned as [`crate::Effect`]s |
+//! | `M300` | a tone of the beeper, `S` Hz (260; 0: a pause) for `P` ms (1000, at most 5000): returned as an [`crate::Effect`] |
 //!
 //! ## Planner settings and overrides
 //!
@@ -76,6 +77,15 @@ const MAX_NM: i64 = 100_000_000_000;
 /// The slowest feed accepted, mm/min (grblHAL's `MINIMUM_FEED_RATE`): slower `F` words are
 /// refused. Faster ones are capped by the axes' maximum rates when the move is planned.
 pub(crate) const MIN_FEED_MM_MIN: f32 = 1.0;
+/// The pitch of an `M300` without `S`, Hz (Marlin's).
+const TONE_HZ: u16 = 260;
+/// The length of an `M300` without `P`, ms (Marlin's).
+const TONE_MS: u16 = 1000;
+/// The highest `M300` pitch accepted, Hz: the top of human hearing. Higher `S` words are
+/// refused.
+const MAX_TONE_HZ: u32 = 20_000;
+/// The longest `M300` tone, ms: longer `P` words are cut to it, as Marlin cuts them.
+const MAX_TONE_MS: i64 = 5000;
 
 /// What one line asks for.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -909,6 +919,21 @@ impl<const N: usize> Interpreter<N> {
                 })
             }
             (b'M', 80 | 81) => Action::Effect(Effect::PowerSupply { on: n == 80 }),
+            (b'M', 300) => {
+                let frequency_hz = match s {
+                    Some(v) => small_int(v, b'S', MAX_TONE_HZ)? as u16,
+                    None => TONE_HZ,
+                };
+                let duration_ms = match line.get(b'P').map(Decimal::as_integer) {
+                    Some(Some(ms)) if ms >= 0 => ms.min(MAX_TONE_MS) as u16,
+                    Some(_) => return Err(CommandError::BadValue { letter: b'P' }),
+                    None => TONE_MS,
+                };
+                Action::Effect(Effect::Tone {
+                    frequency_hz,
+                    duration_ms,
+                })
+            }
             (b'M', 104 | 109 | 140 | 141 | 190) => {
                 let waits = matches!(n, 109 | 190);
                 let (celsius, wait) = match (s, line.get(b'R')) {
@@ -1382,6 +1407,55 @@ mod tests {
             Ok(Action::Effect(Effect::Spindle(Spindle::Clockwise {
                 rpm: Some(Decimal::new(12000, 0))
             })))
+        );
+    }
+
+    #[test]
+    fn m300_is_a_tone_with_marlins_defaults_and_checked_values() {
+        let c = cfg();
+        let mut it = Interpreter::new(&c);
+        let tone = |frequency_hz, duration_ms| {
+            Ok(Action::Effect(Effect::Tone {
+                frequency_hz,
+                duration_ms,
+            }))
+        };
+        assert_eq!(run(&mut it, b"M300 S440 P200"), tone(440, 200));
+        assert_eq!(run(&mut it, b"M300"), tone(260, 1000));
+        assert_eq!(run(&mut it, b"M300 S1000"), tone(1000, 1000));
+        assert_eq!(run(&mut it, b"M300 P50"), tone(260, 50));
+        // `S0`: silence for `P`, a pause between tones.
+        assert_eq!(run(&mut it, b"M300 S0 P300"), tone(0, 300));
+        assert_eq!(run(&mut it, b"M300 S20000 P0"), tone(20_000, 0));
+        // Longer than 5 s: cut to 5 s, as Marlin cuts it.
+        assert_eq!(run(&mut it, b"M300 S440 P60000"), tone(440, 5000));
+        assert_eq!(run(&mut it, b"M300 S440 P5000000000"), tone(440, 5000));
+        for (line, letter) in [
+            (&b"M300 S20001"[..], b'S'),
+            (b"M300 S-440", b'S'),
+            (b"M300 S440.5", b'S'),
+            (b"M300 S440 P-1", b'P'),
+            (b"M300 S440 P0.5", b'P'),
+        ] {
+            assert_eq!(
+                run(&mut it, line),
+                Err(CommandError::BadValue { letter }),
+                "{}",
+                core::str::from_utf8(line).unwrap()
+            );
+        }
+        assert_eq!(
+            run(&mut it, b"M300 S"),
+            Err(CommandError::MissingValue { letter: b'S' })
+        );
+        // Sounded as the line is read: the moves before it go on, as in Marlin.
+        assert_eq!(
+            Effect::Tone {
+                frequency_hz: 440,
+                duration_ms: 200
+            }
+            .sync(),
+            crate::effect::Sync::Now
         );
     }
 

@@ -247,6 +247,30 @@ fn soft_limits_reject_moves_before_they_are_planned() {
 }
 
 #[test]
+fn a_tone_comes_back_at_once_while_the_moves_before_it_run() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.send("G1 X20 F3000").expect("ok");
+    // Marlin queues `M300` to its beeper as the line is read, not after the planner's moves.
+    let line = Line::parse(b"M300 S440 P200").expect("parse");
+    assert_eq!(
+        s.kernel.execute(&line),
+        Ok(Reply::Effect(Effect::Tone {
+            frequency_hz: 440,
+            duration_ms: 200
+        }))
+    );
+    assert!(!s.kernel.is_idle());
+    assert!(s.positions()[0] < steps(20.0));
+    // After `M400`, it sounds once the move is done.
+    let line = Line::parse(b"M400").expect("parse");
+    while s.kernel.execute(&line) == Ok(Reply::Busy) {
+        s.advance(1000);
+    }
+    assert_eq!(s.positions()[0], steps(20.0));
+}
+
+#[test]
 fn effects_come_back_in_stream_order() {
     let mut q = StepQueue::<3, 256>::new();
     let mut s = sim(&mut q, machine(), HZ);

@@ -619,6 +619,13 @@ where
                 Ok(()) => Done::Ok,
                 Err(e) => device(e, format_args!("power-supply")),
             },
+            Effect::Tone {
+                frequency_hz,
+                duration_ms,
+            } => match devices.tone(frequency_hz, duration_ms) {
+                Ok(()) => Done::Ok,
+                Err(e) => device(e, format_args!("beeper")),
+            },
             Effect::QuickStop => Done::QuickStop,
             Effect::Progress {
                 percent,

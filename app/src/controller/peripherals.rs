@@ -1,6 +1,6 @@
 //! What a board gives the controller besides the motion kernel — its devices (the hot end,
-//! the bed, fans, the spindle, coolant), motor power and the end-stops as the thread side reads
-//! them — and the G-code rules the controller applies to them.
+//! the bed, fans, the spindle, coolant, outputs, the beeper), motor power and the end-stops as
+//! the thread side reads them — and the G-code rules the controller applies to them.
 //!
 //! [`Peripherals`] is the board's description of which devices it has: one small accessor
 //! each, answering the device as a trait object of `forja_hal_abstraction::device`, or `None`
@@ -12,12 +12,14 @@
 //! `S` runs at the last speed commanded, `M109`/`M116` wait until every heater with a target is
 //! within [`ControllerConfig::heater_tolerance_mc`](super::ControllerConfig::heater_tolerance_mc)
 //! of it, `M9` turns both coolant lines off, program end stops the spindle and the coolant, and
-//! alarms turn everything off.
+//! alarms turn the heaters, the fans, the spindle and the coolant off. An `M300` tone goes to
+//! the beeper as its line is read, and the line is answered without waiting for it: the beeper
+//! plays its tones one after another (see `forja_hal_abstraction::device::Beeper`).
 
 use core::fmt;
 
 use forja_hal_abstraction::device::{
-    CoolantControl, DeviceError, DigitalOutput, FanControl, Rotation, SpindleControl,
+    Beeper, CoolantControl, DeviceError, DigitalOutput, FanControl, Rotation, SpindleControl,
     TemperatureControl,
 };
 use forja_hal_abstraction::files::FileStore;
@@ -54,7 +56,7 @@ pub struct Temperatures {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 #[non_exhaustive]
 pub enum PeripheralError {
-    /// The board has no such heater, fan, spindle or coolant. Code 194.
+    /// The board has no such heater, fan, spindle, coolant, output or beeper. Code 194.
     NoDevice,
     /// A value the device cannot take: a target above its maximum, a speed it cannot run, a
     /// direction it cannot turn, a coolant line it does not have. Nothing changed. Code 195.
@@ -160,6 +162,11 @@ pub trait Peripherals<const N: usize> {
         None
     }
 
+    /// The beeper (`M300`).
+    fn beeper(&mut self) -> Option<&mut dyn Beeper> {
+        None
+    }
+
     /// Energise (`true`) or release every stepper driver. The controller energises them
     /// before any motion and releases them on `M18`/`M84`, `M0` and `M112`.
     ///
@@ -206,6 +213,9 @@ impl<const N: usize, T: Peripherals<N> + ?Sized> Peripherals<N> for &mut T {
     }
     fn coolant(&mut self) -> Option<&mut dyn CoolantControl> {
         T::coolant(self)
+    }
+    fn beeper(&mut self) -> Option<&mut dyn Beeper> {
+        T::beeper(self)
     }
     fn set_motors(&mut self, enabled: bool) -> Result<(), DeviceError> {
         T::set_motors(self, enabled)
@@ -381,6 +391,19 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
     pub(crate) fn set_power_supply(&mut self, on: bool) -> Result<(), PeripheralError> {
         let supply = self.parts.power_supply().ok_or(PeripheralError::NoDevice)?;
         Ok(supply.set_on(on)?)
+    }
+
+    /// Hand the beeper a tone of `frequency_hz` (0: a pause) for `duration_ms` (`M300`): it
+    /// sounds after the tones before it, and the controller does not wait for it.
+    ///
+    /// Errors: [`PeripheralError::NoDevice`], a device fault.
+    pub(crate) fn tone(
+        &mut self,
+        frequency_hz: u16,
+        duration_ms: u16,
+    ) -> Result<(), PeripheralError> {
+        let beeper = self.parts.beeper().ok_or(PeripheralError::NoDevice)?;
+        Ok(beeper.tone(frequency_hz, duration_ms)?)
     }
 
     /// Run fan `index` at `duty` out of 255 (`M106`, `M107`).

@@ -16,7 +16,7 @@ use super::settings::tests::VecStorage;
 use super::*;
 use crate::job::JobState;
 use forja_hal_abstraction::device::{
-    CoolantControl, DeviceError, DigitalOutput, FanControl, Rotation, SpindleControl,
+    Beeper, CoolantControl, DeviceError, DigitalOutput, FanControl, Rotation, SpindleControl,
     TemperatureControl,
 };
 use forja_hal_abstraction::files::{FileStore, RamFileStore};
@@ -160,6 +160,17 @@ impl DigitalOutput for FakeOutput {
     }
 }
 
+/// A beeper that records the tones handed to it, in order.
+#[derive(Default)]
+struct FakeBeeper(Vec<(u16, u16)>);
+
+impl Beeper for FakeBeeper {
+    fn tone(&mut self, frequency_hz: u16, duration_ms: u16) -> Result<(), DeviceError> {
+        self.0.push((frequency_hz, duration_ms));
+        Ok(())
+    }
+}
+
 /// A fan that records its duty.
 struct FakeFan(u8);
 
@@ -217,8 +228,9 @@ impl CoolantControl for FakeCoolant {
 /// The test board's SD card: 16 KiB for at most 8 files, in RAM.
 type FakeCard = RamFileStore<16384, 8>;
 
-/// The test board's devices: two heaters, two fans, a spindle and coolant that record what
-/// they are told, motor power, end-stops read from the simulated switches, an SD card.
+/// The test board's devices: two heaters, two fans, outputs, a spindle, coolant and a beeper
+/// that record what they are told, motor power, end-stops read from the simulated switches,
+/// an SD card.
 struct Fake {
     hot: FakeZone,
     bed: FakeZone,
@@ -230,6 +242,8 @@ struct Fake {
     spindle: FakeSpindle,
     /// `None`: the board has no coolant.
     coolant: Option<FakeCoolant>,
+    /// `None`: the board has no beeper.
+    beeper: Option<FakeBeeper>,
     motors: bool,
     motor_calls: u32,
     switches: Vec<SimLimitSwitch>,
@@ -247,6 +261,7 @@ impl Fake {
             psu: FakeOutput(false),
             spindle: FakeSpindle::default(),
             coolant: Some(FakeCoolant::default()),
+            beeper: Some(FakeBeeper::default()),
             motors: false,
             motor_calls: 0,
             switches,
@@ -279,6 +294,10 @@ impl Peripherals<3> for Fake {
     fn coolant(&mut self) -> Option<&mut dyn CoolantControl> {
         let coolant = self.coolant.as_mut()?;
         Some(coolant)
+    }
+    fn beeper(&mut self) -> Option<&mut dyn Beeper> {
+        let beeper = self.beeper.as_mut()?;
+        Some(beeper)
     }
     fn set_motors(&mut self, enabled: bool) -> Result<(), DeviceError> {
         self.motors = enabled;

@@ -1,14 +1,15 @@
 //! The machine file: what the simulated machine is.
 //!
 //! A machine file is TOML. It names the axes with their scale, rates, travel, homing and
-//! switches, the simulated heaters with their thermal constants, the PWM outputs, the virtual
-//! clock rate and the link settings. [`MachineConfig::from_toml_str`] parses and validates one;
-//! every error names the line, the section and the field ([`MachineFileError`]).
+//! switches, the simulated heaters with their thermal constants, the PWM outputs, the beeper,
+//! the virtual clock rate and the link settings. [`MachineConfig::from_toml_str`] parses and
+//! validates one; every error names the line, the section and the field
+//! ([`MachineFileError`]).
 //!
 //! Two machine files are bundled ([`BUNDLED`]): `default` (`machines/default.toml`, a 4-axis
 //! X/Y/Z/A CNC router, the simulator's default) and `printer` (`machines/printer.toml`, an
-//! X/Y/Z/E 3D printer with a hot end and a bed). The bundled files are the reference of the
-//! format: every field is there with a comment.
+//! X/Y/Z/E 3D printer with a hot end, a bed and a beeper). The bundled files are the reference
+//! of the format: every field is there with a comment.
 //!
 //! # Format
 //!
@@ -51,6 +52,10 @@
 //! [[output]]                  # PWM outputs (fans, spindles); zero or more
 //! name = "spindle"
 //! max_duty = 1000             # 1 ..= 65535
+//!
+//! [beeper]                    # optional: a buzzer or speaker for M300
+//! waiting_tones = 4           # optional: tones kept waiting behind the one sounding; 4 ..= 64
+//!                             # (default 4, Marlin's queue)
 //!
 //! [link]                      # optional
 //! tcp_bind = "127.0.0.1"      # default 127.0.0.1
@@ -105,6 +110,12 @@ pub const BED: &str = "bed";
 /// The name of the output that is the spindle.
 pub const SPINDLE: &str = "spindle";
 
+/// The fewest and most tones a beeper keeps waiting behind the one it sounds
+/// ([`BeeperConfig::waiting_tones`]): at least what the beeper contract asks for
+/// ([`forja_hal_abstraction::device::MIN_WAITING_TONES`]).
+pub const WAITING_TONES: core::ops::RangeInclusive<usize> =
+    forja_hal_abstraction::device::MIN_WAITING_TONES..=64;
+
 /// Axis letters a machine file may use.
 pub const AXIS_LETTERS: &str = "XYZABCUVWE";
 
@@ -121,6 +132,8 @@ pub struct MachineConfig {
     pub heaters: Vec<HeaterConfig>,
     /// PWM outputs, in file order.
     pub outputs: Vec<OutputConfig>,
+    /// The beeper, if the machine has one.
+    pub beeper: Option<BeeperConfig>,
     /// Link settings.
     pub link: LinkConfig,
 }
@@ -237,6 +250,23 @@ pub struct OutputConfig {
     pub name: String,
     /// Duty value meaning 100 %.
     pub max_duty: u16,
+}
+
+/// The beeper: a buzzer or a speaker that plays the tones of `M300` one after another (see
+/// [`crate::beeper`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BeeperConfig {
+    /// How many tones it keeps waiting behind the one it sounds; a tone beyond them is not
+    /// played. In [`WAITING_TONES`].
+    pub waiting_tones: usize,
+}
+
+impl Default for BeeperConfig {
+    fn default() -> Self {
+        Self {
+            waiting_tones: *WAITING_TONES.start(),
+        }
+    }
 }
 
 /// Link settings.
@@ -455,6 +485,7 @@ struct RawMachine {
     heaters: Vec<Spanned<RawHeater>>,
     #[serde(default, rename = "output")]
     outputs: Vec<Spanned<RawOutput>>,
+    beeper: Option<Spanned<RawBeeper>>,
     link: Option<Spanned<RawLink>>,
 }
 
@@ -509,6 +540,12 @@ struct RawHeater {
 struct RawOutput {
     name: Spanned<String>,
     max_duty: Spanned<i64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawBeeper {
+    waiting_tones: Option<Spanned<i64>>,
 }
 
 #[derive(Deserialize)]
@@ -689,6 +726,10 @@ impl Validator<'_> {
                 "name",
             )?;
         }
+        let beeper = match &raw.beeper {
+            Some(b) => Some(self.beeper(b.get_ref())?),
+            None => None,
+        };
         let link = match &raw.link {
             Some(l) => self.link(l.get_ref())?,
             None => LinkConfig::default(),
@@ -699,6 +740,7 @@ impl Validator<'_> {
             axes,
             heaters,
             outputs,
+            beeper,
             link,
         })
     }
@@ -998,6 +1040,15 @@ impl Validator<'_> {
         Ok(OutputConfig { name, max_duty })
     }
 
+    fn beeper(&self, b: &RawBeeper) -> Res<BeeperConfig> {
+        let mut beeper = BeeperConfig::default();
+        if let Some(n) = &b.waiting_tones {
+            let range = *WAITING_TONES.start() as i64..=*WAITING_TONES.end() as i64;
+            beeper.waiting_tones = self.integer(n, "beeper", "waiting_tones", range)? as usize;
+        }
+        Ok(beeper)
+    }
+
     fn link(&self, l: &RawLink) -> Res<LinkConfig> {
         let mut link = LinkConfig::default();
         if let Some(b) = &l.tcp_bind {
@@ -1060,6 +1111,8 @@ travel_max_mm = 300
             MachineConfig::from_toml_str(MachineConfig::bundled_toml("printer").unwrap()).unwrap();
         assert_eq!(printer.heaters.len(), 2);
         assert_eq!(printer.axis_index('e'), Some(3));
+        assert_eq!(printer.beeper, Some(BeeperConfig { waiting_tones: 4 }));
+        assert_eq!(router.beeper, None);
     }
 
     #[test]
@@ -1073,6 +1126,23 @@ travel_max_mm = 300
         assert_eq!(x.steps_to_mm(-80), -1.0);
         assert!(x.homing.is_none() && x.switches.is_empty());
         assert_eq!(m.link, LinkConfig::default());
+        assert_eq!(m.beeper, None);
+    }
+
+    #[test]
+    fn a_beeper_keeps_at_least_marlins_four_tones_waiting() {
+        let m = MachineConfig::from_toml_str(&format!("{MINIMAL}[beeper]\n")).unwrap();
+        assert_eq!(m.beeper, Some(BeeperConfig { waiting_tones: 4 }));
+        let m = MachineConfig::from_toml_str(&format!("{MINIMAL}[beeper]\nwaiting_tones = 16\n"))
+            .unwrap();
+        assert_eq!(m.beeper, Some(BeeperConfig { waiting_tones: 16 }));
+        let e = invalid(&format!("{MINIMAL}[beeper]\nwaiting_tones = 3\n"));
+        assert_eq!(
+            e.to_string(),
+            "machine file line 10: beeper: waiting_tones must be in 4..=64 (is 3)"
+        );
+        let e = invalid(&format!("{MINIMAL}[beeper]\npitch_hz = 2700\n"));
+        assert!(e.to_string().contains("pitch_hz"), "{e}");
     }
 
     #[test]

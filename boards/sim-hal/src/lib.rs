@@ -23,12 +23,13 @@
 //! | [`SimHeater`] | `Heater`, `SetDutyCycle` | a heater of a first-order thermal model ([`thermal`]) |
 //! | [`SimTemperatureSensor`] | `TemperatureSensor` | that model's temperature, or a sensor fault |
 //! | [`SimPwm`] | `SetDutyCycle` | a fan or spindle output that records its duty |
+//! | [`SimBeeper`] | `Beeper` | a buzzer that plays its tones one after another and records them ([`beeper`]) |
 //!
 //! Devices are named by index in machine-file order (axis 0 is the first `[[axis]]`);
 //! [`SimMachine::axis_index`], [`SimMachine::heater_index`] and [`SimMachine::output_index`]
 //! look them up by name. The same handle answers the test's questions: positions in steps,
 //! steps lost to a disabled driver, the travel range seen, timing violations, temperatures,
-//! duty histories, and the step trace ([`trace`]).
+//! duty histories, the tones played, and the step trace ([`trace`]).
 //!
 //! Besides the machine: [`flash::SimFlash`], a NOR flash (the drivers' in-RAM model, on the
 //! heap) whose operations can be written through to a file; the board's two flashes and the
@@ -120,6 +121,7 @@
 //! ```
 #![deny(unsafe_code)]
 
+pub mod beeper;
 pub mod config;
 pub mod files;
 pub mod flash;
@@ -135,6 +137,7 @@ pub mod stores;
 pub mod thermal;
 pub mod trace;
 
+pub use beeper::{SimBeeper, Tone};
 pub use config::{MachineConfig, MachineFileError};
 pub use files::DirFileStore;
 pub use limit::{SimLimitSwitch, SimSwitchPin, SwitchEdges};

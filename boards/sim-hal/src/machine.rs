@@ -2,10 +2,11 @@
 //!
 //! [`SimMachine`] is a cheap, cloneable handle to one machine's state: the virtual time, the
 //! armed alarm, every axis (position in steps, driver lines, timing checks), every switch,
-//! heater and PWM output, the step trace and the timing violations. The device handles it gives
-//! out ([`SimClock`], [`SimAlarm`], [`crate::SimStepper`], [`crate::SimLimitSwitch`],
-//! [`crate::SimHeater`], …) implement the `forja-hal-abstraction` traits over that state; the
-//! test or the simulation loop inspects it through the same handle.
+//! heater and PWM output, the beeper, the step trace and the timing violations. The device
+//! handles it gives out ([`SimClock`], [`SimAlarm`], [`crate::SimStepper`],
+//! [`crate::SimLimitSwitch`], [`crate::SimHeater`], [`crate::SimBeeper`], …) implement the
+//! `forja-hal-abstraction` traits over that state; the test or the simulation loop inspects it
+//! through the same handle.
 //!
 //! Single-threaded: the handles share the state through `Rc<RefCell<…>>`, each method borrows
 //! it for the duration of the call only, so handles can be used in any order, including from
@@ -21,6 +22,7 @@ use forja_hal_abstraction::clock::{Alarm, Clock};
 use forja_hal_abstraction::stepper::Direction;
 use forja_hal_abstraction::time::{Duration, Instant};
 
+use crate::beeper::BeeperState;
 use crate::config::{MachineConfig, SwitchSide};
 use crate::limit::SwitchState;
 use crate::pwm::PwmState;
@@ -44,6 +46,7 @@ pub(crate) struct State {
     /// The virtual time up to which the thermal models have been advanced.
     pub(crate) thermal_at: u64,
     pub(crate) outputs: Vec<PwmState>,
+    pub(crate) beeper: Option<BeeperState>,
     pub(crate) tracing: bool,
     pub(crate) trace: StepTrace,
     pub(crate) violations: Vec<TimingViolation>,
@@ -87,6 +90,8 @@ pub enum NoSuchDevice {
     Heater(usize),
     /// No PWM output with this index.
     Output(usize),
+    /// No beeper.
+    Beeper,
 }
 
 impl fmt::Display for NoSuchDevice {
@@ -98,6 +103,7 @@ impl fmt::Display for NoSuchDevice {
             }
             Self::Heater(i) => write!(f, "the machine has no heater {i}"),
             Self::Output(i) => write!(f, "the machine has no output {i}"),
+            Self::Beeper => f.write_str("the machine has no beeper"),
         }
     }
 }
@@ -123,7 +129,7 @@ impl fmt::Debug for SimMachine {
 impl SimMachine {
     /// A machine as `config` describes it, at virtual time 0, every axis at its `start_mm`,
     /// every driver disabled with its DIR line low (negative), every heater at `start_c` and
-    /// off, every output at duty 0, no alarm armed, tracing off.
+    /// off, every output at duty 0, the beeper silent, no alarm armed, tracing off.
     pub fn new(config: &MachineConfig) -> Self {
         let axes = config
             .axes
@@ -145,6 +151,7 @@ impl SimMachine {
             heaters: config.heaters.iter().map(ThermalModel::new).collect(),
             thermal_at: 0,
             outputs: config.outputs.iter().map(PwmState::new).collect(),
+            beeper: config.beeper.as_ref().map(BeeperState::new),
             tracing: false,
             trace: StepTrace::new(
                 config.tick_hz,

@@ -5,7 +5,7 @@
 //! |---|---|
 //! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`SimStepDirPins`](forja_sim_hal::SimStepDirPins), and `forja_drivers::limit::LimitInput`s on the homing switches' [`SimSwitchPin`]s; the switches' pin-change interrupt ([`SwitchEdges`]) reports their edges to it |
 //! | thread side | [`Firmware::poll`]: the ports' links, one controlling host across them and `Controller::poll` on its link, by [`forja_app::hosts::Arbiter`] (see [Links](#links)) |
-//! | peripherals | `forja_app::peripherals::Parts`: PID `HeaterChannel`s over the simulated heaters, `Fan`s and the `Spindle` on the PWM outputs (kept in the board's static RAM beside the step queue, as a firmware board keeps its devices in statics), the drivers' enable lines, the switches read again for `M119`; no coolant (the simulated machine has no switched outputs) |
+//! | peripherals | `forja_app::peripherals::Parts`: PID `HeaterChannel`s over the simulated heaters, `Fan`s and the `Spindle` on the PWM outputs, the simulated beeper when the machine file has one (kept in the board's static RAM beside the step queue, as a firmware board keeps its devices in statics), the drivers' enable lines, the switches read again for `M119`; no coolant (the simulated machine has no switched outputs) |
 //! | storage | the board's two flashes ([`BoardFlash`]): `FlashRecordStorage` for the settings, `RecordProgramStore` for the uploaded program; kept in a state file with `BoardFlash::open`; the SD card, a directory of the host ([`BoardConfig::sd_dir`]); opened together as [`BoardStores`] |
 //! | read back | what tests and the `forja-sim` program read of the firmware, whatever its number of axes ([`SimBoard::status`], [`SimBoard::program_line`], [`SimBoard::settings`], [`SimBoard::load_report`]): the controller's own accessors (`Controller::status`, `Controller::read_program_line`, the settings' `Display`), adapted |
 //!
@@ -187,8 +187,16 @@ fn wire<const N: usize>(
     #[allow(unsafe_code)]
     // SAFETY: the RAM is the last field of `Wired`: everything that borrows the queue and the
     // devices in it (the firmware, the step interrupt, the switch alert) drops before it.
-    let (ram, (queue, [hot_end, bed], fans, spindle, card)) =
-        unsafe { StaticRam::new((StepQueue::new(), heaters, fans, spindle, stores.card)) };
+    let (ram, (queue, [hot_end, bed], fans, spindle, beeper, card)) = unsafe {
+        StaticRam::new((
+            StepQueue::new(),
+            heaters,
+            fans,
+            spindle,
+            pins.beeper,
+            stores.card,
+        ))
+    };
     let (isr, firmware, _) = firmware::assemble(FirmwareParts {
         machine: parts::machine(machine.config())?,
         settings: stores.settings,
@@ -203,6 +211,7 @@ fn wire<const N: usize>(
             fans: fans.each_mut().map(|f| f.as_mut().map(|f| f as _)),
             spindle: spindle.as_mut().map(|s| s as _),
             coolant: None,
+            beeper: beeper.as_mut().map(|b| b as _),
             motors: MotorEnables(array::<_, N>(enables)?),
             endstops: pins.homing_switches.each_ref().map(switch),
             files: Some(card),
@@ -454,9 +463,65 @@ impl Firmware for SimBoard {
 #[cfg(test)]
 mod tests {
     use forja_motion::MachineState;
-    use forja_sim_hal::MachineConfig;
+    use forja_sim_hal::link::MemoryLink;
+    use forja_sim_hal::{MachineConfig, SimulationConfig};
 
     use super::*;
+
+    /// `lines` sent to a board on `machine` through an in-memory port; its reply lines once
+    /// `oks` lines have been answered `ok` (at most 60 s of virtual time).
+    fn answers(machine: &SimMachine, lines: &str, oks: usize) -> Vec<String> {
+        let mut board = SimBoard::new(machine, BoardConfig::default()).unwrap();
+        let (link, host) = MemoryLink::pair();
+        board.add_port(link, false);
+        host.send(lines.as_bytes());
+        let mut config = SimulationConfig::new(machine.tick_hz());
+        config.time_limit_ticks = Some(60 * u64::from(machine.tick_hz()));
+        let mut sim = Simulation::new(machine.clone(), config);
+        let mut text = String::new();
+        board
+            .run(&mut sim, |_, _| {
+                text.push_str(&String::from_utf8_lossy(&host.take_received()));
+                if text.lines().filter(|l| *l == "ok").count() >= oks {
+                    Flow::Stop
+                } else {
+                    Flow::Continue
+                }
+            })
+            .unwrap();
+        text.lines().map(str::to_string).collect()
+    }
+
+    #[test]
+    fn the_printer_plays_m300_tones_in_order_and_the_router_has_no_beeper() {
+        let file = MachineConfig::bundled_toml("printer").unwrap();
+        let machine = SimMachine::new(&MachineConfig::from_toml_str(file).unwrap());
+        machine.set_tracing(true);
+        let x = machine.axis_index('X').unwrap();
+        let lines = "G1 X110 F3000\nM300 S440 P200\nM300 S0 P100\nM300 S880 P50\nM400\nM300\n";
+        let out = answers(&machine, lines, 6);
+        assert!(out.iter().all(|l| !l.starts_with("echo:E")), "{out:?}");
+        let tones = machine.tones();
+        let hz: Vec<u16> = tones.iter().map(|t| t.frequency_hz).collect();
+        assert_eq!(hz, [440, 0, 880, 260]);
+        // One after another, each for its length (1 ms = 1000 ticks).
+        assert_eq!(tones[0].end_ticks - tones[0].start_ticks, 200_000);
+        assert_eq!(tones[1].start_ticks, tones[0].end_ticks);
+        assert_eq!(tones[2].start_ticks, tones[1].end_ticks);
+        assert!(tones[3].start_ticks >= tones[2].end_ticks);
+        // The first three while the move runs, as Marlin queues them; the last after `M400`.
+        let last_step = *machine.step_times(x).last().unwrap();
+        assert!(tones[2].start_ticks < last_step, "{tones:?}");
+        assert!(tones[3].start_ticks >= last_step, "{tones:?}");
+        assert_eq!(machine.dropped_tones(), 0);
+
+        let router = SimMachine::new(&MachineConfig::default_router());
+        let out = answers(&router, "M300 S440 P200\n", 1);
+        assert!(
+            out.ends_with(&["echo:E194 no-device beeper".to_string(), "ok".to_string()]),
+            "{out:?}"
+        );
+    }
 
     #[test]
     fn a_restart_keeps_the_flash() {

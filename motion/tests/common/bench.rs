@@ -71,6 +71,7 @@ pub fn machine_file<const N: usize>(
             .collect(),
         heaters: Vec::new(),
         outputs: Vec::new(),
+        beeper: None,
         link: LinkConfig::default(),
     }
 }

@@ -321,3 +321,46 @@ fn outputs_the_power_supply_and_a_device_the_board_lacks() {
         ["echo:E194 no-device hot end 1", "ok"]
     );
 }
+
+#[test]
+fn m300_hands_its_tone_to_the_beeper_as_marlin_queues_it() {
+    let mut b = Bench::new();
+    b.take();
+    let tones = |b: &Bench| b.ctl.peripherals().beeper.as_ref().unwrap().0.clone();
+    assert_eq!(b.ask("M300 S440 P200"), ["ok"]);
+    assert_eq!(b.ask("M300"), ["ok"], "Marlin's 260 Hz for 1 s");
+    assert_eq!(b.ask("M300 S0 P150"), ["ok"], "a pause");
+    assert_eq!(tones(&b), [(440, 200), (260, 1000), (0, 150)]);
+    assert_eq!(b.ask("M300 S30000"), ["echo:E121 bad-value S", "ok"]);
+    assert_eq!(tones(&b).len(), 3);
+    // The tone is handed over as its line is read, while the move before it runs; after
+    // `M400`, once the move is done.
+    assert_eq!(b.ask("G1 X20 F1200"), ["ok"]);
+    assert_eq!(b.ask("M300 S880 P100"), ["ok"]);
+    assert_eq!(tones(&b).last(), Some(&(880, 100)));
+    assert!(b.position_mm()[0] < 20.0);
+    b.send("M400");
+    b.send("M300 S660 P100");
+    b.run_ms(50);
+    assert_eq!(tones(&b).len(), 4);
+    b.run_until(10_000, |b| {
+        b.ctl.peripherals().beeper.as_ref().unwrap().0.len() == 5
+    });
+    assert_eq!(b.position_mm()[0], 20.0);
+    assert_eq!(tones(&b).last(), Some(&(660, 100)));
+    assert_eq!(b.take(), ["ok", "ok"]);
+}
+
+#[test]
+fn m300_without_a_beeper_names_the_device() {
+    let mut b = Bench::new();
+    b.ctl.peripherals_mut().beeper = None;
+    b.take();
+    assert_eq!(
+        b.ask("M300 S440 P200"),
+        ["echo:E194 no-device beeper", "ok"]
+    );
+    // Checked before the device: a bad value is a bad value.
+    assert_eq!(b.ask("M300 P-5"), ["echo:E121 bad-value P", "ok"]);
+    assert_eq!(b.ask("M114").last().map(String::as_str), Some("ok"));
+}

@@ -7,6 +7,7 @@
 //! | limit inputs | each homing axis's homing switch ([`AxisConfig::homing_switch`](forja_sim_hal::config::AxisConfig::homing_switch)), read with its polarity; other switches of the file (a hard limit at the far end) are modelled but not wired |
 //! | heaters | the hot end and the bed ([`MachineConfig::hot_end_heater`], [`MachineConfig::bed_heater`]): a simulated heater and its sensor, under PID control with Marlin's default gains |
 //! | PWM outputs | the spindle ([`MachineConfig::spindle_output`], [`SPINDLE_MAX_RPM`] at full duty), the fans 0, 1, … ([`MachineConfig::fan_outputs`], at most [`MAX_FANS`]) |
+//! | beeper | the machine file's `[beeper]`, if any ([`SimBeeper`]): `M300` |
 //! | machine | [`machine`]: the machine file's axes for the kernel, the homing switches numbered in axis order, `Z` homing first and the others in file order, axes without travel limits (rotary, extruder) given ±[`UNLIMITED_TRAVEL_MM`] |
 //! | controller | [`controller`]: a `printer` when the file has heaters, else a `cnc`; one extruder when an axis is one; the steps scheduled for the slowest driver; heaters within [`HEATER_TOLERANCE_MC`] of their target for `M109`/`M116` |
 
@@ -18,7 +19,7 @@ use forja_drivers::stepper::StepDirConfig;
 use forja_hal_abstraction::stepper::Direction;
 use forja_motion::{AxisConfig, AxisKind as KernelAxisKind, HomeDirection, HomingConfig};
 use forja_sim_hal::config::{AxisKind, MachineConfig};
-use forja_sim_hal::{SimHeater, SimMachine, SimPwm, SimStepDirPins, SimSwitchPin};
+use forja_sim_hal::{SimBeeper, SimHeater, SimMachine, SimPwm, SimStepDirPins, SimSwitchPin};
 use forja_sim_hal::{SimTemperatureSensor, machine::NoSuchDevice};
 
 use super::BoardError;
@@ -76,6 +77,8 @@ pub struct Pins<const N: usize> {
     pub fans: [Option<SimPwm>; MAX_FANS],
     /// The spindle's output and its speed range, if the machine has one.
     pub spindle: Option<(SimPwm, SpindleConfig)>,
+    /// The beeper, if the machine has one.
+    pub beeper: Option<SimBeeper>,
 }
 
 /// The devices of `machine` as the firmware's parts. See the [module documentation](self).
@@ -122,6 +125,7 @@ pub fn pins<const N: usize>(machine: &SimMachine) -> Result<Pins<N>, BoardError>
             .spindle_output()
             .and_then(|i| machine.pwm(i).ok())
             .map(|pwm| (pwm, SpindleConfig::new(SPINDLE_MAX_RPM))),
+        beeper: machine.beeper().ok(),
     })
 }
 
@@ -232,6 +236,7 @@ mod tests {
         assert_eq!(p.homing_switches.iter().flatten().count(), 3);
         assert!(p.homing_switches[3].is_none());
         assert!(p.spindle.is_some() && p.hot_end.is_none() && p.bed.is_none());
+        assert!(p.beeper.is_none());
         assert!(p.fans.iter().all(Option::is_none));
         assert!(matches!(pins::<3>(&m), Err(BoardError::AxisCount(4))));
         assert_eq!(controller(m.config()).extruders, 0);
