@@ -11,6 +11,7 @@
 //! | [`reply`] | the controller's replies to a G-code host: `start`, `ok`, `rs`, `!!`, `//`, M105, M114, M115 |
 //! | [`frame`] | the fixed 53-byte frames of the operator's client, both directions |
 //! | [`stream`] | one decoder for a link that mixes frames and G-code lines, fed in chunks |
+//! | [`grbl`] | the grbl 1.1 dialect of CNC senders: realtime bytes, `$` commands, status reports, `ok`/`error:N`/`ALARM:N` |
 //! | [`error`] | the errors and their stable wire codes |
 //!
 //! The protocols themselves, byte by byte, with every choice made where the founding documents
@@ -37,6 +38,7 @@ mod decimal;
 pub mod error;
 pub mod frame;
 pub mod gcode;
+pub mod grbl;
 pub mod reply;
 pub mod stream;
 mod write;
