@@ -45,6 +45,7 @@ pub fn meaning(code: u16) -> Option<&'static str> {
         153 => "emergency stop (M112)",
         154 => "the step queue ran dry during motion",
         155 => "a stepper driver or limit switch reported a fault",
+        156 => "a soft reset (ctrl-x) cut the motion: steps may be lost; home or unlock ($X)",
         170 => "a program line arrived out of order",
         171 => "the controller's program store is full",
         172 => "a program line is longer than the 39 bytes a stored line may have",

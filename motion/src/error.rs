@@ -41,6 +41,7 @@
 //! | 153 | [`Alarm::EmergencyStop`] | `M112` |
 //! | 154 | [`Alarm::StepUnderrun`] | the step queue ran dry during motion (segment preparation too slow) |
 //! | 155 | [`Alarm::DriverFault`] | a stepper driver or limit switch reported an error |
+//! | 156 | [`Alarm::ResetDuringMotion`] | a soft reset cut the motion (grbl's `ALARM:3`): steps may be lost |
 //!
 //! Codes not listed are reserved. A code is never reused for a different meaning. Codes
 //! `170..=199` belong to the application layer (`forja-app`: the program store and jobs).
@@ -316,6 +317,8 @@ pub enum Alarm {
         /// The axis index.
         axis: AxisIndex,
     },
+    /// A soft reset of the grbl dialect cut the motion at once: steps may be lost.
+    ResetDuringMotion,
 }
 
 impl Alarm {
@@ -328,6 +331,7 @@ impl Alarm {
             Self::EmergencyStop => 153,
             Self::StepUnderrun => 154,
             Self::DriverFault { .. } => 155,
+            Self::ResetDuringMotion => 156,
         }
     }
 
@@ -351,6 +355,7 @@ impl fmt::Display for Alarm {
             Self::EmergencyStop => f.write_str("alarm: emergency stop"),
             Self::StepUnderrun => f.write_str("alarm: step queue underrun"),
             Self::DriverFault { axis } => write!(f, "alarm: driver fault on axis {axis}"),
+            Self::ResetDuringMotion => f.write_str("alarm: reset during motion"),
         }
     }
 }
@@ -416,6 +421,7 @@ impl WireError for Alarm {
             Self::EmergencyStop => "emergency-stop",
             Self::StepUnderrun => "step-underrun",
             Self::DriverFault { .. } => "driver-fault",
+            Self::ResetDuringMotion => "reset-in-motion",
         }
     }
 }

@@ -388,6 +388,31 @@ impl<const N: usize> Interpreter<N> {
         self.feed_percent
     }
 
+    /// Set the feed-rate override (grbl's realtime override), percent.
+    pub(crate) fn set_feed_percent(&mut self, percent: u16) {
+        self.feed_percent = percent;
+    }
+
+    /// The modal state a parser-state report names.
+    pub(crate) fn modal(&self) -> crate::kernel::ModalReport {
+        crate::kernel::ModalReport {
+            motion: match self.motion {
+                Motion::Rapid => 0,
+                Motion::Linear => 1,
+                Motion::Cw => 2,
+                Motion::Ccw => 3,
+            },
+            plane: match self.plane {
+                Plane::Xy => 17,
+                Plane::Zx => 18,
+                Plane::Yz => 19,
+            },
+            inches: self.inches,
+            absolute: self.absolute,
+            feed_mm_min: self.feed_mm_min,
+        }
+    }
+
     /// The feed-rate override as a factor, for the moves of the lines interpreted now.
     #[inline]
     pub(crate) fn feed_scale(&self) -> f32 {

@@ -75,6 +75,21 @@ pub struct PlannerSettings<const N: usize> {
     pub flow_percent: [Option<u16>; N],
 }
 
+/// The interpreter's modal state, for a parser-state report (grbl's `$G`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModalReport {
+    /// The motion mode: 0, 1, 2 or 3 (`G0`–`G3`).
+    pub motion: u8,
+    /// The plane: 17, 18 or 19.
+    pub plane: u8,
+    /// `G20` (inches) rather than `G21`.
+    pub inches: bool,
+    /// `G90` (absolute) rather than `G91`.
+    pub absolute: bool,
+    /// The programmed feed rate, mm/min.
+    pub feed_mm_min: f32,
+}
+
 /// The machine's state, as the controller reports it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum MachineState {
@@ -636,6 +651,56 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
         self.start_homing(mask);
         Ok(())
+    }
+
+    /// Jog with one G-code line (grbl's `$J=`): a `G0`/`G1`-like move whose `G90`/`G91` and
+    /// `G20`/`G21` hold for this move only; the modal state is the one before it, the position
+    /// the jog's target. Soft limits apply as to any move.
+    pub fn jog_line<'l>(&mut self, line: &Line<'l>) -> Result<Reply<'l, N>, CommandError> {
+        let before = self.interp;
+        let reply = self.execute(line)?;
+        let target = self.interp.pos;
+        self.interp = before;
+        self.interp.pos = target;
+        Ok(reply)
+    }
+
+    /// The modal state of the interpreter (grbl's `$G`).
+    pub fn modal_report(&self) -> ModalReport {
+        self.interp.modal()
+    }
+
+    /// The feed rate of the motion now, mm/min: the programmed feed while the machine moves,
+    /// 0 at rest.
+    pub fn feed_rate_mm_min(&self) -> f32 {
+        match self.state() {
+            MachineState::Running | MachineState::Homing => self.interp.feed_mm_min,
+            _ => 0.0,
+        }
+    }
+
+    /// The feed-rate override, percent (`M220`, grbl's `0x90`–`0x94`).
+    pub fn feed_override_percent(&self) -> u16 {
+        self.interp.feed_percent()
+    }
+
+    /// Set the feed-rate override, percent: the moves planned from now on run at it.
+    pub fn set_feed_override_percent(&mut self, percent: u16) {
+        self.interp.set_feed_percent(percent.clamp(1, 999));
+    }
+
+    /// After a [`Kernel::reset`] that cut the motion: lock the machine in
+    /// [`Alarm::ResetDuringMotion`] (grbl's `ALARM:3`) until [`Kernel::unlock`] or a homing.
+    pub fn lock_after_reset(&mut self) {
+        self.alarm = Some(Alarm::ResetDuringMotion);
+    }
+
+    /// Leave an alarm without homing (grbl's `$X`), the position kept as the steps counted it.
+    /// An emergency stop is left only by [`Kernel::reset`].
+    pub fn unlock(&mut self) {
+        if self.alarm != Some(Alarm::EmergencyStop) {
+            self.alarm = None;
+        }
     }
 
     /// Feed hold: decelerate to rest on the planned path, keeping every step. Lines can still be

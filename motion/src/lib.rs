@@ -75,7 +75,9 @@ pub use effect::{Effect, Sync};
 pub use error::{Alarm, CommandError, ConfigError};
 pub use estimate::Estimate;
 pub use interp::NM_PER_MM;
-pub use kernel::{Kernel, MachineState, PlannerSettings, PositionReport, Reply, split};
+pub use kernel::{
+    Kernel, MachineState, ModalReport, PlannerSettings, PositionReport, Reply, split,
+};
 pub use planner::PathLimits;
 pub use preview::{Piece, Preview, Travel};
 pub use queue::{StepQueue, SwitchAlert};

@@ -104,7 +104,7 @@ where
 
     /// Set and store the setting `key` (frame 00, `M413`), refused when the configuration it
     /// makes is invalid or needs faster steps than the drivers allow.
-    fn store_setting(&mut self, key: &str, value: &str) -> Result<Key, SettingError> {
+    pub(super) fn store_setting(&mut self, key: &str, value: &str) -> Result<Key, SettingError> {
         let tick_hz = self.kernel.tick_hz();
         let timing = self.config.timing;
         self.settings.set(key, value, &mut self.storage, |m| {

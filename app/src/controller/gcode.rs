@@ -11,6 +11,7 @@ use forja_protocol::reply::{
 };
 
 use super::files::FileCommand;
+use super::grbl;
 use super::host::{HostProgress, MESSAGE_LEN};
 use super::peripherals::{Devices, HeatWait, HeatZones, PeripheralError, Peripherals, Reading};
 use super::text::{self, Refusal, Text};
@@ -194,8 +195,12 @@ where
         wire::ok(out);
     }
 
-    /// `echo:E<code> <text>` then `ok`: the line had no effect, the host goes on.
+    /// `echo:E<code> <text>` then `ok`: the line had no effect, the host goes on
+    /// (`error:N` in the grbl dialect).
     pub(super) fn refuse<W: Write>(&mut self, r: &Refusal, out: &mut W) {
+        if self.speaks_grbl() {
+            return self.grbl_refuse(r, out);
+        }
         self.stats.refused = self.stats.refused.wrapping_add(1);
         wire::refused(out, r);
         self.ok(out);
@@ -204,6 +209,11 @@ where
     /// A command this firmware does not have: Marlin's `echo:Unknown command: "<command>"`
     /// then `ok`. Nothing changed; hosts pass over it.
     fn unknown<W: Write>(&mut self, line: &Line<'_>, letter: u8, out: &mut W) {
+        if self.speaks_grbl() {
+            let number = line.command().and_then(|w| w.value.as_u32());
+            let r = Refusal::new(&CommandError::Unsupported { letter, number });
+            return self.grbl_refuse(&r, out);
+        }
         self.stats.refused = self.stats.refused.wrapping_add(1);
         let mut command = Text::<24>::new();
         match line.words().iter().find(|w| w.letter == letter && !w.bare) {
@@ -370,11 +380,29 @@ where
     }
 
     fn process_line<W: Write>(&mut self, bytes: &[u8], out: &mut W) {
+        // No RepRap line starts with `$`: a grbl system command, in either dialect.
+        if bytes.first() == Some(&b'$') {
+            return self.grbl_command(bytes, out);
+        }
+        let (bytes, number) = if self.speaks_grbl() {
+            grbl::strip_line_number(bytes)
+        } else {
+            (bytes, None)
+        };
+        if let Some(n) = number {
+            self.kernel.set_line_tag(n);
+        }
         let line = match Line::parse(bytes) {
             Ok(line) => line,
+            Err(e) if self.speaks_grbl() => return self.refuse(&Refusal::new(&e), out),
             Err(e) => return self.on_line_error(&e, out),
         };
-        if let Err(e) = self.accept_number(&line) {
+        // A grbl sender numbers no line: `N` is the line's number for `Ln:`, never checked.
+        if self.speaks_grbl() {
+            if self.grbl_check(&line, out) {
+                return;
+            }
+        } else if let Err(e) = self.accept_number(&line) {
             return self.on_line_error(&e, out);
         }
         self.execute_line(&line, bytes, out);

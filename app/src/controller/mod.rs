@@ -90,6 +90,7 @@
 mod files;
 mod frames;
 mod gcode;
+mod grbl;
 mod host;
 pub mod peripherals;
 mod planner_settings;
@@ -386,6 +387,12 @@ struct Input {
     quiet_since_ms: u32,
     /// Input was held back (not read) at the end of the last poll.
     deaf: bool,
+    /// The realtime commands taken out of the input, for the controller to act on.
+    realtime: grbl::RealtimeQueue,
+    /// Bytes of a record came since the last terminator (a `?` then is part of a line).
+    line_open: bool,
+    /// A soft reset (`0x18`) was taken out: the record in the decoder goes with it.
+    reset_seen: bool,
 }
 
 impl Input {
@@ -398,6 +405,9 @@ impl Input {
             since_event: 0,
             quiet_since_ms: 0,
             deaf: false,
+            realtime: grbl::RealtimeQueue::new(),
+            line_open: false,
+            reset_seen: false,
         }
     }
 
@@ -432,20 +442,52 @@ impl Input {
         }
     }
 
-    /// Read what the link has, without blocking. Returns whether bytes came.
-    fn fill<L: Read + ReadReady>(&mut self, link: &mut L, now_ms: u32) -> bool {
+    /// Read what the link has, without blocking, and take its realtime bytes out (all of
+    /// grbl's in the grbl dialect; `0x18` and a `?` between records in any). Returns whether
+    /// bytes came.
+    fn fill<L: Read + ReadReady>(&mut self, link: &mut L, now_ms: u32, grbl: bool) -> bool {
         if !self.is_empty() || !matches!(link.read_ready(), Ok(true)) {
             return false;
         }
         match link.read(&mut self.buf) {
             Ok(n) if n > 0 => {
-                self.start = 0;
-                self.end = n.min(RX_LEN);
                 self.quiet_since_ms = now_ms;
+                self.start = 0;
+                self.end = self.take_realtime(n.min(RX_LEN), grbl);
                 true
             }
             _ => false,
         }
+    }
+
+    /// Move the realtime bytes of the first `n` bytes read to the realtime queue and the others
+    /// to the front of the buffer; how many others. A soft reset drops the bytes before it.
+    fn take_realtime(&mut self, n: usize, grbl: bool) -> usize {
+        let mut kept = 0;
+        for i in 0..n {
+            let Some(&b) = self.buf.get(i) else {
+                break;
+            };
+            let grbl = grbl || self.reset_seen;
+            match grbl::realtime_byte(b, grbl, self.line_open) {
+                Some(r) => {
+                    if r == forja_protocol::grbl::Realtime::SoftReset {
+                        kept = 0;
+                        self.line_open = false;
+                        self.reset_seen = true;
+                    }
+                    self.realtime.push(r);
+                }
+                None => {
+                    self.line_open = !matches!(b, b'\n' | b'\r');
+                    if let Some(slot) = self.buf.get_mut(kept) {
+                        *slot = b;
+                    }
+                    kept += 1;
+                }
+            }
+        }
+        kept
     }
 
     /// Whether a complete frame may be waiting in the decoder for a byte after it.
@@ -559,6 +601,17 @@ impl LineQueue {
 
     fn is_empty(&self) -> bool {
         self.len == 0
+    }
+
+    /// Bytes free in the read-ahead window (what a character-counting sender may still send).
+    fn free_bytes(&self) -> usize {
+        READ_AHEAD_BYTES.saturating_sub(self.len)
+    }
+
+    /// Drop every entry.
+    fn clear(&mut self) {
+        self.head = 0;
+        self.len = 0;
     }
 
     /// Whether a longest line still fits.
@@ -680,11 +733,17 @@ struct Link {
     frames_seen: bool,
     session: bool,
     started: bool,
+    /// The dialect the link speaks.
+    dialect: grbl::Dialect,
+    /// Its grbl state, in the grbl dialect.
+    grbl: grbl::GrblLink,
 }
 
 impl Link {
     const fn new() -> Self {
         Self {
+            dialect: grbl::Dialect::RepRap,
+            grbl: grbl::GrblLink::new(),
             numbering: LineNumbering::new(),
             held: None,
             held_line: LineBuf::EMPTY,
@@ -731,6 +790,9 @@ struct Core<'q, const N: usize, const B: usize, const Q: usize, P, X, S> {
     load_total: Option<u16>,
     /// The SD card as the link's host sees it (`files.rs`).
     card: files::Card,
+    /// grbl's check mode (`$C`): the lines are run through this preview of the machine and
+    /// answered, never executed.
+    check: Option<forja_motion::preview::Preview<N>>,
     /// Something was given to the kernel during this poll: poll it again before returning.
     taken: bool,
     stats: Stats,
@@ -789,6 +851,7 @@ where
                 next_peripherals_ms: 0,
                 load_total: None,
                 card: files::Card::new(),
+                check: None,
                 taken: false,
                 stats: Stats::default(),
             },
@@ -837,6 +900,7 @@ where
                 next_peripherals_ms: c.next_peripherals_ms,
                 load_total: c.load_total,
                 card: c.card,
+                check: c.check,
                 taken: c.taken,
                 stats: c.stats,
             },
@@ -883,6 +947,7 @@ where
         self.input.clear();
         let started = self.core.link.started;
         self.core.link = Link::new();
+        self.core.check = None;
         // An upload belongs to the host that sent its line 1 (or its `M28`).
         self.core.load_total = None;
         self.core.end_upload();
@@ -916,8 +981,14 @@ where
             if self.core.link.input_blocked() {
                 break;
             }
-            if self.input.is_empty() && !self.input.fill(link, self.core.clock.ms) {
+            let grbl = self.core.speaks_grbl();
+            let filled = self.input.is_empty() && self.input.fill(link, self.core.clock.ms, grbl);
+            self.act_on_realtime(link);
+            if self.input.is_empty() && !filled {
                 break;
+            }
+            if self.input.is_empty() {
+                continue;
             }
             let window = self.input.pending();
             let FeedResult { event, remaining } = self.decoder.feed(window);
@@ -949,6 +1020,18 @@ where
         PollOutcome {
             arm_alarm: arm,
             wake_at: self.core.wake_at(frame_wait),
+        }
+    }
+
+    /// Act on the realtime commands taken out of the input, in order; a soft reset also drops
+    /// the record the decoder holds (bytes before the reset in the same read were dropped as
+    /// they were taken out).
+    fn act_on_realtime<W: Write>(&mut self, out: &mut W) {
+        if core::mem::take(&mut self.input.reset_seen) {
+            self.decoder.reset();
+        }
+        while let Some(r) = self.input.realtime.pop() {
+            self.core.on_realtime(r, out);
         }
     }
 
@@ -1223,6 +1306,9 @@ where
     /// 56 for a frame client (both when it cannot tell).
     fn report_fault<W: Write>(&mut self, r: &text::Refusal, out: &mut W) {
         self.stats.faults = self.stats.faults.wrapping_add(1);
+        if self.speaks_grbl() {
+            return self.grbl_fault(r, out);
+        }
         let frames = self.link.frames_seen || self.link.session;
         if self.link.gcode_seen || !frames {
             wire::fault(out, r);

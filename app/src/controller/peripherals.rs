@@ -246,6 +246,12 @@ pub(crate) struct Devices<X, const N: usize> {
     pub(crate) parts: X,
     /// The speed of the last `M3`/`M4` that ran, rpm: an `M3`/`M4` without `S` runs at it.
     rpm: u32,
+    /// The spindle as last commanded: direction and rpm, `None` when stopped.
+    spindle: Option<(Rotation, u32)>,
+    /// Mist coolant as last commanded.
+    mist: bool,
+    /// Flood coolant as last commanded.
+    flood: bool,
     /// Whether the motors were last energised.
     pub(crate) motors_on: bool,
     /// The axes an `M84 X Y` released while the others keep the drivers energised (bit `i`
@@ -325,10 +331,24 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
         Self {
             parts,
             rpm: 0,
+            spindle: None,
+            mist: false,
+            flood: false,
             motors_on: false,
             released: 0,
             now_ms: 0,
         }
+    }
+
+    /// The spindle's direction and speed as last commanded, `None` when stopped (grbl's
+    /// `FS:` and `A:`).
+    pub(crate) fn spindle_state(&self) -> Option<(Rotation, u32)> {
+        self.spindle
+    }
+
+    /// Mist and flood as last commanded.
+    pub(crate) fn coolant_state(&self) -> (bool, bool) {
+        (self.mist, self.flood)
     }
 
     /// The zone a temperature command names: the hot end for the current tool (`T0`, or no
@@ -419,11 +439,16 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
         let (rotation, rpm) = match command {
             Spindle::Clockwise { rpm } => (Rotation::Clockwise, rpm),
             Spindle::CounterClockwise { rpm } => (Rotation::CounterClockwise, rpm),
-            Spindle::Off => return Ok(spindle.stop()?),
+            Spindle::Off => {
+                spindle.stop()?;
+                self.spindle = None;
+                return Ok(());
+            }
         };
         let rpm = rpm_or(rpm.and_then(|d| d.round_to_scale(0)), self.rpm);
         spindle.run(rotation, rpm)?;
         self.rpm = rpm;
+        self.spindle = Some((rotation, rpm));
         Ok(())
     }
 
@@ -432,12 +457,39 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
     pub(crate) fn set_coolant(&mut self, command: Coolant) -> Result<(), PeripheralError> {
         let coolant = self.parts.coolant().ok_or(PeripheralError::NoDevice)?;
         match command {
-            Coolant::Mist => coolant.set_mist(true)?,
-            Coolant::Flood => coolant.set_flood(true)?,
+            Coolant::Mist => {
+                coolant.set_mist(true)?;
+                self.mist = true;
+            }
+            Coolant::Flood => {
+                coolant.set_flood(true)?;
+                self.flood = true;
+            }
             Coolant::Off => {
                 let mist = coolant.set_mist(false);
                 coolant.set_flood(false).and(mist)?;
+                (self.mist, self.flood) = (false, false);
             }
+        }
+        Ok(())
+    }
+
+    /// Turn mist (`flood == false`) or flood coolant on or off alone (grbl's realtime
+    /// toggles `0xA0`/`0xA1`).
+    ///
+    /// Errors: [`PeripheralError::NoDevice`], a device fault.
+    pub(crate) fn set_coolant_line(
+        &mut self,
+        flood: bool,
+        on: bool,
+    ) -> Result<(), PeripheralError> {
+        let coolant = self.parts.coolant().ok_or(PeripheralError::NoDevice)?;
+        if flood {
+            coolant.set_flood(on)?;
+            self.flood = on;
+        } else {
+            coolant.set_mist(on)?;
+            self.mist = on;
         }
         Ok(())
     }

@@ -537,6 +537,33 @@ impl<const N: usize> Settings<N> {
         })
     }
 
+    /// Every setting of the machine and the planner back to the board's defaults, their stored
+    /// records removed (grbl's `$RST=$`); the link's (keep-alive, network name and password,
+    /// power-loss recovery) are kept, so that a board on WiFi stays reachable.
+    ///
+    /// Context: thread. Blocks for the storage writes. Errors: the storage's; the settings in
+    /// RAM are then unchanged, and the records removed before the failure stay removed (they
+    /// were the defaults' anyway at the next start).
+    pub fn restore_defaults<S: RecordStorage>(
+        &mut self,
+        storage: &mut S,
+    ) -> Result<(), SettingError> {
+        let keep = |k: &Key| {
+            matches!(
+                k,
+                Key::KeepAliveMs | Key::LinkSsid | Key::LinkPassword | Key::PowerLossRecovery
+            )
+        };
+        for key in Key::all::<N>().filter(|k| !keep(k)) {
+            storage
+                .remove(key.record(&self.machine))
+                .map_err(|e| SettingError::Storage(store_error(e.kind())))?;
+        }
+        self.machine = self.defaults.clone();
+        self.path = PathLimits::NONE;
+        Ok(())
+    }
+
     /// Set `key` to `value` (text as frame 00 carries it), check the machine configuration it
     /// makes with `check`, and store it. Returns the setting. On any error nothing changes,
     /// in RAM or in the storage.

@@ -32,6 +32,7 @@ mod bench;
 use bench::Wiring;
 
 mod files;
+mod grbl;
 mod marlin;
 mod numbering;
 mod programs;

@@ -1,0 +1,801 @@
+//! The grbl 1.1 dialect of a link: what CNC senders (CNCjs, bCNC, Universal G-code Sender)
+//! speak, on the same link as the RepRap lines and the frames.
+//!
+//! # Entering the dialect
+//!
+//! A link starts in the RepRap dialect (printer hosts, `forja send`, the frames) and enters the
+//! grbl dialect at the first of:
+//!
+//! - `0x18` (ctrl-x, grbl's soft reset), anywhere: the machine resets as grbl's does and the
+//!   banner `Grbl 1.1h ['$' for help]` goes out;
+//! - `?` between records (not inside a line): a status report goes out (a sender that saw no
+//!   banner polls with `?`);
+//! - a line that starts with `$` (`$$`, `$X`, `$I`): no RepRap line does.
+//!
+//! It stays there until the link is reset (a new session, another host).
+//!
+//! # In the dialect
+//!
+//! - **Realtime bytes** ([`Realtime`]) are taken out of the stream as they arrive, wherever
+//!   they fall, before any line is decoded: `?` reports, `!` holds, `~` resumes, `0x18` resets,
+//!   `0x85` cancels a jog, `0x90`–`0x9D` change the overrides, `0xA0`/`0xA1` toggle coolant.
+//! - **Every line gets exactly one answer**: `ok`, or `error:N` with grbl's number (the
+//!   table in `docs/protocol.md`); blank and comment-only lines get `ok`. Lines are not
+//!   numbered: `N10 G0 X5` runs and `N` is the line number `Ln:` reports.
+//! - **Faults** that stop the machine are `ALARM:N`, followed by `[MSG:…]`.
+//! - **`$` commands** ([`Command`]) as grbl 1.1 and grblHAL define them; `$$` and `$<n>=` are
+//!   the controller's settings under grbl's numbers.
+//! - **Soft reset** (`0x18`) stops at once. Lines received and not yet answered are dropped
+//!   without an answer, as grbl flushes its receive buffer (a sender clears its own count at
+//!   reset). Motion cut mid-move leaves the machine in `ALARM:3` (steps may be lost: `$H` or
+//!   `$X`).
+
+use embedded_io::Write;
+use forja_hal_abstraction::device::Rotation;
+use forja_hal_abstraction::program::ProgramStore;
+use forja_hal_abstraction::storage::RecordStorage;
+use forja_motion::config::SoftLimits;
+use forja_motion::error::{Alarm as KernelAlarm, CommandError};
+use forja_motion::preview::Preview;
+use forja_motion::{MachineState, Reply as KernelReply};
+use forja_protocol::gcode::{Decimal, Line};
+use forja_protocol::grbl::{
+    Alarm, Command, Error, Message, Micrometres, Realtime, Restore, State, Status,
+};
+
+use super::peripherals::Peripherals;
+use super::settings::{AxisField, Key};
+use super::text::{Refusal, Text};
+use super::{Core, READ_AHEAD_BYTES};
+
+/// Which dialect a link speaks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Dialect {
+    /// RepRap G-code lines with Marlin's replies, and the frames.
+    RepRap,
+    /// grbl 1.1.
+    Grbl,
+}
+
+/// The grbl state of a link.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct GrblLink {
+    /// `$10`: bit 0 sends `MPos` (else `WPos`), bit 1 the buffer state `Bf`.
+    pub(super) status_mask: u8,
+    /// A `$J=` jog runs.
+    pub(super) jogging: bool,
+    /// Status reports sent since `WCO` was last sent (grbl sends it every 10 reports, or at
+    /// once after it changed).
+    reports_since_offset: u8,
+    /// Status reports sent since `Ov` was last sent.
+    reports_since_overrides: u8,
+}
+
+impl GrblLink {
+    pub(super) const fn new() -> Self {
+        Self {
+            status_mask: 1,
+            jogging: false,
+            reports_since_offset: u8::MAX,
+            reports_since_overrides: u8::MAX,
+        }
+    }
+}
+
+/// Realtime bytes taken out of the input, waiting for the controller, in arrival order.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct RealtimeQueue {
+    items: [Option<Realtime>; 16],
+    head: usize,
+    len: usize,
+}
+
+impl RealtimeQueue {
+    pub(super) const fn new() -> Self {
+        Self {
+            items: [None; 16],
+            head: 0,
+            len: 0,
+        }
+    }
+
+    /// Queue `r`. A full queue keeps the commands already there, except that a stop
+    /// (`0x18`) always gets in, in place of the newest.
+    pub(super) fn push(&mut self, r: Realtime) {
+        let cap = self.items.len();
+        if self.len == cap {
+            if r != Realtime::SoftReset {
+                return;
+            }
+            self.len -= 1;
+        }
+        if let Some(slot) = self.items.get_mut((self.head + self.len) % cap) {
+            *slot = Some(r);
+            self.len += 1;
+        }
+    }
+
+    pub(super) fn pop(&mut self) -> Option<Realtime> {
+        if self.len == 0 {
+            return None;
+        }
+        let r = self.items.get_mut(self.head).and_then(Option::take);
+        self.head = (self.head + 1) % self.items.len();
+        self.len -= 1;
+        r
+    }
+}
+
+/// What a byte of the input is, before it is decoded: a realtime command taken out of the
+/// stream, or a byte of a record. `grbl`: the link speaks the grbl dialect; `line_open`:
+/// bytes of a record came since the last terminator.
+pub(super) fn realtime_byte(byte: u8, grbl: bool, line_open: bool) -> Option<Realtime> {
+    match Realtime::from_byte(byte)? {
+        Realtime::SoftReset => Some(Realtime::SoftReset),
+        Realtime::StatusReport if !line_open => Some(Realtime::StatusReport),
+        r if grbl => Some(r),
+        _ => None,
+    }
+}
+
+/// grbl's number for a refusal of the controller (its Forja wire code).
+pub(super) fn error_of(code: u16) -> Error {
+    match code {
+        1 | 11 => Error::Overflow,
+        2..=7 | 13 => Error::InvalidLineNumber,
+        8 | 12 => Error::ExpectedCommandLetter,
+        9 | 10 => Error::BadNumberFormat,
+        120 | 127 | 194 => Error::UnsupportedCommand,
+        121 | 195 => Error::ValueOutOfRange,
+        122 => Error::ValueWordMissing,
+        123 => Error::InvalidTarget,
+        124 | 131 => Error::TravelExceeded,
+        125 | 126 => Error::SystemGcLock,
+        128 => Error::IdleError,
+        129 => Error::ModalGroupViolation,
+        130 => Error::WordRepeated,
+        190 => Error::InvalidStatement,
+        191 => Error::ValueOutOfRange,
+        _ => Error::InvalidInState,
+    }
+}
+
+/// grbl's alarm for a fault of the controller (its Forja wire code: the kernel's alarms
+/// 150–156, a heater's faults).
+fn alarm_of(code: u16) -> Alarm {
+    match code {
+        150 => Alarm::HardLimit,
+        151 => Alarm::HomingFailApproach,
+        152 => Alarm::HomingFailPulloff,
+        153 => Alarm::EStop,
+        155 => Alarm::MotorFault,
+        _ => Alarm::AbortCycle,
+    }
+}
+
+/// Write one grbl message; nothing when it does not encode.
+pub(super) fn say<W: Write>(out: &mut W, message: &Message<'_>) {
+    let mut buf = [0u8; 160];
+    if let Ok(n) = message.encode(&mut buf) {
+        let _ = out.write_all(buf.get(..n).unwrap_or(&[]));
+    }
+}
+
+/// `mm` as micrometres, rounded.
+fn micrometres(mm: f64) -> Micrometres {
+    libm::round(mm * 1000.0) as Micrometres
+}
+
+/// Up to eight letters of a status report field (`Pn:`, `A:`).
+struct Letters {
+    buf: [u8; 8],
+    len: usize,
+}
+
+impl Letters {
+    const fn new() -> Self {
+        Self {
+            buf: [0; 8],
+            len: 0,
+        }
+    }
+
+    fn push(&mut self, letter: u8) {
+        if let Some(slot) = self.buf.get_mut(self.len) {
+            *slot = letter;
+            self.len += 1;
+        }
+    }
+
+    fn as_bytes(&self) -> &[u8] {
+        self.buf.get(..self.len).unwrap_or(&[])
+    }
+}
+
+/// When a `$` command is answered.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Answer {
+    /// Now: `ok`.
+    Now,
+    /// When what it started is done (`$H`: at the end of homing).
+    Later,
+}
+
+/// The work offset, µm (grbl's `WCO` and `G92`: the machine position less the work position),
+/// from the commanded position in work mm and in machine nm.
+fn work_offset<const N: usize>(work_mm: &[f64; N], machine_nm: &[i64; N]) -> [Micrometres; N] {
+    core::array::from_fn(|i| machine_nm[i].div_euclid(1000) - micrometres(work_mm[i]))
+}
+
+/// A line of a grbl sender without its `N` number (grbl's senders number lines without a
+/// checksum, which the RepRap syntax refuses), and the number.
+pub(super) fn strip_line_number(bytes: &[u8]) -> (&[u8], Option<u32>) {
+    let start = bytes
+        .iter()
+        .take_while(|b| matches!(b, b' ' | b'\t'))
+        .count();
+    let rest = bytes.get(start..).unwrap_or(&[]);
+    let Some((b'N' | b'n', tail)) = rest.split_first() else {
+        return (bytes, None);
+    };
+    let digits = tail.iter().take_while(|b| b.is_ascii_digit()).count();
+    if digits == 0 {
+        return (bytes, None);
+    }
+    let number = tail
+        .get(..digits)
+        .and_then(|d| core::str::from_utf8(d).ok())
+        .and_then(|d| d.parse().ok());
+    (tail.get(digits..).unwrap_or(&[]), number)
+}
+
+/// A grbl setting: its number and what it is in the controller's settings.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum GrblSetting {
+    /// `$10`, the status report mask (the link's).
+    StatusMask,
+    /// A setting of the controller, by key.
+    Stored(Key),
+    /// `$130`+: an axis's travel, `max - min` (setting it moves `max`).
+    Travel(usize),
+}
+
+impl<const N: usize, const B: usize, const Q: usize, P, X, S> Core<'_, N, B, Q, P, X, S>
+where
+    P: ProgramStore,
+    X: Peripherals<N>,
+    S: RecordStorage,
+{
+    /// The link speaks the grbl dialect from now on.
+    pub(super) fn enter_grbl(&mut self) {
+        self.link.dialect = Dialect::Grbl;
+    }
+
+    pub(super) fn speaks_grbl(&self) -> bool {
+        self.link.dialect == Dialect::Grbl
+    }
+
+    /// Act on a realtime command, now.
+    pub(super) fn on_realtime<W: Write>(&mut self, r: Realtime, out: &mut W) {
+        self.enter_grbl();
+        match r {
+            Realtime::SoftReset => self.grbl_reset(out),
+            Realtime::StatusReport => self.grbl_status(out),
+            Realtime::FeedHold => self.kernel.hold(),
+            Realtime::CycleStart => self.kernel.resume(),
+            Realtime::SafetyDoor => self.kernel.hold(),
+            Realtime::JogCancel => {
+                if self.link.grbl.jogging {
+                    self.kernel.stop();
+                    self.link.grbl.jogging = false;
+                }
+            }
+            Realtime::FeedOverride(step) => {
+                let now = self.kernel.feed_override_percent();
+                let next = step.apply(now.min(255) as u8, 10, 200);
+                self.kernel.set_feed_override_percent(u16::from(next));
+                self.link.grbl.reports_since_overrides = u8::MAX;
+            }
+            // The rapid and spindle overrides stay at 100 %, as `Ov:` reports them.
+            Realtime::RapidOverride(_) | Realtime::SpindleOverride(_) | Realtime::SpindleStop => {}
+            Realtime::FloodToggle | Realtime::MistToggle => self.toggle_coolant(r),
+        }
+    }
+
+    /// `0x18`: stop at once, drop what waits, greet again.
+    fn grbl_reset<W: Write>(&mut self, out: &mut W) {
+        let moving = !matches!(
+            self.kernel.state(),
+            MachineState::Idle
+                | MachineState::Alarm(_)
+                | MachineState::Hold { stopped: true }
+                | MachineState::Paused
+                | MachineState::Halted
+        );
+        if self.job_active() {
+            self.job.stop(&mut self.kernel);
+        }
+        self.reset(out);
+        self.kernel.reset();
+        if moving {
+            self.kernel.lock_after_reset();
+        }
+        // grbl flushes its receive buffer: what waited is dropped unanswered.
+        self.link.held = None;
+        self.link.queue.clear();
+        self.link.grbl.jogging = false;
+        self.check = None;
+        let _ = out.write_all(b"\r\n");
+        say(out, &Message::Welcome);
+        if matches!(self.kernel.state(), MachineState::Alarm(_)) {
+            say(out, &Message::Feedback("'$H'|'$X' to unlock"));
+        }
+    }
+
+    /// `?`: the status report.
+    pub(super) fn grbl_status<W: Write>(&mut self, out: &mut W) {
+        let state = match self.kernel.state() {
+            _ if self.check.is_some() => State::Check,
+            MachineState::Idle if self.link.lines_held() => State::Run,
+            MachineState::Idle => State::Idle,
+            MachineState::Running if self.link.grbl.jogging => State::Jog,
+            MachineState::Running => State::Run,
+            MachineState::Hold { stopped } => State::Hold(u8::from(!stopped)),
+            MachineState::Paused | MachineState::Halted => State::Hold(0),
+            MachineState::Homing => State::Home,
+            MachineState::Alarm(_) => State::Alarm,
+        };
+        if matches!(state, State::Idle) {
+            self.link.grbl.jogging = false;
+        }
+        let p = self.kernel.position();
+        let commanded = self.kernel.commanded_position_nm();
+        let machine: [Micrometres; N] = core::array::from_fn(|i| micrometres(p.machine_mm[i]));
+        let offset = work_offset(&p.work_mm, &commanded);
+        let mask = self.link.grbl.status_mask;
+        let free_blocks = B.saturating_sub(self.kernel.planned_blocks()) as u16;
+        let free_bytes = self.link.queue.free_bytes().min(READ_AHEAD_BYTES) as u16;
+        let g = &mut self.link.grbl;
+        let send_offset = g.reports_since_offset >= 10;
+        g.reports_since_offset = if send_offset {
+            0
+        } else {
+            g.reports_since_offset + 1
+        };
+        let send_overrides = !send_offset && g.reports_since_overrides >= 10;
+        g.reports_since_overrides = if send_overrides {
+            0
+        } else {
+            g.reports_since_overrides.saturating_add(1)
+        };
+        let feed = self.kernel.feed_override_percent().min(255) as u8;
+        let mut pins = Letters::new();
+        for i in 0..N {
+            if self.devices.parts.endstop(i) == Some(true) {
+                pins.push(self.kernel.config().axes[i].letter);
+            }
+        }
+        let mut accessories = Letters::new();
+        match self.devices.spindle_state() {
+            Some((Rotation::Clockwise, _)) => accessories.push(b'S'),
+            Some((Rotation::CounterClockwise, _)) => accessories.push(b'C'),
+            None => {}
+        }
+        let (mist, flood) = self.devices.coolant_state();
+        if flood {
+            accessories.push(b'F');
+        }
+        if mist {
+            accessories.push(b'M');
+        }
+        let report = Status {
+            state,
+            machine: &machine,
+            offset: &offset,
+            work_position: mask & 1 == 0,
+            send_offset,
+            buffer: (mask & 2 != 0).then_some((free_blocks, free_bytes)),
+            line: Some(self.kernel.current_line()),
+            feed_mm_min: self.kernel.feed_rate_mm_min() as u32,
+            spindle_rpm: Some(self.devices.spindle_state().map_or(0, |(_, rpm)| rpm)),
+            overrides: send_overrides.then_some([feed, 100, 100]),
+            pins: pins.as_bytes(),
+            accessories: accessories.as_bytes(),
+        };
+        let mut buf = [0u8; 256];
+        if let Ok(n) = report.encode(&mut buf) {
+            let _ = out.write_all(buf.get(..n).unwrap_or(&[]));
+        }
+    }
+
+    /// A refused line, in the grbl dialect: `error:N`.
+    pub(super) fn grbl_refuse<W: Write>(&mut self, r: &Refusal, out: &mut W) {
+        self.stats.refused = self.stats.refused.wrapping_add(1);
+        say(out, &Message::Error(error_of(r.code)));
+    }
+
+    /// A fault that stopped the machine, in the grbl dialect: `ALARM:N` and the text.
+    pub(super) fn grbl_fault<W: Write>(&mut self, r: &Refusal, out: &mut W) {
+        say(out, &Message::Alarm(alarm_of(r.code)));
+        say(out, &Message::Feedback(r.text()));
+    }
+
+    /// In check mode (`$C`), check `line` as the kernel would take it and answer it (`ok` or
+    /// `error:N`) without running it: `true`. Out of check mode: `false`, the line runs.
+    pub(super) fn grbl_check<W: Write>(&mut self, line: &Line<'_>, out: &mut W) -> bool {
+        let Some(check) = self.check.as_mut() else {
+            return false;
+        };
+        match check.line(line, |_| {}) {
+            Ok(_) => self.ok(out),
+            Err(e) => self.grbl_refuse(&Refusal::new(&e), out),
+        }
+        true
+    }
+
+    /// A `$` line: carried out and answered (`ok` or `error:N`, after what it reports).
+    pub(super) fn grbl_command<W: Write>(&mut self, bytes: &[u8], out: &mut W) {
+        self.enter_grbl();
+        let answer = match Command::parse(bytes) {
+            Ok(command) => self.run_command(command, out),
+            Err(e) => Err(e),
+        };
+        match answer {
+            Ok(Answer::Now) => say(out, &Message::Ok),
+            Ok(Answer::Later) => {}
+            Err(e) => {
+                self.stats.refused = self.stats.refused.wrapping_add(1);
+                say(out, &Message::Error(e));
+            }
+        }
+    }
+
+    fn run_command<W: Write>(
+        &mut self,
+        command: Command<'_>,
+        out: &mut W,
+    ) -> Result<Answer, Error> {
+        let idle = self.kernel.is_idle() && !self.link.lines_held();
+        match command {
+            Command::Help => say(out, &Message::Help),
+            Command::Settings => self.report_settings(out),
+            Command::Parameters => self.report_parameters(out),
+            Command::ParserState => self.report_parser_state(out),
+            Command::BuildInfo => {
+                say(
+                    out,
+                    &Message::Version {
+                        build: "forja",
+                        info: self.config.machine_type,
+                    },
+                );
+                let options = Message::Options {
+                    codes: "VN",
+                    blocks: B as u16,
+                    bytes: READ_AHEAD_BYTES as u16,
+                };
+                say(out, &options);
+            }
+            Command::StartupLines => {
+                say(out, &Message::StartupLine { index: 0, line: "" });
+                say(out, &Message::StartupLine { index: 1, line: "" });
+            }
+            Command::CheckMode => {
+                if !idle {
+                    return Err(Error::IdleError);
+                }
+                let text = if self.check.take().is_some() {
+                    "Disabled"
+                } else {
+                    let config = self.kernel.config();
+                    self.check = Some(Preview::new(config, self.kernel.commanded_position_nm()));
+                    "Enabled"
+                };
+                say(out, &Message::Feedback(text));
+            }
+            Command::Unlock => {
+                if let MachineState::Alarm(KernelAlarm::EmergencyStop) = self.kernel.state() {
+                    return Err(Error::InvalidInState);
+                }
+                if matches!(self.kernel.state(), MachineState::Alarm(_)) {
+                    self.kernel.unlock();
+                    say(out, &Message::Feedback("Caution: Unlocked"));
+                }
+            }
+            Command::Home(axis) => {
+                let mask = match axis {
+                    None => self.homing_mask(),
+                    Some(letter) => {
+                        let i = self
+                            .kernel
+                            .config()
+                            .axis_index(letter)
+                            .ok_or(Error::InvalidStatement)?;
+                        1u8 << i
+                    }
+                };
+                if mask == 0 {
+                    return Err(Error::SettingDisabled);
+                }
+                if !idle {
+                    return Err(Error::IdleError);
+                }
+                self.kernel.home(mask).map_err(|e| error_of(e.code()))?;
+                self.taken = true;
+                // grbl answers `$H` when homing is done.
+                self.link.held = Some(super::Held::Homing);
+                return Ok(Answer::Later);
+            }
+            Command::Jog(text) => self.grbl_jog(text)?,
+            Command::Restore(what) => {
+                if !idle {
+                    return Err(Error::IdleError);
+                }
+                if matches!(what, Restore::Settings | Restore::All) {
+                    self.restore_settings()?;
+                }
+                if matches!(what, Restore::Parameters | Restore::All) {
+                    self.kernel.reset_modal_state();
+                }
+                say(out, &Message::Feedback("Restoring defaults"));
+            }
+            Command::Sleep => {
+                if !idle {
+                    return Err(Error::IdleError);
+                }
+                let _ = self.devices.set_motors(false);
+                self.kernel.emergency_stop();
+                say(out, &Message::Feedback("Sleeping"));
+            }
+            Command::Set { number, value } => {
+                if !idle {
+                    return Err(Error::IdleError);
+                }
+                self.set_grbl_setting(number, value)?;
+            }
+            Command::SetStartupLine { .. } => return Err(Error::InvalidStatement),
+        }
+        Ok(Answer::Now)
+    }
+
+    /// The axes that home with `$H`.
+    fn homing_mask(&self) -> u8 {
+        let axes = &self.kernel.config().axes;
+        axes.iter()
+            .enumerate()
+            .filter(|(_, a)| a.homing.is_some())
+            .fold(0u8, |m, (i, _)| m | (1 << i))
+    }
+
+    /// `$J=…`: a jog, refused with grbl's errors when it is not one.
+    fn grbl_jog(&mut self, text: &[u8]) -> Result<(), Error> {
+        let line = Line::parse(text).map_err(|_| Error::InvalidJogCommand)?;
+        if line.words().iter().any(|w| w.letter == b'M') || line.get(b'F').is_none() {
+            return Err(Error::InvalidJogCommand);
+        }
+        if matches!(self.kernel.state(), MachineState::Alarm(_)) {
+            return Err(Error::SystemGcLock);
+        }
+        match self.kernel.jog_line(&line) {
+            Ok(KernelReply::Busy) => Err(Error::Overflow),
+            Ok(_) => {
+                self.link.grbl.jogging = true;
+                self.taken = true;
+                Ok(())
+            }
+            Err(CommandError::SoftLimit { .. } | CommandError::OutOfReach { .. }) => {
+                Err(Error::TravelExceeded)
+            }
+            Err(e) => Err(error_of(e.code())),
+        }
+    }
+
+    /// The settings under grbl's numbers, in grbl's order.
+    fn grbl_settings(&self) -> impl Iterator<Item = (u16, GrblSetting)> {
+        let globals = [
+            (10, GrblSetting::StatusMask),
+            (11, GrblSetting::Stored(Key::JunctionDeviation)),
+            (20, GrblSetting::Stored(Key::SoftLimits)),
+            (21, GrblSetting::Stored(Key::HardLimits)),
+        ];
+        let axis = |base: u16, field: Option<AxisField>| {
+            (0..N.min(10)).map(move |axis| {
+                let setting = match field {
+                    Some(field) => GrblSetting::Stored(Key::Axis { axis, field }),
+                    None => GrblSetting::Travel(axis),
+                };
+                (base + axis as u16, setting)
+            })
+        };
+        globals
+            .into_iter()
+            .chain(axis(100, Some(AxisField::StepsPerMm)))
+            .chain(axis(110, Some(AxisField::MaxRate)))
+            .chain(axis(120, Some(AxisField::Accel)))
+            .chain(axis(130, None))
+    }
+
+    /// The value of a setting, as `$$` writes it.
+    fn grbl_setting_value(&self, setting: GrblSetting) -> Decimal {
+        let m = self.settings.machine();
+        let number = |v: f32| Decimal::from_f32(v, 3).unwrap_or(Decimal::ZERO);
+        match setting {
+            GrblSetting::StatusMask => Decimal::from_integer(i64::from(self.link.grbl.status_mask)),
+            GrblSetting::Stored(Key::JunctionDeviation) => number(m.junction_deviation_mm),
+            GrblSetting::Stored(Key::SoftLimits) => {
+                Decimal::from_integer(i64::from(m.soft_limits != SoftLimits::Off))
+            }
+            GrblSetting::Stored(Key::HardLimits) => Decimal::from_integer(i64::from(m.hard_limits)),
+            GrblSetting::Stored(Key::Axis { axis, field }) => {
+                let Some(a) = m.axes.get(axis) else {
+                    return Decimal::ZERO;
+                };
+                number(match field {
+                    AxisField::StepsPerMm => a.steps_per_mm,
+                    AxisField::MaxRate => a.max_rate_mm_min,
+                    AxisField::Accel => a.accel_mm_s2,
+                    AxisField::Min => a.min_mm,
+                    AxisField::Max => a.max_mm,
+                })
+            }
+            GrblSetting::Travel(axis) => m
+                .axes
+                .get(axis)
+                .map_or(Decimal::ZERO, |a| number(a.max_mm - a.min_mm)),
+            GrblSetting::Stored(_) => Decimal::ZERO,
+        }
+    }
+
+    /// `$$`.
+    fn report_settings<W: Write>(&mut self, out: &mut W) {
+        for (number, setting) in self.grbl_settings() {
+            let value = self.grbl_setting_value(setting);
+            say(out, &Message::Setting { number, value });
+        }
+    }
+
+    /// `$<n>=<value>`.
+    fn set_grbl_setting(&mut self, number: u16, value: Decimal) -> Result<(), Error> {
+        let (_, setting) = self
+            .grbl_settings()
+            .find(|(n, _)| *n == number)
+            .ok_or(Error::InvalidStatement)?;
+        if value.mantissa() < 0 && !matches!(setting, GrblSetting::StatusMask) {
+            return Err(Error::NegativeValue);
+        }
+        let (key, text_value) = match setting {
+            GrblSetting::StatusMask => {
+                let mask = value
+                    .as_integer()
+                    .and_then(|v| u8::try_from(v).ok())
+                    .ok_or(Error::ValueOutOfRange)?;
+                self.link.grbl.status_mask = mask;
+                return Ok(());
+            }
+            GrblSetting::Stored(Key::SoftLimits) => {
+                let on = value.as_integer().ok_or(Error::ValueOutOfRange)?;
+                let text = if on == 0 { "off" } else { "homed" };
+                return self.store_grbl(Key::SoftLimits, text);
+            }
+            GrblSetting::Stored(Key::HardLimits) => {
+                let on = value.as_integer().ok_or(Error::ValueOutOfRange)?;
+                let text = if on == 0 { "0" } else { "1" };
+                return self.store_grbl(Key::HardLimits, text);
+            }
+            GrblSetting::Stored(key) => (key, value),
+            GrblSetting::Travel(axis) => {
+                let min = self
+                    .settings
+                    .machine()
+                    .axes
+                    .get(axis)
+                    .map_or(0.0, |a| a.min_mm);
+                let key = Key::Axis {
+                    axis,
+                    field: AxisField::Max,
+                };
+                // In micrometres: the travel as written, the minimum as stored.
+                let travel_um = value.round_to_scale(3).ok_or(Error::ValueOutOfRange)?;
+                let min_um = libm::roundf(min * 1000.0) as i64;
+                (key, Decimal::new(min_um.saturating_add(travel_um), 3))
+            }
+        };
+        // The value as written (a decimal, never through a float's formatting).
+        let mut text = Text::<32>::new();
+        let _ = core::fmt::Write::write_fmt(&mut text, format_args!("{text_value}"));
+        self.store_grbl(key, text.as_str())
+    }
+
+    /// Store `key` as frame 00 does, then give the kernel the planner settings it changed
+    /// (steps, rates, accelerations, junction deviation take effect at once, as in grbl; the
+    /// travel and the limits at the next start).
+    fn store_grbl(&mut self, key: Key, value: &str) -> Result<(), Error> {
+        let mut name = Text::<24>::new();
+        let _ = key.write_name(self.settings.machine(), &mut name);
+        self.store_setting(name.as_str(), value)
+            .map_err(|_| Error::ValueOutOfRange)?;
+        self.give_kernel_settings()
+    }
+
+    /// The stored machine's planner settings to the kernel (at rest).
+    fn give_kernel_settings(&mut self) -> Result<(), Error> {
+        let machine = self.settings.machine().clone();
+        let path = self.settings.path_limits();
+        match self.kernel.set_planner_settings(&machine, path) {
+            Ok(_) => Ok(()),
+            Err(e) => Err(error_of(e.code())),
+        }
+    }
+
+    /// `$RST=$`: every setting of the machine back to the board's defaults.
+    fn restore_settings(&mut self) -> Result<(), Error> {
+        self.settings
+            .restore_defaults(&mut self.storage)
+            .map_err(|_| Error::SettingReadFail)?;
+        self.give_kernel_settings()
+    }
+
+    /// `0xA0`/`0xA1`: flood or mist on if off, off if on.
+    fn toggle_coolant(&mut self, r: Realtime) {
+        let flood = r == Realtime::FloodToggle;
+        let (mist_on, flood_on) = self.devices.coolant_state();
+        let on = if flood { !flood_on } else { !mist_on };
+        let _ = self.devices.set_coolant_line(flood, on);
+    }
+
+    /// `$#`.
+    fn report_parameters<W: Write>(&mut self, out: &mut W) {
+        let p = self.kernel.position();
+        let commanded = self.kernel.commanded_position_nm();
+        let g92 = work_offset(&p.work_mm, &commanded);
+        let zero = [0 as Micrometres; N];
+        for name in ["G54", "G55", "G56", "G57", "G58", "G59", "G28", "G30"] {
+            say(
+                out,
+                &Message::Offset {
+                    name,
+                    position: &zero,
+                },
+            );
+        }
+        say(
+            out,
+            &Message::Offset {
+                name: "G92",
+                position: &g92,
+            },
+        );
+        say(out, &Message::ToolLengthOffset(0));
+        say(
+            out,
+            &Message::Probe {
+                position: &zero,
+                touched: false,
+            },
+        );
+    }
+
+    /// `$G`.
+    fn report_parser_state<W: Write>(&mut self, out: &mut W) {
+        let mut text = Text::<96>::new();
+        let m = self.kernel.modal_report();
+        let _ = core::fmt::Write::write_fmt(
+            &mut text,
+            format_args!(
+                "G{} G54 G{} G{} G{} G94 M{} M9 T0 F{} S{}",
+                m.motion,
+                m.plane,
+                if m.inches { 20 } else { 21 },
+                if m.absolute { 90 } else { 91 },
+                match self.devices.spindle_state() {
+                    Some((Rotation::Clockwise, _)) => 3,
+                    Some((Rotation::CounterClockwise, _)) => 4,
+                    None => 5,
+                },
+                m.feed_mm_min as u32,
+                self.devices.spindle_state().map_or(0, |(_, rpm)| rpm),
+            ),
+        );
+        say(out, &Message::ParserState(text.as_str()));
+    }
+}

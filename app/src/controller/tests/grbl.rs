@@ -1,0 +1,274 @@
+//! The grbl 1.1 dialect on the link: how a link enters it, the realtime bytes, the answers,
+//! the status report and the `$` commands, as grbl senders use them.
+
+use forja_protocol::grbl::StatusText;
+
+use super::*;
+
+/// The status report among `lines`, as text.
+fn report(lines: &[String]) -> String {
+    lines
+        .iter()
+        .find(|l| l.starts_with('<'))
+        .cloned()
+        .unwrap_or_else(|| panic!("no status report in {lines:?}"))
+}
+
+/// The field `name` of the report `line`.
+fn field(line: &str, name: &str) -> String {
+    let text = StatusText::parse(line.as_bytes()).expect("a report");
+    String::from_utf8(text.field(name.as_bytes()).expect(name).to_vec()).unwrap()
+}
+
+fn state(line: &str) -> String {
+    let text = StatusText::parse(line.as_bytes()).expect("a report");
+    String::from_utf8(text.state().to_vec()).unwrap()
+}
+
+/// The answer to `?` now.
+fn status(b: &mut Bench) -> String {
+    b.send_raw(b"?");
+    b.run_ms(2);
+    report(&b.take())
+}
+
+/// A bench whose link has entered the grbl dialect with a soft reset.
+fn grbl() -> Bench {
+    let mut b = Bench::new();
+    b.take();
+    b.send_raw(&[0x18]);
+    b.run_ms(5);
+    let out = b.take();
+    assert!(
+        out.contains(&"Grbl 1.1h ['$' for help]".to_string()),
+        "{out:?}"
+    );
+    b
+}
+
+#[test]
+fn a_link_enters_the_dialect_at_a_reset_a_status_poll_or_a_dollar_line() {
+    let _ = grbl();
+    // CNCjs, when it saw no banner: `?` alone.
+    let mut b = Bench::new();
+    b.take();
+    b.send_raw(b"?");
+    b.run_ms(5);
+    let out = b.take();
+    assert_eq!(state(&report(&out)), "Idle");
+    assert_eq!(field(&report(&out), "MPos"), "0.000,0.000,0.000");
+    assert_eq!(b.ask("G1 X1 F600"), ["ok"]);
+    // `$$` from a RepRap link.
+    let mut b = Bench::new();
+    b.take();
+    let out = b.ask("$$");
+    assert!(out.contains(&"$100=80.000".to_string()), "{out:?}");
+    assert_eq!(out.last().map(String::as_str), Some("ok"));
+    // A `?` inside a RepRap line is part of the line, and no report goes out.
+    let mut b = Bench::new();
+    b.take();
+    let out = b.ask("M117 Ready?");
+    assert!(!out.iter().any(|l| l.starts_with('<')), "{out:?}");
+}
+
+#[test]
+fn every_line_gets_ok_or_a_grbl_error_and_line_numbers_are_not_checked() {
+    let mut b = grbl();
+    assert_eq!(b.ask("N10 G21 G90"), ["ok"]);
+    assert_eq!(b.ask("N20 G0 X5"), ["ok"]);
+    assert_eq!(b.ask("G5"), ["error:20"]);
+    assert_eq!(b.ask("G0 X1 X2"), ["error:25"]);
+    assert_eq!(b.ask("G0 G1 X1"), ["error:21"]);
+    assert_eq!(b.ask("G0 X9999"), ["error:15"]);
+    assert_eq!(b.ask("M123"), ["error:20"]);
+    assert_eq!(b.ask("(a comment)"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 5.0);
+}
+
+#[test]
+fn realtime_bytes_act_inside_a_line_and_never_damage_it() {
+    let mut b = grbl();
+    b.send_raw(b"G1 X2?0 F6");
+    b.send_raw(b"00\n");
+    b.run_ms(5);
+    let out = b.take();
+    assert!(out.iter().any(|l| l.starts_with('<')), "{out:?}");
+    assert!(out.contains(&"ok".to_string()), "{out:?}");
+    b.idle();
+    assert_eq!(b.position_mm()[0], 20.0, "the line was G1 X20 F600");
+}
+
+#[test]
+fn feed_hold_and_cycle_start() {
+    let mut b = grbl();
+    assert_eq!(b.ask("G1 X30 F600"), ["ok"]);
+    b.run_ms(500);
+    b.send_raw(b"!");
+    b.run_ms(400);
+    let held = status(&mut b);
+    assert!(state(&held).starts_with("Hold"), "{held}");
+    let x = b.position_mm()[0];
+    b.run_ms(500);
+    assert_eq!(b.position_mm()[0], x, "nothing moves during a hold");
+    b.send_raw(b"~");
+    b.idle();
+    assert_eq!(b.position_mm()[0], 30.0, "the move goes on to its end");
+    assert_eq!(b.violations(), 0);
+}
+
+#[test]
+fn a_soft_reset_stops_drops_what_waits_and_locks_a_machine_it_stopped_moving() {
+    let mut b = grbl();
+    for x in 1..=20 {
+        b.send(&format!("G1 X{x} F300"));
+    }
+    b.run_ms(300);
+    b.take();
+    b.send_raw(&[0x18]);
+    b.run_ms(5);
+    let out = b.take();
+    assert!(
+        out.contains(&"Grbl 1.1h ['$' for help]".to_string()),
+        "{out:?}"
+    );
+    assert!(
+        !out.contains(&"ok".to_string()),
+        "no answer for dropped lines: {out:?}"
+    );
+    b.idle();
+    let stopped = b.position_mm()[0];
+    assert!(stopped < 20.0, "the lines after the reset did not run");
+    assert_eq!(state(&status(&mut b)), "Alarm");
+    assert_eq!(b.ask("G0 X0"), ["error:9"]);
+    assert_eq!(b.ask("$X"), ["[MSG:Caution: Unlocked]", "ok"]);
+    assert_eq!(b.ask("G0 X0"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 0.0);
+}
+
+#[test]
+fn a_reset_at_rest_keeps_the_machine_unlocked() {
+    let mut b = grbl();
+    assert_eq!(b.ask("G0 X3"), ["ok"]);
+    b.idle();
+    b.send_raw(&[0x18]);
+    b.run_ms(5);
+    b.take();
+    let r = status(&mut b);
+    assert_eq!(state(&r), "Idle");
+    assert_eq!(field(&r, "MPos"), "3.000,0.000,0.000");
+}
+
+#[test]
+fn the_status_report_has_the_buffer_line_feed_and_offsets() {
+    let mut b = grbl();
+    assert_eq!(b.ask("$10=3"), ["ok"]);
+    assert_eq!(b.ask("G92 X-10"), ["ok"]);
+    let r = status(&mut b);
+    assert_eq!(field(&r, "MPos"), "0.000,0.000,0.000");
+    assert_eq!(field(&r, "WCO"), "10.000,0.000,0.000");
+    let bf = field(&r, "Bf");
+    let (blocks, bytes) = bf.split_once(',').unwrap();
+    assert!(blocks.parse::<u32>().unwrap() > 0);
+    assert!(bytes.parse::<u32>().unwrap() >= 128, "{r}");
+    assert_eq!(b.ask("$10=2"), ["ok"]);
+    let r = status(&mut b);
+    assert_eq!(field(&r, "WPos"), "-10.000,0.000,0.000");
+    assert_eq!(b.ask("N7 G1 X20 F600"), ["ok"]);
+    b.run_ms(300);
+    let r = status(&mut b);
+    assert_eq!(state(&r), "Run");
+    assert_eq!(field(&r, "FS"), "600,0");
+}
+
+#[test]
+fn the_feed_override_changes_the_moves_planned_after_it() {
+    let mut b = grbl();
+    b.send_raw(&[0x91, 0x91, 0x93]);
+    b.run_ms(2);
+    assert_eq!(b.ctl.kernel().feed_override_percent(), 121);
+    b.send_raw(&[0x90]);
+    b.run_ms(2);
+    assert_eq!(b.ctl.kernel().feed_override_percent(), 100);
+    for _ in 0..30 {
+        b.send_raw(&[0x92]);
+    }
+    b.run_ms(2);
+    assert_eq!(b.ctl.kernel().feed_override_percent(), 10);
+}
+
+#[test]
+fn dollar_commands_answer_as_grbl() {
+    let mut b = grbl();
+    let out = b.ask("$");
+    assert!(out[0].starts_with("[HLP:"), "{out:?}");
+    let out = b.ask("$I");
+    assert!(out[0].starts_with("[VER:1.1h."), "{out:?}");
+    assert!(out[1].starts_with("[OPT:"), "{out:?}");
+    let out = b.ask("$G");
+    assert_eq!(out[0], "[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F1000 S0]");
+    let out = b.ask("$#");
+    assert!(
+        out.contains(&"[G92:0.000,0.000,0.000]".to_string()),
+        "{out:?}"
+    );
+    assert!(out.iter().any(|l| l.starts_with("[PRB:")), "{out:?}");
+    assert_eq!(b.ask("$Q"), ["error:3"]);
+    assert_eq!(b.ask("$100=abc"), ["error:2"]);
+    assert_eq!(b.ask("$999=1"), ["error:3"]);
+}
+
+#[test]
+fn settings_are_set_under_grbls_numbers_and_stored() {
+    let mut b = grbl();
+    let before = b.ask("$$");
+    assert!(before.contains(&"$110=6000.000".to_string()), "{before:?}");
+    assert_eq!(b.ask("$110=3000"), ["ok"]);
+    let after = b.ask("$$");
+    assert!(after.contains(&"$110=3000.000".to_string()), "{after:?}");
+    assert_eq!(b.ask("$100=-5"), ["error:4"]);
+    assert_eq!(b.ask("$RST=$"), ["[MSG:Restoring defaults]", "ok"]);
+    let restored = b.ask("$$");
+    assert!(
+        restored.contains(&"$110=6000.000".to_string()),
+        "{restored:?}"
+    );
+}
+
+#[test]
+fn jogs_move_relative_without_changing_the_modal_state_and_0x85_cancels() {
+    let mut b = grbl();
+    assert_eq!(b.ask("$J=G91 X5 F1200"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 5.0);
+    let out = b.ask("$G");
+    assert!(out[0].contains("G90"), "the jog's G91 was its own: {out:?}");
+    assert_eq!(b.ask("$J=X5"), ["error:16"], "a jog needs a feed");
+    assert_eq!(b.ask("$J=G91 X9999 F600"), ["error:15"]);
+    assert_eq!(b.ask("$J=G91 X50 F300"), ["ok"]);
+    b.run_ms(300);
+    assert_eq!(state(&status(&mut b)), "Jog");
+    b.send_raw(&[0x85]);
+    b.idle();
+    let x = b.position_mm()[0];
+    assert!(x > 5.0 && x < 55.0, "the jog stopped short: {x}");
+}
+
+#[test]
+fn homing_answers_when_it_ends_and_check_mode_runs_nothing() {
+    let mut b = grbl();
+    b.send("$H");
+    b.run_ms(5);
+    assert!(!b.take().contains(&"ok".to_string()), "no ok while homing");
+    b.idle();
+    b.run_ms(5);
+    assert_eq!(b.take(), ["ok"]);
+    let homed = b.position_mm();
+    assert_eq!(b.ask("$C"), ["[MSG:Enabled]", "ok"]);
+    assert_eq!(b.ask("G0 X7"), ["ok"]);
+    assert_eq!(b.ask("G2 X1"), ["error:28"]);
+    b.run_ms(100);
+    assert_eq!(b.position_mm(), homed, "check mode moves nothing");
+    assert_eq!(b.ask("$C"), ["[MSG:Disabled]", "ok"]);
+}
