@@ -13,6 +13,7 @@ use forja_protocol::gcode::Line;
 
 use crate::arc::Nm;
 use crate::config::MachineConfig;
+use crate::coords::Coordinates;
 use crate::effect::Effect;
 use crate::interp::{Action, Interpreter};
 use crate::kernel::Kernel;
@@ -23,6 +24,7 @@ use crate::profile::Profile;
 pub struct Estimate<const N: usize, const B: usize> {
     /// The kernel's configuration, as the program's `M201`/`M203`/`M205 J` change it.
     config: MachineConfig<N>,
+    coords: Coordinates<N>,
     interp: Interpreter<N>,
     steps: [i32; N],
     planner: Planner<N, B>,
@@ -36,6 +38,7 @@ impl<const N: usize, const B: usize> Estimate<N, B> {
     pub fn new<const Q: usize>(kernel: &Kernel<'_, N, B, Q>) -> Self {
         Self {
             config: kernel.config().clone(),
+            coords: *kernel.coordinates(),
             interp: kernel.interpreter(),
             steps: kernel.commanded_steps(),
             planner: {
@@ -56,7 +59,7 @@ impl<const N: usize, const B: usize> Estimate<N, B> {
             return false;
         }
         let mut next = self.interp;
-        let Ok(action) = next.interpret(line, &self.config) else {
+        let Ok(action) = next.interpret(line, &self.config, &self.coords) else {
             return true;
         };
         self.interp = next;

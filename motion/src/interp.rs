@@ -15,6 +15,13 @@
 //! | `G90`, `G91` | absolute, relative |
 //! | `G92` | set the current position (all axes to 0 without words) |
 //! | `G94` | feed in units per minute (the only feed mode; `G93` and `G95` are refused) |
+//! | `G10 L2 P`, `G10 L20 P` | set the origin of work coordinate system `P` (1–9, 0 the active one): to the values (`L2`), or so that the position now reads as the values (`L20`) |
+//! | `G40`, `G64`, `G61`, `G61.1`, `G80` | no cutter compensation, path blending, exact stop (each move ends at rest), no canned cycle |
+//! | `G43.1 Z`, `G49` | dynamic tool length offset on Z, none |
+//! | `G53` | this line's move in machine coordinates |
+//! | `G54`–`G59`, `G59.1`–`G59.3` | select a work coordinate system |
+//! | `G28.1`, `G30.1` | store the position now (grbl's `G28`/`G30` go there) |
+//! | `G92.1` | clear the `G92` offset |
 //! | `M2`, `M30` | end of program: after the motion before it, `G1`, `G17`, `G90`, `G94` and the spindle off (`M30` with a file name is RepRap's delete file, a storage effect) |
 //! | `M82`, `M83` | extruder absolute, relative |
 //! | `M17`, `M18`, `M84` | motors on, off (`M18`/`M84` with axis letters: those axes) |
@@ -57,6 +64,7 @@ use forja_protocol::gcode::{Decimal, Line};
 
 use crate::arc::{ArcCenter, ArcCutter, Nm};
 use crate::config::{AxisKind, MachineConfig};
+use crate::coords::{Coordinates, SYSTEMS, Slot};
 use crate::effect::{Coolant, Effect, Heater, Spindle, StopKind, Storage, TemperatureWait};
 use crate::error::CommandError;
 use crate::planner::PathLimits;
@@ -116,6 +124,8 @@ pub(crate) enum Action<'l, const N: usize> {
     SetLimits(LimitChange<N>),
     /// For the controller.
     Effect(Effect<'l>),
+    /// `G10`, `G28.1`, `G30.1`: new positions for a slot of the coordinate table.
+    SetCoordinates { slot: Slot, values: [Nm; N] },
     /// `M0` / `M112`.
     Stop(StopKind),
     /// `M226`.
@@ -225,8 +235,17 @@ enum Motion {
 pub(crate) struct Interpreter<const N: usize> {
     /// Commanded machine position, nm.
     pub(crate) pos: [Nm; N],
-    /// Work offset: work = machine + offset (set by `G92`).
+    /// The `G92` offset: work = machine − origin of the active system − tool length offset +
+    /// `offset`.
     offset: [Nm; N],
+    /// The active work coordinate system, 0 for `G54`.
+    wcs_index: u8,
+    /// Its origin, machine nm.
+    wcs: [Nm; N],
+    /// The tool length offset (`G43.1`), nm, on the Z axis.
+    tlo_nm: Nm,
+    /// `G61`: every move ends at rest.
+    pub(crate) exact_stop: bool,
     absolute: bool,
     extruder_relative: Option<bool>,
     inches: bool,
@@ -271,6 +290,24 @@ pub(crate) fn nm_to_steps(nm: Nm, steps_per_mm: f32) -> i32 {
 pub(crate) fn steps_to_nm(steps: i32, steps_per_mm: f32) -> Nm {
     libm::round(f64::from(steps) / f64::from(steps_per_mm) * NM_PER_MM) as Nm
 }
+
+/// What a G code with one decimal is numbered as in the interpreter: ten times the code plus
+/// the decimal, after this (so that `G28.1` is not `G281`).
+const DECIMAL_CODE: u32 = 100_000;
+/// `G28.1`.
+const G28_1: u32 = DECIMAL_CODE + 281;
+/// `G30.1`.
+const G30_1: u32 = DECIMAL_CODE + 301;
+/// `G43.1`.
+const G43_1: u32 = DECIMAL_CODE + 431;
+/// `G59.1`.
+const G59_1: u32 = DECIMAL_CODE + 591;
+/// `G59.3`.
+const G59_3: u32 = DECIMAL_CODE + 593;
+/// `G61.1`.
+const G61_1: u32 = DECIMAL_CODE + 611;
+/// `G92.1`.
+const G92_1: u32 = DECIMAL_CODE + 921;
 
 fn set_once<T>(slot: &mut Option<T>, v: T) -> Result<(), CommandError> {
     if slot.is_some() {
@@ -371,6 +408,10 @@ impl<const N: usize> Interpreter<N> {
         Self {
             pos: [0; N],
             offset: [0; N],
+            wcs_index: 0,
+            wcs: [0; N],
+            tlo_nm: 0,
+            exact_stop: false,
             absolute: true,
             extruder_relative: None,
             inches: false,
@@ -394,7 +435,7 @@ impl<const N: usize> Interpreter<N> {
     }
 
     /// The modal state a parser-state report names.
-    pub(crate) fn modal(&self) -> crate::kernel::ModalReport {
+    pub(crate) fn modal(&self) -> crate::kernel::ModalReport<N> {
         crate::kernel::ModalReport {
             motion: match self.motion {
                 Motion::Rapid => 0,
@@ -410,7 +451,24 @@ impl<const N: usize> Interpreter<N> {
             inches: self.inches,
             absolute: self.absolute,
             feed_mm_min: self.feed_mm_min,
+            coordinate_system: self.wcs_index,
+            exact_stop: self.exact_stop,
+            tool_length_nm: self.tlo_nm,
+            g92_nm: core::array::from_fn(|i| -self.offset[i]),
         }
+    }
+
+    /// The machine position of work zero on axis `i`: work = machine − origin.
+    fn origin(&self, i: usize, z: Option<usize>) -> Nm {
+        let tlo = if z == Some(i) { self.tlo_nm } else { 0 };
+        self.wcs[i]
+            .saturating_add(tlo)
+            .saturating_sub(self.offset[i])
+    }
+
+    /// Take the origins of `coords` for the active system (after they changed or were loaded).
+    pub(crate) fn use_coordinates(&mut self, coords: &Coordinates<N>) {
+        self.wcs = coords.system(usize::from(self.wcs_index));
     }
 
     /// The feed-rate override as a factor, for the moves of the lines interpreted now.
@@ -443,9 +501,10 @@ impl<const N: usize> Interpreter<N> {
         self.pos = pos;
     }
 
-    /// The commanded position in work coordinates, nm.
-    pub(crate) fn work_position(&self) -> [Nm; N] {
-        core::array::from_fn(|i| self.pos[i] + self.offset[i])
+    /// The commanded position in work coordinates, nm, on a machine whose Z axis (for the tool
+    /// length offset) is `z`.
+    pub(crate) fn work_position(&self, z: Option<usize>) -> [Nm; N] {
+        core::array::from_fn(|i| self.pos[i].saturating_sub(self.origin(i, z)))
     }
 
     /// Interpret one line, updating the modal state of `self` (the caller works on a copy and
@@ -454,8 +513,13 @@ impl<const N: usize> Interpreter<N> {
         &mut self,
         line: &Line<'l>,
         config: &MachineConfig<N>,
+        coords: &Coordinates<N>,
     ) -> Result<Action<'l, N>, CommandError> {
         let mut command: Option<(u8, u32)> = None;
+        let mut system: Option<u8> = None;
+        let mut machine_coords = false;
+        let mut path: Option<bool> = None;
+        let mut tool_length: Option<()> = None;
         let mut motion: Option<Motion> = None;
         let mut units: Option<bool> = None;
         let mut distance: Option<bool> = None;
@@ -475,7 +539,16 @@ impl<const N: usize> Interpreter<N> {
             if !matches!(w.letter, b'G' | b'M' | b'T') || (w.letter == b'T' && has_m) {
                 continue;
             }
-            let number = w.value.as_u32().filter(|_| w.value.as_integer().is_some());
+            // A G code may have one decimal (`G59.1`, `G28.1`, `G43.1`): `n` is then ten times
+            // the code plus it (591, 281, 431), an integer code as it is.
+            let number = match (w.letter, w.value.scale()) {
+                (_, 0) => w.value.as_u32(),
+                (b'G', 1) => u32::try_from(w.value.mantissa())
+                    .ok()
+                    .filter(|m| m % 10 != 0)
+                    .map(|m| DECIMAL_CODE + m),
+                _ => None,
+            };
             let Some(n) = number else {
                 return Err(CommandError::Unsupported {
                     letter: w.letter,
@@ -483,6 +556,14 @@ impl<const N: usize> Interpreter<N> {
                 });
             };
             match (w.letter, n) {
+                (b'G', 54..=59) => set_once(&mut system, (n - 54) as u8)?,
+                (b'G', G59_1..=G59_3) => set_once(&mut system, (n - G59_1 + 6) as u8)?,
+                (b'G', 53) => machine_coords = true,
+                (b'G', 40 | 80) => {}
+                (b'G', 64) => set_once(&mut path, false)?,
+                (b'G', 61) => set_once(&mut path, true)?,
+                (b'G', G61_1) => set_once(&mut path, true)?,
+                (b'G', 49) => set_once(&mut tool_length, ())?,
                 (b'G', 0) => set_once(&mut motion, Motion::Rapid)?,
                 (b'G', 1) => set_once(&mut motion, Motion::Linear)?,
                 (b'G', 2) => set_once(&mut motion, Motion::Cw)?,
@@ -497,18 +578,27 @@ impl<const N: usize> Interpreter<N> {
                 // Units per minute: the only feed mode, so stating it changes nothing. Inverse
                 // time (`G93`) and units per revolution (`G95`) fall through as unsupported.
                 (b'G', 94) => set_once(&mut feed_mode, ())?,
-                (b'G', 4 | 28 | 92) | (b'M', _) | (b'T', _) => {
+                (b'G', 4 | 10 | 28 | 92) | (b'M', _) | (b'T', _) => {
                     set_once(&mut command, (w.letter, n))?;
                 }
+                (b'G', G28_1 | G30_1 | G43_1 | G92_1) => set_once(&mut command, (w.letter, n))?,
                 (letter, n) => {
                     return Err(CommandError::Unsupported {
                         letter,
-                        number: Some(n),
+                        // A code with a decimal is named by its letter alone.
+                        number: (n < DECIMAL_CODE).then_some(n),
                     });
                 }
             }
         }
         if motion.is_some() && command.is_some() {
+            return Err(CommandError::ModalConflict);
+        }
+        // `G53` moves in machine coordinates, and only with `G0` or `G1`.
+        let moving = motion.unwrap_or(self.motion);
+        if machine_coords
+            && (command.is_some() || !matches!(moving, Motion::Rapid | Motion::Linear))
+        {
             return Err(CommandError::ModalConflict);
         }
         // A letter alone is a flag only to the commands that take flags.
@@ -530,6 +620,16 @@ impl<const N: usize> Interpreter<N> {
         if let Some(p) = plane {
             self.plane = p;
         }
+        if let Some(k) = system {
+            self.wcs_index = k;
+            self.use_coordinates(coords);
+        }
+        if let Some(exact) = path {
+            self.exact_stop = exact;
+        }
+        if tool_length.is_some() {
+            self.tlo_nm = 0;
+        }
         if let Some(f) = line.get(b'F') {
             let per_min = f.to_f32() * if self.inches { 25.4 } else { 1.0 };
             if !(per_min.is_finite() && per_min >= MIN_FEED_MM_MIN) {
@@ -538,7 +638,7 @@ impl<const N: usize> Interpreter<N> {
             self.feed_mm_min = per_min;
         }
         match command {
-            Some((letter, n)) => self.command(letter, n, line, config),
+            Some((letter, n)) => self.command(letter, n, line, config, coords),
             None => {
                 if let Some(m) = motion {
                     self.motion = m;
@@ -546,7 +646,7 @@ impl<const N: usize> Interpreter<N> {
                 let has_axis = config.axes.iter().any(|a| line.has(a.letter));
                 if has_axis || (motion.is_some() && matches!(self.motion, Motion::Cw | Motion::Ccw))
                 {
-                    self.motion_line(line, config)
+                    self.motion_line(line, config, machine_coords)
                 } else {
                     // Unknown letters on a line without a command are reported.
                     for w in line.words() {
@@ -559,6 +659,63 @@ impl<const N: usize> Interpreter<N> {
                 }
             }
         }
+    }
+
+    /// `G10 L2 P<n>` / `G10 L20 P<n>`: the new origin of system `n` (1–9; 0: the active one),
+    /// to the values given (`L2`, machine coordinates) or such that the position now reads as
+    /// them (`L20`); axes not named keep theirs. The active system's origin changes at once.
+    fn set_origin<'l>(
+        &mut self,
+        line: &Line<'l>,
+        config: &MachineConfig<N>,
+        coords: &Coordinates<N>,
+    ) -> Result<Action<'l, N>, CommandError> {
+        for w in line.words() {
+            let word = matches!(w.letter, b'G' | b'L' | b'P');
+            if !word && config.axis_index(w.letter).is_none() {
+                return Err(CommandError::UnknownAxis { letter: w.letter });
+            }
+        }
+        let l = line
+            .get(b'L')
+            .ok_or(CommandError::MissingValue { letter: b'L' })?;
+        let l20 = match l.as_integer() {
+            Some(2) => false,
+            Some(20) => true,
+            _ => return Err(CommandError::BadValue { letter: b'L' }),
+        };
+        let p = line
+            .get(b'P')
+            .ok_or(CommandError::MissingValue { letter: b'P' })?;
+        let index = match small_int(p, b'P', SYSTEMS as u32)? {
+            0 => self.wcs_index,
+            n => (n - 1) as u8,
+        };
+        let z = config.axis_index(b'Z');
+        let mut values = coords.system(usize::from(index));
+        for (i, a) in config.axes.iter().enumerate() {
+            let Some(v) = line.get(a.letter) else {
+                continue;
+            };
+            let nm = to_nm(v, self.inches, a.letter)?;
+            values[i] = if l20 {
+                // pos − (origin' + tlo − offset) = nm
+                let tlo = if z == Some(i) { self.tlo_nm } else { 0 };
+                self.pos[i]
+                    .saturating_sub(tlo)
+                    .saturating_add(self.offset[i])
+                    .saturating_sub(nm)
+            } else {
+                nm
+            };
+        }
+        if index == self.wcs_index {
+            self.wcs = values;
+        }
+        Ok(Action::SetCoordinates {
+            slot: Slot::System(index),
+            values,
+        })
     }
 
     fn is_relative(&self, kind: AxisKind) -> bool {
@@ -576,15 +733,18 @@ impl<const N: usize> Interpreter<N> {
         &mut self,
         line: &Line<'_>,
         config: &MachineConfig<N>,
+        machine_coords: bool,
     ) -> Result<[Nm; N], CommandError> {
         let mut target = self.pos;
+        let z = config.axis_index(b'Z');
         for (i, a) in config.axes.iter().enumerate() {
             if let Some(v) = line.get(a.letter) {
                 let nm = to_nm(v, self.inches, a.letter)?;
-                let relative = self.is_relative(a.kind);
+                let relative = self.is_relative(a.kind) && !machine_coords;
                 let flow = self.flow_percent[i];
+                let origin = if machine_coords { 0 } else { self.origin(i, z) };
                 target[i] = if flow != 100 {
-                    let work = self.pos[i].saturating_add(self.offset[i]);
+                    let work = self.pos[i].saturating_sub(origin);
                     let work_target = if relative {
                         work.saturating_add(nm)
                     } else {
@@ -592,12 +752,14 @@ impl<const N: usize> Interpreter<N> {
                     };
                     let fed = scale_nm(work_target.saturating_sub(work), flow);
                     let machine = self.pos[i].saturating_add(fed);
-                    self.offset[i] = work_target.saturating_sub(machine);
+                    // The `G92` offset takes the difference: machine − origin' = work target.
+                    let behind = work_target.saturating_sub(machine.saturating_sub(origin));
+                    self.offset[i] = self.offset[i].saturating_add(behind);
                     machine
                 } else if relative {
                     self.pos[i].saturating_add(nm)
                 } else {
-                    nm.saturating_sub(self.offset[i])
+                    nm.saturating_add(origin)
                 };
                 // An extruder's position grows with the filament fed (a long print feeds more
                 // than 100 m); the kernel bounds it by its step count instead.
@@ -619,8 +781,9 @@ impl<const N: usize> Interpreter<N> {
         &mut self,
         line: &Line<'l>,
         config: &MachineConfig<N>,
+        machine_coords: bool,
     ) -> Result<Action<'l, N>, CommandError> {
-        let target = self.target(line, config)?;
+        let target = self.target(line, config, machine_coords)?;
         let ramp = line.has(b'F');
         let action = match self.motion {
             Motion::Rapid => Action::Move {
@@ -683,9 +846,42 @@ impl<const N: usize> Interpreter<N> {
         n: u32,
         line: &Line<'l>,
         config: &MachineConfig<N>,
+        coords: &Coordinates<N>,
     ) -> Result<Action<'l, N>, CommandError> {
         let s = line.get(b'S');
+        let z = config.axis_index(b'Z');
         Ok(match (letter, n) {
+            (b'G', 10) => self.set_origin(line, config, coords)?,
+            (b'G', G28_1 | G30_1) => {
+                only_axis_words(line, config, b"")?;
+                let slot = if n == G28_1 { Slot::G28 } else { Slot::G30 };
+                Action::SetCoordinates {
+                    slot,
+                    values: self.pos,
+                }
+            }
+            (b'G', G43_1) => {
+                only_axis_words(line, config, b"")?;
+                let z = z.ok_or(CommandError::UnknownAxis { letter: b'Z' })?;
+                let v = line
+                    .get(b'Z')
+                    .ok_or(CommandError::MissingValue { letter: b'Z' })?;
+                if config
+                    .axes
+                    .iter()
+                    .any(|a| a.letter != b'Z' && line.has(a.letter))
+                {
+                    return Err(CommandError::BadValue { letter: b'G' });
+                }
+                let _ = z;
+                self.tlo_nm = to_nm(v, self.inches, b'Z')?;
+                Action::None
+            }
+            (b'G', G92_1) => {
+                only_axis_words(line, config, b"")?;
+                self.offset = [0; N];
+                Action::None
+            }
             (b'G', 4) => {
                 let ms = match (line.get(b'P'), s) {
                     (Some(p), _) => p.to_f64(),
@@ -727,7 +923,9 @@ impl<const N: usize> Interpreter<N> {
                         None if named => continue,
                         None => 0,
                     };
-                    self.offset[i] = value - self.pos[i];
+                    // The offset that makes the position now read as `value`.
+                    let without = self.pos[i].saturating_sub(self.origin(i, z) + self.offset[i]);
+                    self.offset[i] = value.saturating_sub(without);
                 }
                 Action::None
             }
@@ -1117,6 +1315,7 @@ impl<const N: usize> Interpreter<N> {
 mod tests {
     use super::*;
     use crate::config::AxisConfig;
+    const MM: Nm = 1_000_000;
 
     fn cfg() -> MachineConfig<4> {
         let mut e = AxisConfig::linear(b'E', 100.0, 3000.0, 1000.0, 1000.0);
@@ -1141,7 +1340,7 @@ mod tests {
     ) -> Result<Action<'l, 4>, CommandError> {
         let line = Line::parse(text).expect("parses");
         let mut next = *it;
-        let a = next.interpret(&line, c)?;
+        let a = next.interpret(&line, c, &Coordinates::ZERO)?;
         *it = next;
         Ok(a)
     }
@@ -1184,7 +1383,7 @@ mod tests {
         let mut it = Interpreter::new(&c);
         run(&mut it, b"G1 X10 E5").expect("ok");
         run(&mut it, b"G92 X0 E0").expect("ok");
-        assert_eq!(it.work_position(), [0, 0, 0, 0]);
+        assert_eq!(it.work_position(Some(2)), [0, 0, 0, 0]);
         run(&mut it, b"M83").expect("ok");
         let a = run(&mut it, b"G1 X1 E1").expect("ok");
         // X is absolute in work coordinates (machine 11), E relative (machine 6).
@@ -1196,7 +1395,7 @@ mod tests {
             }
         ));
         run(&mut it, b"G92").expect("ok");
-        assert_eq!(it.work_position(), [0; 4]);
+        assert_eq!(it.work_position(Some(2)), [0; 4]);
     }
 
     #[test]
@@ -1314,6 +1513,113 @@ mod tests {
             Ok(Action::Effect(Effect::SelectTool(1)))
         );
         assert_eq!(run(&mut it, b"T1 M104 S0").map(|_| ()), Ok(()));
+    }
+
+    /// Run `text` with the table `coords`, applying what it sets to the table.
+    fn run_coords<'l>(
+        c: &MachineConfig<4>,
+        coords: &mut Coordinates<4>,
+        it: &mut Interpreter<4>,
+        text: &'l [u8],
+    ) -> Result<Action<'l, 4>, CommandError> {
+        let line = Line::parse(text).expect("parses");
+        let mut next = *it;
+        let a = next.interpret(&line, c, coords)?;
+        if let Action::SetCoordinates { slot, values } = a {
+            coords.set(slot, values);
+        }
+        *it = next;
+        Ok(a)
+    }
+
+    fn target_of(a: Result<Action<'_, 4>, CommandError>) -> [Nm; 4] {
+        match a {
+            Ok(Action::Move { target, .. }) => target,
+            other => panic!("not a move: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn work_coordinate_systems_g10_g53_g92_and_tool_length() {
+        let c = cfg();
+        let mut coords = Coordinates::ZERO;
+        let mut it = Interpreter::new(&c);
+        // `G10 L2 P2`: G55's origin at machine X10 Y20; selecting it moves work zero there.
+        assert!(matches!(
+            run_coords(&c, &mut coords, &mut it, b"G10 L2 P2 X10 Y20"),
+            Ok(Action::SetCoordinates {
+                slot: Slot::System(1),
+                ..
+            })
+        ));
+        assert_eq!(
+            target_of(run_coords(&c, &mut coords, &mut it, b"G55 G0 X0 Y0")),
+            [10 * MM, 20 * MM, 0, 0]
+        );
+        assert_eq!(it.work_position(Some(2)), [0; 4]);
+        // `G53`: this move in machine coordinates; the system stays.
+        assert_eq!(
+            target_of(run_coords(&c, &mut coords, &mut it, b"G53 G0 X1")),
+            [MM, 20 * MM, 0, 0]
+        );
+        assert_eq!(
+            target_of(run_coords(&c, &mut coords, &mut it, b"G0 X1")),
+            [11 * MM, 20 * MM, 0, 0]
+        );
+        assert_eq!(
+            run_coords(&c, &mut coords, &mut it, b"G53 G2 X1 I1"),
+            Err(CommandError::ModalConflict)
+        );
+        // `G10 L20 P0`: the active system's origin such that here reads X5.
+        run_coords(&c, &mut coords, &mut it, b"G10 L20 P0 X5").unwrap();
+        assert_eq!(it.work_position(Some(2))[0], 5 * MM);
+        assert_eq!(coords.system(1)[0], 6 * MM);
+        // `G92` on top, `G92.1` clears it.
+        run_coords(&c, &mut coords, &mut it, b"G92 X0").unwrap();
+        assert_eq!(it.work_position(Some(2))[0], 0);
+        assert_eq!(
+            target_of(run_coords(&c, &mut coords, &mut it, b"G0 X2")),
+            [13 * MM, 20 * MM, 0, 0]
+        );
+        run_coords(&c, &mut coords, &mut it, b"G92.1").unwrap();
+        assert_eq!(it.work_position(Some(2))[0], 7 * MM);
+        // `G43.1 Z2`: work Z reads 2 mm below the machine's; `G49` ends it.
+        run_coords(&c, &mut coords, &mut it, b"G43.1 Z2").unwrap();
+        assert_eq!(it.work_position(Some(2))[2], -2 * MM);
+        assert_eq!(
+            target_of(run_coords(&c, &mut coords, &mut it, b"G0 Z0")),
+            [13 * MM, 20 * MM, 2 * MM, 0]
+        );
+        run_coords(&c, &mut coords, &mut it, b"G49").unwrap();
+        assert_eq!(it.work_position(Some(2))[2], 2 * MM);
+        // `G59.1` is the seventh system; `G54` back to the first.
+        run_coords(&c, &mut coords, &mut it, b"G10 L2 P7 X-3").unwrap();
+        assert_eq!(
+            target_of(run_coords(&c, &mut coords, &mut it, b"G59.1 G0 X0")),
+            [-3 * MM, 20 * MM, 2 * MM, 0]
+        );
+        assert_eq!(
+            target_of(run_coords(&c, &mut coords, &mut it, b"G54 G0 X0")),
+            [0, 20 * MM, 2 * MM, 0]
+        );
+        // `G28.1` stores the position; a bad `G10` changes nothing.
+        assert!(matches!(
+            run_coords(&c, &mut coords, &mut it, b"G28.1"),
+            Ok(Action::SetCoordinates { slot: Slot::G28, values }) if values[1] == 20 * MM
+        ));
+        assert_eq!(
+            run_coords(&c, &mut coords, &mut it, b"G10 L3 P1 X0"),
+            Err(CommandError::BadValue { letter: b'L' })
+        );
+        assert_eq!(
+            run_coords(&c, &mut coords, &mut it, b"G10 L2 P10 X0"),
+            Err(CommandError::BadValue { letter: b'P' })
+        );
+        // `G61` makes every move start from rest until `G64`; `G40` and `G80` are taken.
+        run_coords(&c, &mut coords, &mut it, b"G61 G40 G80").unwrap();
+        assert!(it.exact_stop);
+        run_coords(&c, &mut coords, &mut it, b"G64").unwrap();
+        assert!(!it.exact_stop);
     }
 
     #[test]
@@ -1727,32 +2033,31 @@ mod tests {
     fn flow_scales_the_filament_fed_not_the_reported_extruder_position() {
         let c = cfg();
         let mut it = Interpreter::new(&c);
-        const MM: Nm = 1_000_000;
         run(&mut it, b"M221 S50").expect("ok");
         assert_eq!(it.flow_percent(), [100, 100, 100, 50]);
         // Absolute extrusion: E10 feeds 5 mm; the work position is the commanded 10.
         let a = run(&mut it, b"G1 X5 E10 F600").expect("ok");
         assert!(matches!(a, Action::Move { target, .. } if target == [5 * MM, 0, 0, 5 * MM]));
-        assert_eq!(it.work_position(), [5 * MM, 0, 0, 10 * MM]);
+        assert_eq!(it.work_position(Some(2)), [5 * MM, 0, 0, 10 * MM]);
         // A retraction to E9 pulls back 0.5 mm.
         let a = run(&mut it, b"G1 E9").expect("ok");
         assert!(matches!(a, Action::Move { target, .. } if target[3] == 4_500_000));
         // `G92 E0` sets the reported position; the motor goes on from where it is.
         run(&mut it, b"G92 E0").expect("ok");
-        assert_eq!(it.work_position()[3], 0);
+        assert_eq!(it.work_position(Some(2))[3], 0);
         let a = run(&mut it, b"G1 E2").expect("ok");
         assert!(matches!(a, Action::Move { target, .. } if target[3] == 5_500_000));
-        assert_eq!(it.work_position()[3], 2 * MM);
+        assert_eq!(it.work_position(Some(2))[3], 2 * MM);
         // Relative extrusion alike.
         run(&mut it, b"M83").expect("ok");
         let a = run(&mut it, b"G1 E3").expect("ok");
         assert!(matches!(a, Action::Move { target, .. } if target[3] == 7 * MM));
-        assert_eq!(it.work_position()[3], 5 * MM);
+        assert_eq!(it.work_position(Some(2))[3], 5 * MM);
         // Back to 100 %: the commanded distance again.
         run(&mut it, b"M221 T0 S100").expect("ok");
         let a = run(&mut it, b"G1 E1").expect("ok");
         assert!(matches!(a, Action::Move { target, .. } if target[3] == 8 * MM));
-        assert_eq!(it.work_position()[3], 6 * MM);
+        assert_eq!(it.work_position(Some(2))[3], 6 * MM);
         // Only the extruders: X is not scaled.
         run(&mut it, b"M221 S200").expect("ok");
         let a = run(&mut it, b"G1 X6").expect("ok");

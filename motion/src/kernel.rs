@@ -9,6 +9,7 @@ use forja_protocol::gcode::{Decimal, Line};
 
 use crate::arc::{ArcCutter, Nm};
 use crate::config::{AxisKind, MachineConfig, SoftLimits};
+use crate::coords::Coordinates;
 use crate::effect::{Effect, StopKind};
 use crate::error::{Alarm, CommandError, ConfigError};
 use crate::interp::{
@@ -77,7 +78,7 @@ pub struct PlannerSettings<const N: usize> {
 
 /// The interpreter's modal state, for a parser-state report (grbl's `$G`).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ModalReport {
+pub struct ModalReport<const N: usize> {
     /// The motion mode: 0, 1, 2 or 3 (`G0`–`G3`).
     pub motion: u8,
     /// The plane: 17, 18 or 19.
@@ -88,6 +89,14 @@ pub struct ModalReport {
     pub absolute: bool,
     /// The programmed feed rate, mm/min.
     pub feed_mm_min: f32,
+    /// The work coordinate system, 0 for `G54` (6–8: `G59.1`–`G59.3`).
+    pub coordinate_system: u8,
+    /// `G61`: every move ends at rest (else `G64`).
+    pub exact_stop: bool,
+    /// The tool length offset (`G43.1`), nm.
+    pub tool_length_nm: i64,
+    /// The `G92` offset of each axis, nm (grbl's sign: work = machine − origin − this).
+    pub g92_nm: [i64; N],
 }
 
 /// The machine's state, as the controller reports it.
@@ -164,6 +173,8 @@ struct PendingArc<const N: usize> {
     /// The feed override of the arc's line, as a factor.
     feed_scale: f32,
     ramp: bool,
+    /// `G61`: the arc starts from rest.
+    exact_stop: bool,
 }
 
 /// The thread side of the motion kernel.
@@ -175,6 +186,10 @@ pub struct Kernel<'q, const N: usize, const B: usize = 32, const Q: usize = 256>
     config: MachineConfig<N>,
     bounds: [AxisBounds; N],
     tick_hz: u32,
+    /// The work coordinate systems and stored positions.
+    coords: Coordinates<N>,
+    /// The slots of `coords` changed since the application last took them.
+    coords_changed: u16,
     /// The drivers' timing the configuration is checked against (`M203`).
     timing: StepTiming,
     tx: Producer<'q, N, Q>,
@@ -239,6 +254,8 @@ pub fn split<'q, const N: usize, const B: usize, const Q: usize>(
     let origin = queue.positions();
     let kernel = Kernel {
         interp: Interpreter::new(&config),
+        coords: Coordinates::ZERO,
+        coords_changed: 0,
         tick_hz,
         timing,
         tx: Producer::new(queue),
@@ -361,7 +378,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// Positions for a report.
     pub fn position(&self) -> PositionReport<N> {
         let m = self.machine_steps();
-        let w = self.interp.work_position();
+        let w = self.interp.work_position(self.config.axis_index(b'Z'));
         PositionReport {
             letters: core::array::from_fn(|i| self.config.axes[i].letter),
             work_mm: core::array::from_fn(|i| w[i] as f64 / NM_PER_MM),
@@ -443,7 +460,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return Ok(Reply::Ok);
         }
         let mut next = self.interp;
-        let action = next.interpret(line, &self.config)?;
+        let action = next.interpret(line, &self.config, &self.coords)?;
         self.act(action, next)
     }
 
@@ -505,6 +522,11 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         let idle = self.is_idle();
         let reply = match action {
             Action::None => Reply::Ok,
+            Action::SetCoordinates { slot, values } => {
+                self.coords.set(slot, values);
+                self.coords_changed |= 1 << slot.index();
+                Reply::Ok
+            }
             Action::Move {
                 target,
                 feed_mm_min,
@@ -514,7 +536,14 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 if self.planner.is_full() {
                     return Ok(Reply::Busy);
                 }
-                self.queue_move(&target, feed_mm_min, next.feed_scale(), ramp, 0);
+                self.queue_move(
+                    &target,
+                    feed_mm_min,
+                    next.feed_scale(),
+                    ramp,
+                    0,
+                    next.exact_stop,
+                );
                 Reply::Ok
             }
             Action::Arc {
@@ -529,6 +558,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                     feed_mm_min,
                     feed_scale: next.feed_scale(),
                     ramp,
+                    exact_stop: next.exact_stop,
                 });
                 self.drain_arc();
                 Reply::Ok
@@ -626,7 +656,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return Ok(Reply::Busy);
         }
         let feed = self.config.jog_feed_mm_min;
-        self.queue_move(&target, Some(feed), 1.0, false, 0);
+        self.queue_move(&target, Some(feed), 1.0, false, 0, false);
         self.interp.pos = target;
         Ok(Reply::Ok)
     }
@@ -665,8 +695,26 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         Ok(reply)
     }
 
+    /// The work coordinate systems and stored positions.
+    pub fn coordinates(&self) -> &Coordinates<N> {
+        &self.coords
+    }
+
+    /// Take `coords` (the stored table, at start-up): the active system's origin follows.
+    pub fn set_coordinates(&mut self, coords: Coordinates<N>) {
+        self.coords = coords;
+        self.interp.use_coordinates(&coords);
+    }
+
+    /// The slots of the table that lines changed since the last call (bit
+    /// [`Slot::index`](crate::coords::Slot::index)),
+    /// for the application to store; cleared.
+    pub fn take_changed_coordinates(&mut self) -> u16 {
+        core::mem::take(&mut self.coords_changed)
+    }
+
     /// The modal state of the interpreter (grbl's `$G`).
-    pub fn modal_report(&self) -> ModalReport {
+    pub fn modal_report(&self) -> ModalReport<N> {
         self.interp.modal()
     }
 
@@ -946,6 +994,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         feed_scale: f32,
         ramp: bool,
         homing_mask: u8,
+        exact_stop: bool,
     ) {
         let mut req = MoveRequest::to_target(
             target,
@@ -957,6 +1006,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             homing_mask,
         );
         req.feed_scale = feed_scale;
+        req.exact_stop = exact_stop;
         let _ = self.planner.push_move(&req, &self.config);
     }
 
@@ -969,7 +1019,8 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             match p.cutter.peek() {
                 Some(point) => {
                     let ramp = p.ramp && p.cutter.is_first();
-                    self.queue_move(&point, Some(p.feed_mm_min), p.feed_scale, ramp, 0);
+                    let exact = p.exact_stop && p.cutter.is_first();
+                    self.queue_move(&point, Some(p.feed_mm_min), p.feed_scale, ramp, 0, exact);
                     p.cutter.advance();
                     self.arc = Some(p);
                 }
@@ -1187,7 +1238,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             .store(u32::from(switch_mask), Ordering::Relaxed);
         let mut target = self.interp.pos;
         target[axis] += mm_to_nm(mm);
-        self.queue_move(&target, Some(feed_mm_min), 1.0, false, switch_mask);
+        self.queue_move(&target, Some(feed_mm_min), 1.0, false, switch_mask, false);
         self.interp.pos = target;
     }
 

@@ -43,6 +43,7 @@
 //! | module | what |
 //! |---|---|
 //! | [`config`] | [`MachineConfig`], [`AxisConfig`], validation, `postcard` storage |
+//! | [`coords`] | [`coords::Coordinates`]: the work coordinate systems (`G54`–`G59.3`) and stored positions (`G28.1`, `G30.1`) |
 //! | [`effect`] | [`Effect`]: commands for other subsystems, returned in stream order |
 //! | [`error`] | the error enums and the table of their wire codes |
 //! | [`estimate`] | [`Estimate`]: how long a program takes, by a dry run of the interpreter and planner |
@@ -57,6 +58,7 @@ extern crate std;
 
 mod arc;
 pub mod config;
+pub mod coords;
 pub mod effect;
 pub mod error;
 pub mod estimate;

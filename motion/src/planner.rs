@@ -184,6 +184,8 @@ pub(crate) struct MoveRequest<const N: usize> {
     pub line: u32,
     /// Axes whose switch ends this move.
     pub homing_mask: u8,
+    /// `G61`: the move starts from rest (the one before it ends at rest).
+    pub exact_stop: bool,
 }
 
 impl<const N: usize> MoveRequest<N> {
@@ -211,6 +213,7 @@ impl<const N: usize> MoveRequest<N> {
             ramp,
             line,
             homing_mask,
+            exact_stop: false,
         }
     }
 }
@@ -391,6 +394,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         let nominal_sqr = nominal * nominal;
         let max_entry_sqr = match (self.len, self.previous) {
             (0, _) | (_, None) => 0.0,
+            _ if req.exact_stop => 0.0,
             (_, Some(p)) => {
                 let junction = junction_speed_sqr(&p.unit, &unit, config, cap);
                 // A feed ramp may enter above its own feed, never above what its axes allow.
@@ -543,6 +547,7 @@ mod tests {
             ramp: false,
             line: 0,
             homing_mask: 0,
+            exact_stop: false,
         }
     }
 
@@ -644,6 +649,7 @@ mod tests {
             ramp: false,
             line: 0,
             homing_mask: 0,
+            exact_stop: false,
         }
     }
 

@@ -28,6 +28,7 @@
 use forja_protocol::gcode::Line;
 
 use crate::config::{AxisKind, MachineConfig};
+use crate::coords::Coordinates;
 use crate::error::CommandError;
 use crate::interp::{Action, Interpreter, mm_to_nm};
 
@@ -70,6 +71,7 @@ impl<const N: usize> Piece<N> {
 pub struct Preview<const N: usize> {
     interp: Interpreter<N>,
     config: MachineConfig<N>,
+    coords: Coordinates<N>,
 }
 
 impl<const N: usize> Preview<N> {
@@ -82,7 +84,21 @@ impl<const N: usize> Preview<N> {
         Self {
             interp,
             config: config.clone(),
+            coords: Coordinates::ZERO,
         }
+    }
+
+    /// [`Preview::new`] with the work coordinate systems of `coords` (a machine's table; `G54`
+    /// active).
+    pub fn with_coordinates(
+        config: &MachineConfig<N>,
+        start_nm: [i64; N],
+        coords: &Coordinates<N>,
+    ) -> Self {
+        let mut preview = Self::new(config, start_nm);
+        preview.coords = *coords;
+        preview.interp.use_coordinates(coords);
+        preview
     }
 
     /// Take the program's next line: `piece` is called for each straight [`Piece`] it moves
@@ -97,7 +113,7 @@ impl<const N: usize> Preview<N> {
     ) -> Result<u8, CommandError> {
         let mut next = self.interp;
         let from = self.interp.pos;
-        let homed = match next.interpret(line, &self.config)? {
+        let homed = match next.interpret(line, &self.config, &self.coords)? {
             Action::Move {
                 target,
                 feed_mm_min,

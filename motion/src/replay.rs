@@ -13,6 +13,7 @@
 use forja_protocol::gcode::Line;
 
 use crate::config::MachineConfig;
+use crate::coords::Coordinates;
 use crate::interp::{Action, Interpreter};
 use crate::kernel::Kernel;
 
@@ -21,6 +22,7 @@ use crate::kernel::Kernel;
 pub struct Replay<const N: usize> {
     pub(crate) interp: Interpreter<N>,
     here: [i64; N],
+    coords: Coordinates<N>,
 }
 
 impl<const N: usize> Replay<N> {
@@ -29,13 +31,19 @@ impl<const N: usize> Replay<N> {
         let here = kernel.commanded_position_nm();
         let mut interp = Interpreter::new(kernel.config());
         interp.pos = here;
-        Self { interp, here }
+        let coords = *kernel.coordinates();
+        interp.use_coordinates(&coords);
+        Self {
+            interp,
+            here,
+            coords,
+        }
     }
 
     /// Take the program's next line into the state.
     pub fn line(&mut self, line: &Line<'_>, config: &MachineConfig<N>) {
         let mut next = self.interp;
-        match next.interpret(line, config) {
+        match next.interpret(line, config, &self.coords) {
             Ok(Action::Home { mask }) => {
                 for (i, h) in self.here.iter().enumerate() {
                     if mask & (1 << i) != 0 {

@@ -35,6 +35,7 @@ use forja_hal_abstraction::device::Rotation;
 use forja_hal_abstraction::program::ProgramStore;
 use forja_hal_abstraction::storage::RecordStorage;
 use forja_motion::config::SoftLimits;
+use forja_motion::coords::{Coordinates, Nm, Slot};
 use forja_motion::error::{Alarm as KernelAlarm, CommandError};
 use forja_motion::preview::Preview;
 use forja_motion::{MachineState, Reply as KernelReply};
@@ -249,6 +250,44 @@ pub(super) fn strip_line_number(bytes: &[u8]) -> (&[u8], Option<u32>) {
     (tail.get(digits..).unwrap_or(&[]), number)
 }
 
+/// The work coordinate systems by their G codes, `G54` first.
+const SYSTEM_NAMES: [&str; 9] = [
+    "G54", "G55", "G56", "G57", "G58", "G59", "G59.1", "G59.2", "G59.3",
+];
+
+/// The first record key of the coordinate table: slot `k` ([`Slot::index`]) is kept at
+/// `COORDINATE_RECORDS + k`, its axes as little-endian `i64` nanometres.
+pub const COORDINATE_RECORDS: u16 = 0x0400;
+
+/// The table kept in `storage`, over `defaults` for what is not there or does not read.
+///
+/// Context: thread, at start-up. Blocks for the storage reads.
+pub(super) fn load_coordinates<S: RecordStorage, const N: usize>(
+    storage: &mut S,
+    defaults: &Coordinates<N>,
+) -> Coordinates<N> {
+    let mut coords = *defaults;
+    for slot in Slot::all() {
+        let mut buf = [0u8; 64];
+        let key = COORDINATE_RECORDS + u16::from(slot.index());
+        let Ok(Some(len)) = storage.read(key, &mut buf) else {
+            continue;
+        };
+        if len != 8 * N {
+            continue;
+        }
+        let values: [Nm; N] = core::array::from_fn(|i| {
+            let mut word = [0u8; 8];
+            if let Some(src) = buf.get(8 * i..8 * i + 8) {
+                word.copy_from_slice(src);
+            }
+            i64::from_le_bytes(word)
+        });
+        coords.set(slot, values);
+    }
+    coords
+}
+
 /// A grbl setting: its number and what it is in the controller's settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum GrblSetting {
@@ -266,6 +305,33 @@ where
     X: Peripherals<N>,
     S: RecordStorage,
 {
+    /// Store the slots of the coordinate table that lines changed, once the machine is at rest
+    /// (a flash write may hold the chip up). A slot that cannot be written stays to store.
+    pub(super) fn store_coordinates(&mut self) {
+        self.coords_unsaved |= self.kernel.take_changed_coordinates();
+        if self.coords_unsaved == 0 || !self.kernel.is_idle() {
+            return;
+        }
+        let coords = *self.kernel.coordinates();
+        for slot in Slot::all() {
+            let bit = 1u16 << slot.index();
+            if self.coords_unsaved & bit == 0 {
+                continue;
+            }
+            let mut buf = [0u8; 64];
+            for (i, v) in coords.get(slot).iter().enumerate() {
+                if let Some(dst) = buf.get_mut(8 * i..8 * i + 8) {
+                    dst.copy_from_slice(&v.to_le_bytes());
+                }
+            }
+            let bytes = buf.get(..8 * N).unwrap_or(&[]);
+            let key = COORDINATE_RECORDS + u16::from(slot.index());
+            if self.storage.write(key, bytes).is_ok() {
+                self.coords_unsaved &= !bit;
+            }
+        }
+    }
+
     /// The link speaks the grbl dialect from now on.
     pub(super) fn enter_grbl(&mut self) {
         self.link.dialect = Dialect::Grbl;
@@ -536,6 +602,8 @@ where
                 }
                 if matches!(what, Restore::Parameters | Restore::All) {
                     self.kernel.reset_modal_state();
+                    self.kernel.set_coordinates(Coordinates::ZERO);
+                    self.coords_unsaved = Slot::all().fold(0, |m, s| m | 1 << s.index());
                 }
                 say(out, &Message::Feedback("Restoring defaults"));
             }
@@ -745,19 +813,27 @@ where
 
     /// `$#`.
     fn report_parameters<W: Write>(&mut self, out: &mut W) {
-        let p = self.kernel.position();
-        let commanded = self.kernel.commanded_position_nm();
-        let g92 = work_offset(&p.work_mm, &commanded);
+        let coords = *self.kernel.coordinates();
+        let modal = self.kernel.modal_report();
+        let um =
+            |v: [Nm; N]| -> [Micrometres; N] { core::array::from_fn(|i| v[i].div_euclid(1000)) };
         let zero = [0 as Micrometres; N];
-        for name in ["G54", "G55", "G56", "G57", "G58", "G59", "G28", "G30"] {
+        let slots = SYSTEM_NAMES
+            .iter()
+            .zip(0u8..)
+            .map(|(name, i)| (*name, Slot::System(i)))
+            .chain([("G28", Slot::G28), ("G30", Slot::G30)]);
+        for (name, slot) in slots {
+            let position = um(coords.get(slot));
             say(
                 out,
                 &Message::Offset {
                     name,
-                    position: &zero,
+                    position: &position,
                 },
             );
         }
+        let g92 = um(modal.g92_nm);
         say(
             out,
             &Message::Offset {
@@ -765,7 +841,10 @@ where
                 position: &g92,
             },
         );
-        say(out, &Message::ToolLengthOffset(0));
+        say(
+            out,
+            &Message::ToolLengthOffset(modal.tool_length_nm.div_euclid(1000)),
+        );
         say(
             out,
             &Message::Probe {
@@ -782,8 +861,12 @@ where
         let _ = core::fmt::Write::write_fmt(
             &mut text,
             format_args!(
-                "G{} G54 G{} G{} G{} G94 M{} M9 T0 F{} S{}",
+                "G{} {} G{} G{} G{} G94 M{} M9 T0 F{} S{}",
                 m.motion,
+                SYSTEM_NAMES
+                    .get(usize::from(m.coordinate_system))
+                    .copied()
+                    .unwrap_or("G54"),
                 m.plane,
                 if m.inches { 20 } else { 21 },
                 if m.absolute { 90 } else { 91 },

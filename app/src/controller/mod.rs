@@ -790,6 +790,8 @@ struct Core<'q, const N: usize, const B: usize, const Q: usize, P, X, S> {
     load_total: Option<u16>,
     /// The SD card as the link's host sees it (`files.rs`).
     card: files::Card,
+    /// The slots of the coordinate table changed and not yet stored (written at rest).
+    coords_unsaved: u16,
     /// grbl's check mode (`$C`): the lines are run through this preview of the machine and
     /// answered, never executed.
     check: Option<forja_motion::preview::Preview<N>>,
@@ -851,6 +853,7 @@ where
                 next_peripherals_ms: 0,
                 load_total: None,
                 card: files::Card::new(),
+                coords_unsaved: 0,
                 check: None,
                 taken: false,
                 stats: Stats::default(),
@@ -879,6 +882,9 @@ where
         let _ = c
             .kernel
             .set_planner_settings(&machine, settings.path_limits());
+        let mut storage = storage;
+        let coords = grbl::load_coordinates(&mut storage, c.kernel.coordinates());
+        c.kernel.set_coordinates(coords);
         Controller {
             decoder: self.decoder,
             input: self.input,
@@ -900,6 +906,7 @@ where
                 next_peripherals_ms: c.next_peripherals_ms,
                 load_total: c.load_total,
                 card: c.card,
+                coords_unsaved: c.coords_unsaved,
                 check: c.check,
                 taken: c.taken,
                 stats: c.stats,
@@ -970,6 +977,7 @@ where
         core.supervise(link);
         core.serve_files(link);
         core.feed_job(link);
+        core.store_coordinates();
         core.record_checkpoint(link);
         core.release_held(link);
 

@@ -184,19 +184,12 @@ fn wire<const N: usize>(
     let fans = pins.fans.map(|f| Fan::new(f?, FanConfig::DIRECT).ok());
     let spindle = pins.spindle.and_then(|(p, c)| Spindle::new(p, c).ok());
     let stores = BoardStores::open(config.flash, config.sd_dir).map_err(BoardError::Stores)?;
+    let devices = (heaters, fans, spindle, pins.beeper);
     #[allow(unsafe_code)]
     // SAFETY: the RAM is the last field of `Wired`: everything that borrows the queue and the
     // devices in it (the firmware, the step interrupt, the switch alert) drops before it.
-    let (ram, (queue, [hot_end, bed], fans, spindle, beeper, card)) = unsafe {
-        StaticRam::new((
-            StepQueue::new(),
-            heaters,
-            fans,
-            spindle,
-            pins.beeper,
-            stores.card,
-        ))
-    };
+    let (ram, (queue, ([hot_end, bed], fans, spindle, beeper), card)) =
+        unsafe { StaticRam::new((StepQueue::new(), devices, stores.card)) };
     let (isr, firmware, _) = firmware::assemble(FirmwareParts {
         machine: parts::machine(machine.config())?,
         settings: stores.settings,

@@ -20,6 +20,10 @@
 // when the feeder's queue empties, CNCjs writes its next M114/M105 poll right behind the
 // feeder's last line, and the answer to that line is then taken for the poll's and not shown.
 //
+// The server, the socket, the log and the step runner are shared with `drive_grbl.js`, which
+// drives a router with CNCjs in its Grbl mode: this file is also a module (`run`, `Cncjs`,
+// `Failed`, `endOfFile`, `workflowEvents`).
+//
 // The steps (all by default, in this order):
 //
 //   connect   open PTY as a Marlin controller at 115200 baud; CNCjs sends M115 and is ready
@@ -51,15 +55,16 @@ const fs = require('fs');
 const path = require('path');
 
 const SECRET = 'forja-cncjs-acceptance';
-const STEPS = ['connect', 'position', 'fault', 'job', 'finish'];
 const BAUD_RATE = 115200;
 // How many lines of CNCjs's log and of the serial traffic a failure report shows.
 const TAIL_LINES = 40;
 
 class Failed extends Error {}
 
-function parseArgs(argv) {
-  const options = { seconds: 170, steps: STEPS.join(',') };
+// The options of the command line: `--name value` pairs, those in `required` not empty, and
+// `--steps` (a comma-separated list, by default all of `steps`) a list of some of `steps`.
+function parseArgs(argv, steps, required) {
+  const options = { seconds: 170, steps: steps.join(',') };
   for (let i = 0; i < argv.length; i += 2) {
     const name = argv[i];
     const value = argv[i + 1];
@@ -68,16 +73,16 @@ function parseArgs(argv) {
     }
     options[name.slice(2)] = value;
   }
-  for (const required of ['cncjs', 'pty', 'job', 'workdir']) {
-    if (!options[required]) {
-      throw new Failed(`--${required} is required`);
+  for (const name of ['cncjs', 'pty', 'workdir', ...required]) {
+    if (!options[name]) {
+      throw new Failed(`--${name} is required`);
     }
   }
   options.seconds = Number(options.seconds);
   options.steps = options.steps.split(',').filter((s) => s);
   for (const step of options.steps) {
-    if (!STEPS.includes(step)) {
-      throw new Failed(`unknown step ${JSON.stringify(step)} (known: ${STEPS.join(', ')})`);
+    if (!steps.includes(step)) {
+      throw new Failed(`unknown step ${JSON.stringify(step)} (known: ${steps.join(', ')})`);
     }
   }
   return options;
@@ -98,11 +103,18 @@ class Tail {
   }
 }
 
-// Where the X and Y axes are after `text` as Marlin reads it (G90/G91, G92, G0/G1); null for an
-// axis the file never sets.
+// Where the X, Y and Z axes are after `text`, read as grbl and Marlin read it: G90/G91, G92,
+// and the moves G0, G1, G2 and G3 (an arc ends at its X Y Z words), whose mode stays in force
+// for the lines that name only axes (CAM programs write `X40. F600.` after a `G1`; the slicers
+// name G0/G1 on every move). Comments in parentheses and after `;` are left out, and so are
+// the axis words of the G codes that take them for something else than a move (`G4`, `G10`,
+// `G28`, `G30`). null for an axis the file never sets.
 function endOfFile(text) {
-  const at = { X: null, Y: null };
+  const at = { X: null, Y: null, Z: null };
+  const moves = ['G0', 'G1', 'G2', 'G3'];
+  const notMoves = ['G4', 'G10', 'G28', 'G30'];
   let relative = false;
+  let motion = null;
   for (const raw of text.split('\n')) {
     const code = raw.replace(/;.*$/, '').replace(/\([^)]*\)/g, '').trim().toUpperCase();
     const words = code.match(/[A-Z][-+]?[0-9.]+/g) || [];
@@ -110,14 +122,19 @@ function endOfFile(text) {
       const word = words.find((w) => w[0] === letter);
       return word === undefined ? undefined : Number(word.slice(1));
     };
-    const command = words.find((w) => w[0] === 'G' || w[0] === 'M');
-    if (command === 'G90') relative = false;
-    if (command === 'G91') relative = true;
-    for (const axis of ['X', 'Y']) {
+    // `G01` is `G1`, `G00` is `G0`.
+    const gs = words.filter((w) => w[0] === 'G').map((w) => `G${Number(w.slice(1))}`);
+    if (gs.includes('G90')) relative = false;
+    if (gs.includes('G91')) relative = true;
+    motion = gs.filter((g) => moves.includes(g)).pop() || motion;
+    const setting = gs.includes('G92');
+    const move = motion !== null && !setting && !gs.some((g) => notMoves.includes(g));
+    for (const axis of ['X', 'Y', 'Z']) {
       const v = value(axis);
       if (v === undefined) continue;
-      if (command === 'G92') at[axis] = v;
-      if (command === 'G0' || command === 'G1' || command === 'G00' || command === 'G01') {
+      if (setting) {
+        at[axis] = v;
+      } else if (move) {
         at[axis] = relative && at[axis] !== null ? at[axis] + v : v;
       }
     }
@@ -125,10 +142,13 @@ function endOfFile(text) {
   return at;
 }
 
-// The CNCjs server, a socket.io client connected to it, and what it reported.
+// The CNCjs server, a socket.io client connected to it, and what it reported. `controller` is
+// the type of controller CNCjs opens the port as (`Marlin`, `Grbl`), which also names its log
+// lines.
 class Cncjs {
-  constructor(options, deadline) {
+  constructor(options, deadline, controller) {
     this.options = options;
+    this.controller = controller;
     this.deadline = deadline;
     this.modules = path.resolve(options.cncjs, 'node_modules');
     this.server = null;
@@ -146,6 +166,8 @@ class Cncjs {
     this.settings = {};
     this.state = null;
     this.stateUpdates = 0;
+    // Every `controller:state` CNCjs sent, with when it came: `{ at, state }`.
+    this.states = [];
     this.workflow = null;
     this.workflowHistory = [];
     this.sender = null;
@@ -182,6 +204,7 @@ class Cncjs {
       throw new Failed(`no CNCjs at ${bin}`);
     }
     const log = fs.openSync(this.logFile, 'w');
+    this.traffic = new RegExp(` controller:${this.controller} ([<>]) (.*)$`);
     this.server = childProcess.spawn(
       process.execPath,
       [
@@ -216,7 +239,7 @@ class Cncjs {
           // eslint-disable-next-line no-control-regex
           const plain = line.replace(/\x1b\[[0-9;]*m/g, '');
           this.log.push(plain);
-          const traffic = plain.match(/ controller:Marlin ([<>]) (.*)$/);
+          const traffic = plain.match(this.traffic);
           if (traffic) {
             const entry = { dir: traffic[1], line: traffic[2].replace(/\s+$/, '') };
             this.wire.push(entry);
@@ -276,6 +299,7 @@ class Cncjs {
     s.on('controller:state', (type, state) => {
       this.state = state;
       this.stateUpdates += 1;
+      this.states.push({ at: Date.now(), state });
       this.changed();
     });
     s.on('sender:status', (status) => {
@@ -353,6 +377,29 @@ class Cncjs {
       this.waiters.push(waiter);
       waiter.check();
     });
+  }
+
+  // Wait `ms` (less if the overall deadline is nearer).
+  sleep(ms) {
+    const limit = Math.min(ms, Math.max(0, this.remainingMs()));
+    return new Promise((resolve) => setTimeout(resolve, limit));
+  }
+
+  // Open the port as this controller at 115200 baud.
+  async open() {
+    const pty = this.options.pty;
+    const options = { controllerType: this.controller, baudrate: BAUD_RATE };
+    const opened = new Promise((resolve, reject) => {
+      this.socket.emit('open', pty, options, (err) =>
+        err ? reject(new Failed(`open ${pty}: ${JSON.stringify(err.message || err)}`)) : resolve(),
+      );
+    });
+    await this.race(opened, 15000, `answer to open ${pty}`);
+  }
+
+  // Load `text` as the program `name` (`gcode:load`); what the sender says of it.
+  load(name, text) {
+    return this.commandWithAnswer(10000, 'gcode:load', 'gcode:load', name, text, {});
   }
 
   // A CNCjs command with its callback answer (`gcode:load`), or without one.
@@ -453,13 +500,7 @@ function workflowEvents(cnc, since) {
 }
 
 async function stepConnect(cnc) {
-  const pty = cnc.options.pty;
-  const opened = new Promise((resolve, reject) => {
-    cnc.socket.emit('open', pty, { controllerType: 'Marlin', baudrate: BAUD_RATE }, (err) =>
-      err ? reject(new Failed(`open ${pty}: ${JSON.stringify(err.message || err)}`)) : resolve(),
-    );
-  });
-  await cnc.race(opened, 15000, `answer to open ${pty}`);
+  await cnc.open();
   const firmware = await cnc.until(
     () => cnc.settings.firmwareName,
     20000,
@@ -534,14 +575,7 @@ async function stepFault(cnc) {
   const since = cnc.wire.length;
   const shownFrom = cnc.shownAll.length;
   const flow = cnc.workflowHistory.length;
-  const loaded = await cnc.commandWithAnswer(
-    10000,
-    'gcode:load',
-    'gcode:load',
-    'limit.gcode',
-    faultJob(),
-    {},
-  );
+  const loaded = await cnc.load('limit.gcode', faultJob());
   cnc.command('gcode:start');
   const state = await cnc.until(
     () => {
@@ -597,14 +631,7 @@ async function stepJob(cnc) {
   const end = endOfFile(text);
   const since = cnc.wire.length;
   const flow = cnc.workflowHistory.length;
-  const loaded = await cnc.commandWithAnswer(
-    10000,
-    'gcode:load',
-    'gcode:load',
-    path.basename(file),
-    text,
-    {},
-  );
+  const loaded = await cnc.load(path.basename(file), text);
   const started = Date.now();
   cnc.command('gcode:start');
   // The rest of the time, less what the steps after it take.
@@ -666,14 +693,7 @@ function counts(line) {
 
 async function stepFinish(cnc) {
   const flow = cnc.workflowHistory.length;
-  const loaded = await cnc.commandWithAnswer(
-    10000,
-    'gcode:load',
-    'gcode:load',
-    'slow.gcode',
-    slowJob(),
-    {},
-  );
+  const loaded = await cnc.load('slow.gcode', slowJob());
   const started = Date.now();
   cnc.command('gcode:start');
   await cnc.until(
@@ -709,7 +729,7 @@ async function stepFinish(cnc) {
   );
 }
 
-function summary(cnc) {
+function marlinSummary(cnc) {
   const lines = cnc.received(0);
   const errors = lines.filter((line) => /^Error:/i.test(line));
   console.log(`cncjs: firmware errors ${errors.length}`);
@@ -726,13 +746,21 @@ function summary(cnc) {
   for (const line of [...new Set(refusals)]) console.log(`  ${line}`);
 }
 
-function failureReport(cnc) {
+// What CNCjs's log, the serial traffic, its console, its last states (`describe` writes one
+// as a line, when given) and its workflow and sender showed last.
+function failureReport(cnc, describe) {
   console.log(`--- the last lines CNCjs logged (all of them in ${cnc.logFile})`);
   for (const line of cnc.log.items) console.log(line);
   console.log('--- the last serial lines (< from the firmware, > from CNCjs, as CNCjs logs them)');
   for (const line of cnc.serial.items) console.log(line);
   console.log("--- the last lines CNCjs's console showed (serialport:read)");
   for (const line of cnc.shown.items) console.log(line);
+  if (describe) {
+    console.log("--- CNCjs's last controller states (controller:state)");
+    for (const { at, state } of cnc.states.slice(-TAIL_LINES)) {
+      console.log(`${new Date(at).toISOString()} ${describe(state)}`);
+    }
+  }
   const sender = cnc.sender || {};
   const { name, total, sent, received, hold, holdReason } = sender;
   console.log(
@@ -741,48 +769,55 @@ function failureReport(cnc) {
   );
 }
 
-async function main() {
-  let options;
-  try {
-    options = parseArgs(process.argv.slice(2));
-  } catch (err) {
-    console.log(`FAILED: arguments: ${err.message}`);
-    return 2;
-  }
-  fs.mkdirSync(options.workdir, { recursive: true });
-  const cnc = new Cncjs(options, Date.now() + options.seconds * 1000);
-  const stopOnSignal = (signal) => {
-    console.log(`FAILED: ${signal} received`);
-    cnc.killNow();
-    process.exit(1);
-  };
-  process.on('SIGTERM', () => stopOnSignal('SIGTERM'));
-  process.on('SIGINT', () => stopOnSignal('SIGINT'));
-  process.on('exit', () => cnc.killNow());
-  const steps = {
-    connect: stepConnect,
-    position: stepPosition,
-    fault: stepFault,
-    job: stepJob,
-    finish: stepFinish,
-  };
-  let step = 'start';
-  let status = 0;
-  try {
-    const port = await cnc.start();
-    await cnc.connect();
-    console.log(`cncjs: server ok (CNCjs ${cncjsVersion(cnc)} on 127.0.0.1:${port})`);
-    for (step of options.steps) {
-      await steps[step](cnc);
+// Run a driver: parse the command line (`--cncjs`, `--pty`, `--workdir`, `--seconds`,
+// `--steps` and the options in `required`), start the CNCjs server, connect to it, and run
+// the steps it names, in order, each an `async (cnc) => …` of `steps`, against the port opened
+// as `controller`. At the first failure print why and `failureReport` (with `describe`); then,
+// whatever happened, `summary(cnc)`, and stop the server. Exits with 0 when every step passed.
+function run({ controller, steps, required, summary, describe }) {
+  const main = async () => {
+    let options;
+    try {
+      options = parseArgs(process.argv.slice(2), Object.keys(steps), required);
+    } catch (err) {
+      console.log(`FAILED: arguments: ${err.message}`);
+      return 2;
     }
-  } catch (err) {
-    console.log(`FAILED: ${step}: ${err instanceof Failed ? err.message : err.stack}`);
-    failureReport(cnc);
-    status = 1;
-  }
-  summary(cnc);
-  await cnc.stop();
-  return status;
+    fs.mkdirSync(options.workdir, { recursive: true });
+    const cnc = new Cncjs(options, Date.now() + options.seconds * 1000, controller);
+    const stopOnSignal = (signal) => {
+      console.log(`FAILED: ${signal} received`);
+      cnc.killNow();
+      process.exit(1);
+    };
+    process.on('SIGTERM', () => stopOnSignal('SIGTERM'));
+    process.on('SIGINT', () => stopOnSignal('SIGINT'));
+    process.on('exit', () => cnc.killNow());
+    let step = 'start';
+    let status = 0;
+    try {
+      const port = await cnc.start();
+      await cnc.connect();
+      console.log(`cncjs: server ok (CNCjs ${cncjsVersion(cnc)} on 127.0.0.1:${port})`);
+      for (step of options.steps) {
+        await steps[step](cnc);
+      }
+    } catch (err) {
+      console.log(`FAILED: ${step}: ${err instanceof Failed ? err.message : err.stack}`);
+      failureReport(cnc, describe);
+      status = 1;
+    }
+    summary(cnc);
+    await cnc.stop();
+    return status;
+  };
+  main().then(
+    (status) => process.exit(status),
+    (err) => {
+      console.log(`FAILED: ${err.stack}`);
+      process.exit(1);
+    },
+  );
 }
 
 function cncjsVersion(cnc) {
@@ -793,10 +828,15 @@ function cncjsVersion(cnc) {
   }
 }
 
-main().then(
-  (status) => process.exit(status),
-  (err) => {
-    console.log(`FAILED: ${err.stack}`);
-    process.exit(1);
-  },
-);
+module.exports = { Cncjs, Failed, endOfFile, run, workflowEvents };
+
+if (require.main === module) {
+  const steps = {
+    connect: stepConnect,
+    position: stepPosition,
+    fault: stepFault,
+    job: stepJob,
+    finish: stepFinish,
+  };
+  run({ controller: 'Marlin', steps, required: ['job'], summary: marlinSummary });
+}

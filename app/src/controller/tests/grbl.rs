@@ -272,3 +272,60 @@ fn homing_answers_when_it_ends_and_check_mode_runs_nothing() {
     assert_eq!(b.position_mm(), homed, "check mode moves nothing");
     assert_eq!(b.ask("$C"), ["[MSG:Disabled]", "ok"]);
 }
+
+#[test]
+fn work_offsets_are_reported_used_and_survive_a_restart() {
+    let mut b = grbl();
+    assert_eq!(b.ask("G0 X10 Y5"), ["ok"]);
+    b.idle();
+    // A sender's "zero here".
+    assert_eq!(b.ask("G10 L20 P0 X0 Y0"), ["ok"]);
+    let r = status(&mut b);
+    assert_eq!(field(&r, "WCO"), "10.000,5.000,0.000");
+    let out = b.ask("$#");
+    assert!(
+        out.contains(&"[G54:10.000,5.000,0.000]".to_string()),
+        "{out:?}"
+    );
+    assert_eq!(b.ask("G0 X1"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 11.0, "work X1 is machine X11");
+    // G55, G53, G43.1 as CAM posts use them.
+    assert_eq!(b.ask("G10 L2 P2 X-5"), ["ok"]);
+    assert_eq!(b.ask("G55 G0 X0"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], -5.0);
+    let out = b.ask("$G");
+    assert!(out[0].contains(" G55 "), "{out:?}");
+    assert_eq!(b.ask("G53 G0 X2"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 2.0);
+    assert_eq!(b.ask("G43.1 Z1.5"), ["ok"]);
+    let out = b.ask("$#");
+    assert!(out.contains(&"[TLO:1.500]".to_string()), "{out:?}");
+    // The table is stored once the machine rests, and read back at start-up.
+    b.run_ms(20);
+    let (program, storage, physical) = b.power_off();
+    let mut again = Bench::boot(machine(), program, storage, physical);
+    again.take();
+    let out = again.ask("$#");
+    assert!(
+        out.contains(&"[G54:10.000,5.000,0.000]".to_string()),
+        "{out:?}"
+    );
+    assert!(
+        out.contains(&"[G55:-5.000,0.000,0.000]".to_string()),
+        "{out:?}"
+    );
+    assert!(
+        out.contains(&"[TLO:0.000]".to_string()),
+        "the tool length offset is not kept"
+    );
+    // `$RST=#` clears them, stored too.
+    assert_eq!(again.ask("$RST=#"), ["[MSG:Restoring defaults]", "ok"]);
+    let out = again.ask("$#");
+    assert!(
+        out.contains(&"[G54:0.000,0.000,0.000]".to_string()),
+        "{out:?}"
+    );
+}
