@@ -225,9 +225,12 @@ pub enum Effect<'l> {
         /// it).
         duration_ms: u16,
     },
-    /// `M226`: the program pauses here (motion before it is done); [`crate::Kernel::resume`]
-    /// continues.
+    /// `M226` (and grbl's `M0`): the program pauses here (motion before it is done);
+    /// [`crate::Kernel::resume`] continues.
     Paused,
+    /// `M6`: the program pauses here for a manual tool change to tool `T` (the one `T` last
+    /// selected when `None`); [`crate::Kernel::resume`] (cycle start) continues.
+    ToolChange(Option<u8>),
     /// `M2`, `M30`: end of program, once the motion before it is done. The kernel has reset
     /// its modal state (`G1`, `G17`, `G90`, `G94`); the controller stops the spindle and ends
     /// the stored program that ran it.
@@ -297,6 +300,7 @@ impl Effect<'_> {
             Effect::ReportFirmware => Effect::ReportFirmware,
             Effect::ReportEndstops => Effect::ReportEndstops,
             Effect::SelectTool(t) => Effect::SelectTool(t),
+            Effect::ToolChange(t) => Effect::ToolChange(t),
             Effect::Motors { enabled, axes } => Effect::Motors { enabled, axes },
             Effect::Stopped(k) => Effect::Stopped(k),
             Effect::Paused => Effect::Paused,

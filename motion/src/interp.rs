@@ -128,8 +128,12 @@ pub(crate) enum Action<'l, const N: usize> {
     SetCoordinates { slot: Slot, values: [Nm; N] },
     /// `M0` / `M112`.
     Stop(StopKind),
-    /// `M226`.
+    /// `M226`, grbl's `M0`.
     Pause,
+    /// `M6`: pause for a manual tool change.
+    ToolChange(Option<u8>),
+    /// grbl's `G28`/`G30`: a rapid to `via`, then to `target`.
+    Via { via: [Nm; N], target: [Nm; N] },
 }
 
 /// A change of the planner's limits (`M201`, `M203`, `M204`, `M205`); `None` leaves a value as
@@ -246,6 +250,9 @@ pub(crate) struct Interpreter<const N: usize> {
     tlo_nm: Nm,
     /// `G61`: every move ends at rest.
     pub(crate) exact_stop: bool,
+    /// grbl's meanings where the dialects differ: `G28`/`G30` go to the stored positions,
+    /// `G4 P` is in seconds, `M0` pauses until cycle start.
+    pub(crate) grbl: bool,
     absolute: bool,
     extruder_relative: Option<bool>,
     inches: bool,
@@ -412,6 +419,7 @@ impl<const N: usize> Interpreter<N> {
             wcs: [0; N],
             tlo_nm: 0,
             exact_stop: false,
+            grbl: false,
             absolute: true,
             extruder_relative: None,
             inches: false,
@@ -495,10 +503,12 @@ impl<const N: usize> Interpreter<N> {
 
     /// Back to the power-on modal state, keeping the position and clearing offsets; the
     /// overrides go back to 100 %.
-    pub(crate) fn reset_modal(&mut self, config: &MachineConfig<N>) {
-        let pos = self.pos;
+    pub(crate) fn reset_modal(&mut self, config: &MachineConfig<N>, coords: &Coordinates<N>) {
+        let (pos, grbl) = (self.pos, self.grbl);
         *self = Self::new(config);
         self.pos = pos;
+        self.grbl = grbl;
+        self.use_coordinates(coords);
     }
 
     /// The commanded position in work coordinates, nm, on a machine whose Z axis (for the tool
@@ -578,7 +588,7 @@ impl<const N: usize> Interpreter<N> {
                 // Units per minute: the only feed mode, so stating it changes nothing. Inverse
                 // time (`G93`) and units per revolution (`G95`) fall through as unsupported.
                 (b'G', 94) => set_once(&mut feed_mode, ())?,
-                (b'G', 4 | 10 | 28 | 92) | (b'M', _) | (b'T', _) => {
+                (b'G', 4 | 10 | 28 | 30 | 92) | (b'M', _) | (b'T', _) => {
                     set_once(&mut command, (w.letter, n))?;
                 }
                 (b'G', G28_1 | G30_1 | G43_1 | G92_1) => set_once(&mut command, (w.letter, n))?,
@@ -884,6 +894,7 @@ impl<const N: usize> Interpreter<N> {
             }
             (b'G', 4) => {
                 let ms = match (line.get(b'P'), s) {
+                    (Some(p), _) if self.grbl => p.to_f64() * 1000.0,
                     (Some(p), _) => p.to_f64(),
                     (None, Some(sec)) => sec.to_f64() * 1000.0,
                     (None, None) => 0.0,
@@ -894,6 +905,20 @@ impl<const N: usize> Interpreter<N> {
                 Action::Dwell {
                     ms: libm::round(ms) as u32,
                 }
+            }
+            (b'G', 28 | 30) if self.grbl => {
+                only_axis_words(line, config, b"")?;
+                let via = self.target(line, config, false)?;
+                let stored = if n == 28 { coords.g28 } else { coords.g30 };
+                let named = config.axes.iter().any(|a| line.has(a.letter));
+                let mut target = via;
+                for (i, a) in config.axes.iter().enumerate() {
+                    if !named || line.has(a.letter) {
+                        target[i] = stored[i];
+                    }
+                }
+                self.pos = target;
+                Action::Via { via, target }
             }
             (b'G', 28) => {
                 only_axis_words(line, config, HOMING_FLAGS)?;
@@ -929,7 +954,17 @@ impl<const N: usize> Interpreter<N> {
                 }
                 Action::None
             }
+            (b'M', 0) if self.grbl => Action::Pause,
             (b'M', 0) => Action::Stop(StopKind::Program),
+            // The optional stop: no switch asks for it, so the program goes on (grbl's `M1`).
+            (b'M', 1) => Action::None,
+            (b'M', 6) => {
+                let tool = match line.get(b'T') {
+                    Some(t) => Some(small_int(t, b'T', 255)? as u8),
+                    None => None,
+                };
+                Action::ToolChange(tool)
+            }
             (b'M', 2) => {
                 self.end_program();
                 Action::Effect(Effect::ProgramEnd)
@@ -2025,7 +2060,7 @@ mod tests {
         }
         assert_eq!(it, before);
         // A soft reset goes back to 100 %.
-        it.reset_modal(&c);
+        it.reset_modal(&c, &Coordinates::ZERO);
         assert_eq!(it.feed_percent(), 100);
     }
 

@@ -412,7 +412,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// Take the power-on modal state (mm, absolute, no offsets) where the last queued move
     /// ends: the state a resumed job's return moves are made in (see [`crate::Replay`]).
     pub fn reset_modal_state(&mut self) {
-        self.interp.reset_modal(&self.config);
+        self.interp.reset_modal(&self.config, &self.coords);
     }
 
     /// Take a program's modal state ([`crate::Replay`]) to go on with it, the last queued move
@@ -615,6 +615,23 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 self.paused = true;
                 Reply::Effect(Effect::Paused)
             }
+            Action::ToolChange(tool) => {
+                if !idle {
+                    return Ok(Reply::Busy);
+                }
+                self.paused = true;
+                Reply::Effect(Effect::ToolChange(tool))
+            }
+            Action::Via { via, target } => {
+                self.check_move(&via, &via)?;
+                self.check_move(&target, &target)?;
+                if B.saturating_sub(self.planner.len()) < 2 {
+                    return Ok(Reply::Busy);
+                }
+                self.queue_move(&via, None, next.feed_scale(), false, 0, false);
+                self.queue_move(&target, None, next.feed_scale(), false, 0, false);
+                Reply::Ok
+            }
             Action::Report => Reply::Position(self.position()),
         };
         // Keep the modal state the line set (a move's target is its new position).
@@ -743,6 +760,13 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         self.alarm = Some(Alarm::ResetDuringMotion);
     }
 
+    /// Take grbl's meanings where the dialects differ (`G28`/`G30` to the stored positions,
+    /// `G4 P` in seconds, `M0` paused until cycle start), or RepRap's (a link in the grbl
+    /// dialect, or one that left it).
+    pub fn set_grbl_dialect(&mut self, grbl: bool) {
+        self.interp.grbl = grbl;
+    }
+
     /// Leave an alarm without homing (grbl's `$X`), the position kept as the steps counted it.
     /// An emergency stop is left only by [`Kernel::reset`].
     pub fn unlock(&mut self) {
@@ -806,7 +830,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         self.alarm = None;
         self.halted = false;
         self.paused = false;
-        self.interp.reset_modal(&self.config);
+        self.interp.reset_modal(&self.config, &self.coords);
     }
 
     /// Stop the interrupt side at once and drop everything; `lose_homing` forgets the homed axes.

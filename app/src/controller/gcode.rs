@@ -51,6 +51,8 @@ enum Done {
     BusyInterval(Option<u8>),
     /// `M20`–`M32`: the SD-card commands, served by the board's file store (`files.rs`).
     Files(FileCommand),
+    /// `M6`: the machine waits for a manual tool change; the operator is told which tool.
+    ToolChange(Option<u8>),
 }
 
 /// `bytes` as far as they fit `C` bytes of printable ASCII.
@@ -621,6 +623,7 @@ where
                 Err(e) => device(e, format_args!("coolant")),
             },
             Effect::SetLineNumber(_) | Effect::Paused => Done::Ok,
+            Effect::ToolChange(tool) => Done::ToolChange(tool),
             Effect::ProgramEnd => match devices.end_program() {
                 Ok(()) => Done::Ok,
                 Err((e, what)) => device(e, format_args!("{what}")),
@@ -698,6 +701,10 @@ where
             }
             Done::Firmware => self.firmware_reply(out),
             Done::Endstops => self.endstops_reply(out),
+            Done::ToolChange(tool) => {
+                self.tool_change_notice(tool, out);
+                self.ok(out);
+            }
             Done::Wait(wait) => {
                 if self.heat_done(wait) {
                     self.ok(out);

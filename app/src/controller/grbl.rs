@@ -47,7 +47,7 @@ use forja_protocol::grbl::{
 use super::peripherals::Peripherals;
 use super::settings::{AxisField, Key};
 use super::text::{Refusal, Text};
-use super::{Core, READ_AHEAD_BYTES};
+use super::{Core, READ_AHEAD_BYTES, wire};
 
 /// Which dialect a link speaks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -332,9 +332,27 @@ where
         }
     }
 
+    /// `M6`: tell the operator which tool to put in and how to go on: `[MSG:…]` in the grbl
+    /// dialect (cycle start, `~`), `echo:` otherwise (resume: frame `Start`).
+    pub(super) fn tool_change_notice<W: Write>(&mut self, tool: Option<u8>, out: &mut W) {
+        let mut text = Text::<48>::new();
+        let _ = match tool {
+            Some(t) => core::fmt::Write::write_fmt(&mut text, format_args!("Change to tool T{t}")),
+            None => core::fmt::Write::write_str(&mut text, "Change the tool"),
+        };
+        if self.speaks_grbl() {
+            let _ = core::fmt::Write::write_str(&mut text, ", then cycle start");
+            say(out, &Message::Feedback(text.as_str()));
+        } else {
+            let _ = core::fmt::Write::write_str(&mut text, ", then resume");
+            let _ = wire::reply(out, &forja_protocol::reply::Reply::Echo(text.as_str()));
+        }
+    }
+
     /// The link speaks the grbl dialect from now on.
     pub(super) fn enter_grbl(&mut self) {
         self.link.dialect = Dialect::Grbl;
+        self.kernel.set_grbl_dialect(true);
     }
 
     pub(super) fn speaks_grbl(&self) -> bool {

@@ -955,6 +955,7 @@ where
         let started = self.core.link.started;
         self.core.link = Link::new();
         self.core.check = None;
+        self.core.kernel.set_grbl_dialect(false);
         // An upload belongs to the host that sent its line 1 (or its `M28`).
         self.core.load_total = None;
         self.core.end_upload();

@@ -329,3 +329,49 @@ fn work_offsets_are_reported_used_and_survive_a_restart() {
         "{out:?}"
     );
 }
+
+#[test]
+fn grbl_meanings_g28_to_the_stored_position_g4_in_seconds_m0_and_m6_until_cycle_start() {
+    let mut b = grbl();
+    assert_eq!(b.ask("G0 X20 Z5"), ["ok"]);
+    b.idle();
+    assert_eq!(b.ask("G28.1"), ["ok"]);
+    assert_eq!(b.ask("G0 X40 Y10 Z10"), ["ok"]);
+    b.idle();
+    // Fusion 360's retract: `G28 G91 Z0` goes up through here to the stored Z.
+    assert_eq!(b.ask("G28 G91 Z0"), ["ok"]);
+    assert_eq!(b.ask("G90"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm(), [40.0, 10.0, 5.0]);
+    assert_eq!(b.ask("G28"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm(), [20.0, 0.0, 5.0]);
+    // `G4 P0.2`: 0.2 s.
+    b.send("G4 P0.2");
+    b.run_ms(100);
+    assert!(b.take().is_empty(), "still dwelling");
+    b.run_ms(200);
+    assert_eq!(b.take(), ["ok"]);
+    // `T2 M6`: the machine holds, tells the tool, and goes on at cycle start.
+    b.send("T2 M6");
+    b.send("G0 X0");
+    b.run_ms(50);
+    let out = b.take();
+    assert!(
+        out.contains(&"[MSG:Change to tool T2, then cycle start]".to_string()),
+        "{out:?}"
+    );
+    assert!(state(&status(&mut b)).starts_with("Hold"));
+    b.run_ms(200);
+    assert_eq!(b.position_mm()[0], 20.0, "nothing moves before cycle start");
+    b.send_raw(b"~");
+    b.idle();
+    assert_eq!(b.position_mm()[0], 0.0);
+    assert_eq!(b.take(), ["ok"], "the line after M6 ran once resumed");
+    // `M0` holds the same way.
+    assert_eq!(b.ask("M0"), ["ok"]);
+    assert!(b.ask("G0 X3").is_empty(), "the line waits for the pause");
+    b.send_raw(b"~");
+    b.idle();
+    assert_eq!(b.position_mm()[0], 3.0);
+}
