@@ -202,12 +202,15 @@ pub enum Effect<'l> {
     /// `M113 S<seconds>`: the period of `busy: processing` while a command blocks (0: never);
     /// `None` (no `S`) asks for the period.
     BusyInterval(Option<u8>),
-    /// `M42 P<index> S<0–255>`: a general-purpose output on (`S` above 0) or off, at once.
+    /// `M42 P<index> S<0–255>`: a general-purpose output on (`S` above 0) or off; grblHAL's
+    /// `M62`–`M65 P<index>` too.
     Output {
         /// The output's index (`P`).
         index: u8,
         /// On or off.
         on: bool,
+        /// After the motion before it (`M62`/`M63`), rather than at once (`M42`, `M64`/`M65`).
+        synced: bool,
     },
     /// `M80` (on, at once), `M81` (off, after the motion before it): the machine's power
     /// supply.
@@ -245,6 +248,7 @@ impl Effect<'_> {
             | Self::Coolant(_)
             | Self::Fan { .. }
             | Self::SelectTool(_)
+            | Self::Output { synced: true, .. }
             | Self::Motors { enabled: false, .. }
             | Self::Stopped(StopKind::Program)
             | Self::Paused
@@ -320,7 +324,7 @@ impl Effect<'_> {
             Effect::HostMessage(t) => Effect::HostMessage(r(t)),
             Effect::AutoReport { seconds } => Effect::AutoReport { seconds },
             Effect::BusyInterval(s) => Effect::BusyInterval(s),
-            Effect::Output { index, on } => Effect::Output { index, on },
+            Effect::Output { index, on, synced } => Effect::Output { index, on, synced },
             Effect::PowerSupply { on } => Effect::PowerSupply { on },
             Effect::Tone {
                 frequency_hz,

@@ -26,6 +26,8 @@
 //! | `M82`, `M83` | extruder absolute, relative |
 //! | `M17`, `M18`, `M84` | motors on, off (`M18`/`M84` with axis letters: those axes) |
 //! | `M92` | set steps per unit |
+//! | `M0` (grbl dialect), `M6` | pause until cycle start (`M6`: for a manual tool change, naming `T`) |
+//! | `M62`–`M65` | outputs on/off with the motion (`M62`/`M63`) or at once (`M64`/`M65`), as [`crate::Effect::Output`] |
 //! | `M201`, `M203` | maximum acceleration (mm/s²), maximum feed rate (mm/s) of the named axes |
 //! | `M204` | acceleration along the path: `P` printing, `R` retracting, `T` travel moves, `S` printing and travel (mm/s²) |
 //! | `M205` | `J` junction deviation (mm), `S` and `T` the slowest extruding and travel feeds (mm/s); the jerks `X Y Z E` and `B` are checked and left out |
@@ -1174,6 +1176,19 @@ impl<const N: usize> Interpreter<N> {
                 Action::Effect(Effect::Output {
                     index: small_int(index, b'P', 255)? as u8,
                     on: value > 0,
+                    synced: false,
+                })
+            }
+            // grblHAL's digital outputs: `M62`/`M63` on/off with the motion (after the moves
+            // before them), `M64`/`M65` at once.
+            (b'M', 62..=65) => {
+                let index = line
+                    .get(b'P')
+                    .ok_or(CommandError::MissingValue { letter: b'P' })?;
+                Action::Effect(Effect::Output {
+                    index: small_int(index, b'P', 255)? as u8,
+                    on: matches!(n, 62 | 64),
+                    synced: matches!(n, 62 | 63),
                 })
             }
             (b'M', 80 | 81) => Action::Effect(Effect::PowerSupply { on: n == 80 }),

@@ -642,7 +642,7 @@ where
             },
             Effect::Stopped(kind) => Done::Stop(kind),
             Effect::MotionDone => Done::Ok,
-            Effect::Output { index, on } => match devices.set_output(index, on) {
+            Effect::Output { index, on, .. } => match devices.set_output(index, on) {
                 Ok(()) => Done::Ok,
                 Err(e) => device(e, format_args!("output {index}")),
             },

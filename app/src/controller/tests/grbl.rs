@@ -375,3 +375,26 @@ fn grbl_meanings_g28_to_the_stored_position_g4_in_seconds_m0_and_m6_until_cycle_
     b.idle();
     assert_eq!(b.position_mm()[0], 3.0);
 }
+
+#[test]
+fn m62_to_m65_switch_outputs_with_the_motion_or_at_once() {
+    let mut b = grbl();
+    assert_eq!(b.ask("M64 P0"), ["ok"]);
+    assert!(b.ctl.peripherals().outputs[0].0, "M64: on at once");
+    assert_eq!(b.ask("G1 X20 F1200"), ["ok"]);
+    b.send("M63 P0");
+    b.run_ms(50);
+    assert!(b.take().is_empty(), "M63 waits for the move before it");
+    assert!(b.ctl.peripherals().outputs[0].0);
+    b.idle();
+    b.run_ms(5);
+    assert_eq!(b.take(), ["ok"]);
+    assert!(!b.ctl.peripherals().outputs[0].0);
+    assert_eq!(b.position_mm()[0], 20.0);
+    assert_eq!(b.ask("M62 P1"), ["ok"]);
+    assert!(b.ctl.peripherals().outputs[1].0);
+    assert_eq!(b.ask("M65 P1"), ["ok"]);
+    assert!(!b.ctl.peripherals().outputs[1].0);
+    assert_eq!(b.ask("M64 P9"), ["error:20"], "no output 9 on this board");
+    assert_eq!(b.ask("M64"), ["error:28"]);
+}
