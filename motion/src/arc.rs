@@ -133,6 +133,24 @@ impl<const N: usize> ArcCutter<N> {
         })
     }
 
+    /// The arc's length, mm: along the circle, and along the other axes that move with it (a
+    /// helix).
+    pub(crate) fn length_mm(&self) -> f64 {
+        let along = self.radius_mm * self.sweep.abs();
+        let mut sum = along * along;
+        for i in 0..N {
+            if i != self.ax.0 && i != self.ax.1 {
+                let (s, e) = (
+                    self.start.get(i).copied().unwrap_or(0),
+                    self.end.get(i).copied().unwrap_or(0),
+                );
+                let d = mm(e.saturating_sub(s));
+                sum += d * d;
+            }
+        }
+        sqrt(sum)
+    }
+
     /// Chords still to come.
     #[cfg(test)]
     pub(crate) fn remaining(&self) -> u32 {

@@ -14,7 +14,7 @@
 //! | `G28` | home all axes, or those named (bare letters or values, which are ignored; Prusa's `W` changes nothing) |
 //! | `G90`, `G91` | absolute, relative |
 //! | `G92` | set the current position (all axes to 0 without words) |
-//! | `G94` | feed in units per minute (the only feed mode; `G93` and `G95` are refused) |
+//! | `G93`, `G94` | feed in inverse time (each feed move's `F` is moves per minute), in units per minute (`G95` is refused) |
 //! | `G10 L2 P`, `G10 L20 P` | set the origin of work coordinate system `P` (1–9, 0 the active one): to the values (`L2`), or so that the position now reads as the values (`L20`) |
 //! | `G40`, `G64`, `G61`, `G61.1`, `G80` | no cutter compensation, path blending, exact stop (each move ends at rest), no canned cycle |
 //! | `G43.1 Z`, `G49` | dynamic tool length offset on Z, none |
@@ -252,6 +252,8 @@ pub(crate) struct Interpreter<const N: usize> {
     tlo_nm: Nm,
     /// `G61`: every move ends at rest.
     pub(crate) exact_stop: bool,
+    /// `G93`: a feed move's `F` is the inverse of its duration in minutes.
+    inverse_time: bool,
     /// grbl's meanings where the dialects differ: `G28`/`G30` go to the stored positions,
     /// `G4 P` is in seconds, `M0` pauses until cycle start.
     pub(crate) grbl: bool,
@@ -317,6 +319,19 @@ const G59_3: u32 = DECIMAL_CODE + 593;
 const G61_1: u32 = DECIMAL_CODE + 611;
 /// `G92.1`.
 const G92_1: u32 = DECIMAL_CODE + 921;
+
+/// The straight distance from `a` to `b`, mm, over every axis.
+fn distance_mm<const N: usize>(a: &[Nm; N], b: &[Nm; N]) -> f64 {
+    let sum: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(a, b)| {
+            let d = b.saturating_sub(*a) as f64 / NM_PER_MM;
+            d * d
+        })
+        .sum();
+    libm::sqrt(sum)
+}
 
 fn set_once<T>(slot: &mut Option<T>, v: T) -> Result<(), CommandError> {
     if slot.is_some() {
@@ -421,6 +436,7 @@ impl<const N: usize> Interpreter<N> {
             wcs: [0; N],
             tlo_nm: 0,
             exact_stop: false,
+            inverse_time: false,
             grbl: false,
             absolute: true,
             extruder_relative: None,
@@ -536,7 +552,7 @@ impl<const N: usize> Interpreter<N> {
         let mut units: Option<bool> = None;
         let mut distance: Option<bool> = None;
         let mut plane: Option<Plane> = None;
-        let mut feed_mode: Option<()> = None;
+        let mut feed_mode: Option<bool> = None;
         // A word given twice (`X5 X50`, or `X0x10` read as `X0 X10`) has no single meaning;
         // G and M words may repeat across modal groups (checked below).
         for (i, w) in line.words().iter().enumerate() {
@@ -589,7 +605,8 @@ impl<const N: usize> Interpreter<N> {
                 (b'G', 91) => set_once(&mut distance, false)?,
                 // Units per minute: the only feed mode, so stating it changes nothing. Inverse
                 // time (`G93`) and units per revolution (`G95`) fall through as unsupported.
-                (b'G', 94) => set_once(&mut feed_mode, ())?,
+                (b'G', 93) => set_once(&mut feed_mode, true)?,
+                (b'G', 94) => set_once(&mut feed_mode, false)?,
                 (b'G', 4 | 10 | 28 | 30 | 92) | (b'M', _) | (b'T', _) => {
                     set_once(&mut command, (w.letter, n))?;
                 }
@@ -642,7 +659,11 @@ impl<const N: usize> Interpreter<N> {
         if tool_length.is_some() {
             self.tlo_nm = 0;
         }
-        if let Some(f) = line.get(b'F') {
+        if let Some(inverse) = feed_mode {
+            self.inverse_time = inverse;
+        }
+        // In inverse time (`G93`) `F` is the line's own: moves per minute, not a modal rate.
+        if let Some(f) = line.get(b'F').filter(|_| !self.inverse_time) {
             let per_min = f.to_f32() * if self.inches { 25.4 } else { 1.0 };
             if !(per_min.is_finite() && per_min >= MIN_FEED_MM_MIN) {
                 return Err(CommandError::BadValue { letter: b'F' });
@@ -796,7 +817,16 @@ impl<const N: usize> Interpreter<N> {
         machine_coords: bool,
     ) -> Result<Action<'l, N>, CommandError> {
         let target = self.target(line, config, machine_coords)?;
-        let ramp = line.has(b'F');
+        let ramp = line.has(b'F') && !self.inverse_time;
+        // `G93`: every feed move carries its `F`, moves per minute.
+        let per_minute = match line.get(b'F') {
+            _ if !self.inverse_time || self.motion == Motion::Rapid => None,
+            Some(f) if f.to_f64() > 0.0 => Some(f.to_f64()),
+            Some(_) => return Err(CommandError::BadValue { letter: b'F' }),
+            None => return Err(CommandError::MissingValue { letter: b'F' }),
+        };
+        let inverse =
+            |length_mm: f64| per_minute.map(|p| ((length_mm * p) as f32).max(MIN_FEED_MM_MIN));
         let action = match self.motion {
             Motion::Rapid => Action::Move {
                 target,
@@ -805,7 +835,9 @@ impl<const N: usize> Interpreter<N> {
             },
             Motion::Linear => Action::Move {
                 target,
-                feed_mm_min: Some(self.feed_mm_min),
+                feed_mm_min: Some(
+                    inverse(distance_mm(&self.pos, &target)).unwrap_or(self.feed_mm_min),
+                ),
                 ramp,
             },
             Motion::Cw | Motion::Ccw => {
@@ -841,9 +873,10 @@ impl<const N: usize> Interpreter<N> {
                     self.motion == Motion::Cw,
                     f64::from(config.arc_tolerance_mm),
                 )?;
+                let feed_mm_min = inverse(cutter.length_mm()).unwrap_or(self.feed_mm_min);
                 Action::Arc {
                     cutter,
-                    feed_mm_min: self.feed_mm_min,
+                    feed_mm_min,
                     ramp,
                 }
             }
@@ -1885,7 +1918,7 @@ mod tests {
     }
 
     #[test]
-    fn g94_is_the_feed_mode_and_g93_g95_are_refused() {
+    fn g94_and_g93_are_the_feed_modes_and_g95_is_refused() {
         let c = cfg();
         let mut it = Interpreter::new(&c);
         let before = it;
@@ -1895,16 +1928,39 @@ mod tests {
             run(&mut it, b"G94 G1 X1 F600"),
             Ok(Action::Move { .. })
         ));
-        for (text, n) in [(&b"G93"[..], 93), (b"G95 G1 X2 F1", 95)] {
-            assert_eq!(
-                run(&mut it, text),
-                Err(CommandError::Unsupported {
-                    letter: b'G',
-                    number: Some(n)
-                })
-            );
-        }
-        assert_eq!(run(&mut it, b"G94 G94"), Err(CommandError::ModalConflict));
+        assert_eq!(
+            run(&mut it, b"G95 G1 X2 F1"),
+            Err(CommandError::Unsupported {
+                letter: b'G',
+                number: Some(95)
+            })
+        );
+        // `G93`: `F2` on a 10 mm move is half a minute: 20 mm/min; the modal feed stays.
+        assert!(matches!(
+            run(&mut it, b"G93 G1 X11 F2"),
+            Ok(Action::Move { feed_mm_min: Some(f), .. }) if (f - 20.0).abs() < 1e-3
+        ));
+        assert_eq!(
+            run(&mut it, b"G1 X12"),
+            Err(CommandError::MissingValue { letter: b'F' }),
+            "each feed move carries its F"
+        );
+        assert!(matches!(
+            run(&mut it, b"G0 X0"),
+            Ok(Action::Move {
+                feed_mm_min: None,
+                ..
+            })
+        ));
+        // A half circle of radius 5 (15.708 mm) in one minute.
+        assert!(matches!(
+            run(&mut it, b"G2 X10 I5 F1"),
+            Ok(Action::Arc { feed_mm_min, .. }) if (feed_mm_min - 15.708).abs() < 1e-2
+        ));
+        assert!(matches!(
+            run(&mut it, b"G94 G1 X0"),
+            Ok(Action::Move { feed_mm_min: Some(f), .. }) if f == 600.0
+        ));
     }
 
     #[test]
