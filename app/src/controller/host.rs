@@ -8,7 +8,7 @@
 //! | `M117 <text>` | kept for the operator's display ([`Controller::message`](super::Controller::message)) | `ok` |
 //! | `M118 [A1] [E1] [Pn] <text>` | the text as a line to the host: `// ` first with `A1`, `echo:` first with `E1` | the line, `ok` |
 //! | `M155 S<s>` | ` T:… /… B:… /… @:… B@:…` every `s` seconds (0: off) | `ok` |
-//! | `M113 S<s>` | `echo:busy: processing` every `s` seconds (0: never) while a line waits for the machine (a homing, `M400`, a full planner) | `ok`; `M113` alone: `echo:M113 S<s>`, `ok` |
+//! | `M113 S<s>` | `echo:busy: processing` every `s` seconds (0: never) while a line waits for the machine (a homing, `M400`, a full planner; never in the grbl dialect) | `ok`; `M113` alone: `echo:M113 S<s>`, `ok` |
 
 use core::fmt::Write as _;
 
@@ -156,7 +156,8 @@ where
             self.link.held,
             Some(Held::Line | Held::Homing | Held::Dwell)
         );
-        if !waiting || self.host.busy_interval_ms == 0 {
+        // A grbl sender has no keep-alive line: it polls with `?`.
+        if !waiting || self.host.busy_interval_ms == 0 || self.speaks_grbl() {
             self.host.next_busy_ms = None;
             return;
         }

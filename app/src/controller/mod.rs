@@ -461,7 +461,8 @@ impl Input {
     }
 
     /// Move the realtime bytes of the first `n` bytes read to the realtime queue and the others
-    /// to the front of the buffer; how many others. A soft reset drops the bytes before it.
+    /// to the front of the buffer; how many others. A soft reset drops the bytes before it; in
+    /// the grbl dialect, other bytes above `0x7F` are dropped, as grbl drops them.
     fn take_realtime(&mut self, n: usize, grbl: bool) -> usize {
         let mut kept = 0;
         for i in 0..n {
@@ -478,6 +479,9 @@ impl Input {
                     }
                     self.realtime.push(r);
                 }
+                // grbl throws away the other extended-ASCII bytes (a sender's UTF-8 encoding of
+                // an override, `C2 91`, leaves its `C2` behind).
+                None if grbl && b >= 0x80 => {}
                 None => {
                     self.line_open = !matches!(b, b'\n' | b'\r');
                     if let Some(slot) = self.buf.get_mut(kept) {

@@ -398,3 +398,23 @@ fn m62_to_m65_switch_outputs_with_the_motion_or_at_once() {
     assert_eq!(b.ask("M64 P9"), ["error:20"], "no output 9 on this board");
     assert_eq!(b.ask("M64"), ["error:28"]);
 }
+
+#[test]
+fn extended_ascii_bytes_are_dropped_and_no_busy_line_goes_out() {
+    let mut b = grbl();
+    // A sender that writes the override 0x91 as UTF-8 (`C2 91`).
+    b.send_raw(&[0xC2, 0x91]);
+    b.send_raw(b"G1 X40. F600.\n");
+    b.run_ms(5);
+    assert_eq!(b.take(), ["ok"]);
+    assert_eq!(b.ctl.kernel().feed_override_percent(), 110);
+    // A line waiting behind a full planner gets no `busy: processing`.
+    for x in 0..40 {
+        b.send(&format!("G1 X{} F300", x % 2));
+    }
+    b.run_ms(5_000);
+    assert!(
+        !b.take().iter().any(|l| l.contains("busy")),
+        "no RepRap keep-alive in the grbl dialect"
+    );
+}
