@@ -12,25 +12,30 @@ use std::process::{Child, Command, Output, Stdio};
 use std::sync::{Mutex, mpsc};
 use std::time::{Duration, Instant};
 
-/// The `forja-sim` binary, built if the workspace build did not build it yet.
+/// The `forja-sim` binary, brought up to date with the firmware's sources once per test
+/// binary (`forja-simulator` is no dependency of this crate, so `cargo test -p forja-host`
+/// alone would otherwise run a simulator built before the last change).
 pub fn sim_binary() -> PathBuf {
-    let exe = std::env::current_exe().expect("the test's own path");
-    // target/<profile>/deps/<test> → target/<profile>/forja-sim
-    let profile_dir = exe
-        .parent()
-        .and_then(Path::parent)
-        .expect("the test runs from target/<profile>/deps");
-    let bin = profile_dir.join(format!("forja-sim{}", std::env::consts::EXE_SUFFIX));
-    if !bin.exists() {
-        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        let status = Command::new(cargo)
-            .args(["build", "-p", "forja-simulator", "--bin", "forja-sim"])
-            .status()
-            .expect("cargo runs");
-        assert!(status.success(), "building forja-sim failed");
-    }
-    assert!(bin.exists(), "{} was not built", bin.display());
-    bin
+    static BUILT: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    BUILT
+        .get_or_init(|| {
+            let exe = std::env::current_exe().expect("the test's own path");
+            // target/<profile>/deps/<test> → target/<profile>/forja-sim
+            let profile_dir = exe
+                .parent()
+                .and_then(Path::parent)
+                .expect("the test runs from target/<profile>/deps");
+            let bin = profile_dir.join(format!("forja-sim{}", std::env::consts::EXE_SUFFIX));
+            let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+            let status = Command::new(cargo)
+                .args(["build", "-p", "forja-simulator", "--bin", "forja-sim"])
+                .status()
+                .expect("cargo runs");
+            assert!(status.success(), "building forja-sim failed");
+            assert!(bin.exists(), "{} was not built", bin.display());
+            bin
+        })
+        .clone()
 }
 
 /// The Python of a virtual environment inside the checkout (`target/<name>`), with
