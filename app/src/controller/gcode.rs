@@ -21,7 +21,7 @@ use super::{
 use crate::error::JobError;
 use forja_hal_abstraction::program::ProgramStore;
 use forja_motion::config::{AxisKind, HomeDirection};
-use forja_motion::effect::{Effect, Heater, StopKind, TemperatureWait};
+use forja_motion::effect::{Coolant, Effect, Heater, StopKind, TemperatureWait};
 use forja_motion::error::{Alarm, CommandError};
 use forja_motion::{MachineState, PositionReport, Reply as KernelReply};
 
@@ -53,6 +53,8 @@ enum Done {
     Files(FileCommand),
     /// `M6`: the machine waits for a manual tool change; the operator is told which tool.
     ToolChange(Option<u8>),
+    /// `M2`, `M30`: the program ended (grbl says so, and its overrides go back to 100 %).
+    ProgramEnd,
 }
 
 /// `bytes` as far as they fit `C` bytes of printable ASCII.
@@ -620,12 +622,15 @@ where
             },
             Effect::Coolant(c) => match devices.set_coolant(c) {
                 Ok(()) => Done::Ok,
+                // `M9` on a board without coolant: nothing is on, nothing to turn off (CAM
+                // posts end every program with it).
+                Err(PeripheralError::NoDevice) if c == Coolant::Off => Done::Ok,
                 Err(e) => device(e, format_args!("coolant")),
             },
             Effect::SetLineNumber(_) | Effect::Paused => Done::Ok,
             Effect::ToolChange(tool) => Done::ToolChange(tool),
             Effect::ProgramEnd => match devices.end_program() {
-                Ok(()) => Done::Ok,
+                Ok(()) => Done::ProgramEnd,
                 Err((e, what)) => device(e, format_args!("{what}")),
             },
             Effect::ReportFirmware => Done::Firmware,
@@ -703,6 +708,10 @@ where
             Done::Endstops => self.endstops_reply(out),
             Done::ToolChange(tool) => {
                 self.tool_change_notice(tool, out);
+                self.ok(out);
+            }
+            Done::ProgramEnd => {
+                self.program_end_notice(out);
                 self.ok(out);
             }
             Done::Wait(wait) => {

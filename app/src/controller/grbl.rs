@@ -332,6 +332,15 @@ where
         }
     }
 
+    /// `M2`/`M30` of the link, in the grbl dialect: `[MSG:Pgm End]`, and the feed override back
+    /// to 100 % (grbl's default build). Nothing in the RepRap dialect.
+    pub(super) fn program_end_notice<W: Write>(&mut self, out: &mut W) {
+        if self.speaks_grbl() {
+            self.kernel.set_feed_override_percent(100);
+            say(out, &Message::Feedback("Pgm End"));
+        }
+    }
+
     /// `M6`: tell the operator which tool to put in and how to go on: `[MSG:…]` in the grbl
     /// dialect (cycle start, `~`), `echo:` otherwise (resume: frame `Start`).
     pub(super) fn tool_change_notice<W: Write>(&mut self, tool: Option<u8>, out: &mut W) {
@@ -402,7 +411,10 @@ where
         self.reset(out);
         self.kernel.reset();
         if moving {
+            // grbl's order: the alarm, then the banner and how to unlock.
             self.kernel.lock_after_reset();
+            self.reported_alarm = Some(KernelAlarm::ResetDuringMotion);
+            say(out, &Message::Alarm(Alarm::AbortCycle));
         }
         // grbl flushes its receive buffer: what waited is dropped unanswered.
         self.link.held = None;

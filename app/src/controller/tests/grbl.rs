@@ -128,8 +128,13 @@ fn a_soft_reset_stops_drops_what_waits_and_locks_a_machine_it_stopped_moving() {
     b.send_raw(&[0x18]);
     b.run_ms(5);
     let out = b.take();
-    assert!(
-        out.contains(&"Grbl 1.1h ['$' for help]".to_string()),
+    // grbl's order: the alarm, the banner, how to unlock; the alarm said once.
+    let banner = out.iter().position(|l| l == "Grbl 1.1h ['$' for help]");
+    let alarm = out.iter().position(|l| l == "ALARM:3");
+    assert!(alarm.is_some() && alarm < banner, "{out:?}");
+    assert_eq!(
+        out.iter().filter(|l| l.starts_with("ALARM")).count(),
+        1,
         "{out:?}"
     );
     assert!(
@@ -417,4 +422,16 @@ fn extended_ascii_bytes_are_dropped_and_no_busy_line_goes_out() {
         !b.take().iter().any(|l| l.contains("busy")),
         "no RepRap keep-alive in the grbl dialect"
     );
+}
+
+#[test]
+fn program_end_and_coolant_off_answer_as_grbl() {
+    let mut b = grbl();
+    b.send_raw(&[0x91]);
+    b.run_ms(2);
+    b.ctl.peripherals_mut().coolant = None;
+    assert_eq!(b.ask("M9"), ["ok"], "nothing to turn off without coolant");
+    assert_eq!(b.ask("M8"), ["error:20"]);
+    assert_eq!(b.ask("M30"), ["[MSG:Pgm End]", "ok"]);
+    assert_eq!(b.ctl.kernel().feed_override_percent(), 100);
 }
