@@ -235,3 +235,31 @@ fn the_measure_catches_grid_jitter_and_velocity_steps() {
     let d = check_axis(&steps, 0, 80.0, 100.0, 800.0, hz, None);
     assert!(d.rate <= 1.0 && d.accel > 1.5, "{d:?}");
 }
+
+/// The rate measurement itself: a tick of rounding at 100 ticks a step is not a violation, a
+/// step rate 10 % over the limit is.
+#[test]
+fn the_rate_check_tells_rounding_from_overspeed() {
+    use common::StepRecord;
+    // 1 mm/s at 10,000 steps/mm on a 1 MHz clock: a step every 100 ticks at the limit.
+    let steps = |intervals: &[u64]| -> Vec<StepRecord> {
+        let mut tick = 0;
+        intervals
+            .iter()
+            .enumerate()
+            .map(|(i, d)| {
+                tick += d;
+                StepRecord {
+                    tick,
+                    position: i as i32 + 1,
+                }
+            })
+            .collect()
+    };
+    let rounded: Vec<u64> = (0..50).map(|i| if i % 2 == 0 { 99 } else { 101 }).collect();
+    let d = check_axis(&steps(&rounded), 0, 10_000.0, 1.0, 1.0e9, 1_000_000.0, None);
+    assert!(d.rate <= 1.01, "rounding read as overspeed: {}", d.rate);
+    let fast = vec![90; 50];
+    let d = check_axis(&steps(&fast), 0, 10_000.0, 1.0, 1.0e9, 1_000_000.0, None);
+    assert!(d.rate > 1.1, "overspeed missed: {}", d.rate);
+}
