@@ -169,6 +169,11 @@ pub struct MachineConfig<const N: usize> {
     pub soft_limits: SoftLimits,
     /// Stop all motion when a limit switch trips during motion (not during homing).
     pub hard_limits: bool,
+    /// The touch probe, if the machine has one: its index in the switches the step interrupt
+    /// reads ([`crate::StepGenerator::on_alarm`]), beside the homing switches. `G38.2`–`G38.5`
+    /// need it.
+    #[serde(default)]
+    pub probe_switch: Option<u8>,
     /// Feed of jog moves (frame message 01), mm/min.
     pub jog_feed_mm_min: f32,
     /// Feed of `G1` before any `F` word, mm/min.
@@ -180,7 +185,7 @@ pub struct MachineConfig<const N: usize> {
 
 impl<const N: usize> MachineConfig<N> {
     /// Machine-wide defaults around the given axes: 0.01 mm junction deviation, 0.002 mm arc
-    /// tolerance, soft limits when homed, hard limits on, jog at 1000 mm/min, 20 ms lead.
+    /// tolerance, soft limits when homed, hard limits on, no probe, jog at 1000 mm/min, 20 ms lead.
     pub const fn new(axes: [AxisConfig; N]) -> Self {
         Self {
             axes,
@@ -188,6 +193,7 @@ impl<const N: usize> MachineConfig<N> {
             arc_tolerance_mm: 0.002,
             soft_limits: SoftLimits::WhenHomed,
             hard_limits: true,
+            probe_switch: None,
             jog_feed_mm_min: 1000.0,
             default_feed_mm_min: 1000.0,
             queue_lead_ms: 20,

@@ -35,6 +35,8 @@
 //! | 129 | [`CommandError::ModalConflict`] | two commands of the same modal group on one line |
 //! | 130 | [`CommandError::RepeatedWord`] | a word (other than `G`/`M`) given twice on one line |
 //! | 131 | [`CommandError::OutOfReach`] | a move longer than the axis travel, or ending where a position cannot be counted in steps or reported (beyond ±99999.9999 mm) |
+//! | 132 | [`CommandError::NoProbe`] | a probing move (`G38.2`–`G38.5`) on a machine without a probe |
+//! | 133 | [`CommandError::NoMotionMode`] | axis words after `G80`, with no motion mode for them |
 //! | 150 | [`Alarm::HardLimit`] | a limit switch tripped during motion; motion stopped at once |
 //! | 151 | [`Alarm::HomingSwitchNotFound`] | homing travelled the whole axis without finding the switch |
 //! | 152 | [`Alarm::HomingSwitchStuck`] | the switch stayed triggered after the back-off |
@@ -42,6 +44,8 @@
 //! | 154 | [`Alarm::StepUnderrun`] | the step queue ran dry during motion (segment preparation too slow) |
 //! | 155 | [`Alarm::DriverFault`] | a stepper driver or limit switch reported an error |
 //! | 156 | [`Alarm::ResetDuringMotion`] | a soft reset cut the motion (grbl's `ALARM:3`): steps may be lost |
+//! | 157 | [`Alarm::ProbeFailInitial`] | a probing move found the probe already in the state it waits for (grbl's `ALARM:4`); nothing moved |
+//! | 158 | [`Alarm::ProbeFailContact`] | a `G38.2`/`G38.4` probing move reached its target without the probe changing (grbl's `ALARM:5`) |
 //!
 //! Codes not listed are reserved. A code is never reused for a different meaning. Codes
 //! `170..=199` belong to the application layer (`forja-app`: the program store and jobs).
@@ -226,6 +230,10 @@ pub enum CommandError {
         /// The axis index.
         axis: AxisIndex,
     },
+    /// A probing move (`G38.2`–`G38.5`) on a machine without a probe.
+    NoProbe,
+    /// Axis words after `G80`: no motion mode for them to follow.
+    NoMotionMode,
 }
 
 impl CommandError {
@@ -244,6 +252,8 @@ impl CommandError {
             Self::ModalConflict => 129,
             Self::RepeatedWord { .. } => 130,
             Self::OutOfReach { .. } => 131,
+            Self::NoProbe => 132,
+            Self::NoMotionMode => 133,
         }
     }
 }
@@ -284,6 +294,8 @@ impl fmt::Display for CommandError {
             Self::ModalConflict => f.write_str("two commands of one modal group"),
             Self::RepeatedWord { letter } => write!(f, "word {} given twice", Letter(letter)),
             Self::OutOfReach { axis } => write!(f, "axis {axis}: move beyond the machine's reach"),
+            Self::NoProbe => f.write_str("no probe on this machine"),
+            Self::NoMotionMode => f.write_str("axis words without a motion mode (after G80)"),
         }
     }
 }
@@ -319,6 +331,11 @@ pub enum Alarm {
     },
     /// A soft reset of the grbl dialect cut the motion at once: steps may be lost.
     ResetDuringMotion,
+    /// A probing move started with the probe already in the state it waits for (touching for
+    /// `G38.2`/`G38.3`, open for `G38.4`/`G38.5`): nothing moved.
+    ProbeFailInitial,
+    /// A `G38.2`/`G38.4` probing move reached its target without the probe changing.
+    ProbeFailContact,
 }
 
 impl Alarm {
@@ -332,13 +349,18 @@ impl Alarm {
             Self::StepUnderrun => 154,
             Self::DriverFault { .. } => 155,
             Self::ResetDuringMotion => 156,
+            Self::ProbeFailInitial => 157,
+            Self::ProbeFailContact => 158,
         }
     }
 
     /// Whether the machine position is still known after this alarm. When it is not, soft
     /// limits and jobs need a new homing.
     pub const fn position_kept(&self) -> bool {
-        matches!(self, Self::HomingSwitchNotFound { .. })
+        matches!(
+            self,
+            Self::HomingSwitchNotFound { .. } | Self::ProbeFailInitial | Self::ProbeFailContact
+        )
     }
 }
 
@@ -356,6 +378,8 @@ impl fmt::Display for Alarm {
             Self::StepUnderrun => f.write_str("alarm: step queue underrun"),
             Self::DriverFault { axis } => write!(f, "alarm: driver fault on axis {axis}"),
             Self::ResetDuringMotion => f.write_str("alarm: reset during motion"),
+            Self::ProbeFailInitial => f.write_str("alarm: probe already tripped before probing"),
+            Self::ProbeFailContact => f.write_str("alarm: probing ended without contact"),
         }
     }
 }
@@ -405,6 +429,8 @@ impl WireError for CommandError {
             Self::ModalConflict => "modal-conflict",
             Self::RepeatedWord { .. } => "repeated-word",
             Self::OutOfReach { .. } => "out-of-reach",
+            Self::NoProbe => "no-probe",
+            Self::NoMotionMode => "no-motion-mode",
         }
     }
 }
@@ -422,6 +448,8 @@ impl WireError for Alarm {
             Self::StepUnderrun => "step-underrun",
             Self::DriverFault { .. } => "driver-fault",
             Self::ResetDuringMotion => "reset-in-motion",
+            Self::ProbeFailInitial => "probe-initial",
+            Self::ProbeFailContact => "probe-no-contact",
         }
     }
 }
@@ -466,12 +494,17 @@ mod tests {
             CommandError::ModalConflict.code(),
             CommandError::RepeatedWord { letter: b'X' }.code(),
             CommandError::OutOfReach { axis: 0 }.code(),
+            CommandError::NoProbe.code(),
+            CommandError::NoMotionMode.code(),
             Alarm::HardLimit { axis: 0 }.code(),
             Alarm::HomingSwitchNotFound { axis: 0 }.code(),
             Alarm::HomingSwitchStuck { axis: 0 }.code(),
             Alarm::EmergencyStop.code(),
             Alarm::StepUnderrun.code(),
             Alarm::DriverFault { axis: 0 }.code(),
+            Alarm::ResetDuringMotion.code(),
+            Alarm::ProbeFailInitial.code(),
+            Alarm::ProbeFailContact.code(),
         ];
         for (i, c) in codes.iter().enumerate() {
             assert!((100..=199).contains(c), "{c}");

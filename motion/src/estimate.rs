@@ -14,6 +14,7 @@ use forja_protocol::gcode::Line;
 use crate::arc::Nm;
 use crate::config::MachineConfig;
 use crate::coords::Coordinates;
+use crate::drill::DrillStep;
 use crate::effect::Effect;
 use crate::interp::{Action, Interpreter};
 use crate::kernel::Kernel;
@@ -80,11 +81,28 @@ impl<const N: usize, const B: usize> Estimate<N, B> {
                     self.push(&p, Some(feed_mm_min), ramp && first);
                 }
             }
-            Action::Dwell { ms } => {
-                if self.planner.is_full() {
-                    self.retire();
+            Action::Dwell { ms } => self.dwell(ms),
+            Action::Via { via, target } => {
+                self.push(&via, None, false);
+                self.push(&target, None, false);
+            }
+            Action::Probe {
+                target,
+                feed_mm_min,
+                ..
+            } => self.push(&target, Some(feed_mm_min), false),
+            Action::Drill {
+                mut cycle,
+                feed_mm_min,
+            } => {
+                while let Some(step) = cycle.peek() {
+                    match step {
+                        DrillStep::Rapid(p) => self.push(&p, None, false),
+                        DrillStep::Feed(p) => self.push(&p, Some(feed_mm_min), false),
+                        DrillStep::Dwell(ms) => self.dwell(ms),
+                    }
+                    cycle.advance();
                 }
-                let _ = self.planner.push_dwell(ms, 0);
             }
             Action::Effect(Effect::ProgramEnd) => self.ended = true,
             Action::SetLimits(change) => {
@@ -111,6 +129,13 @@ impl<const N: usize, const B: usize> Estimate<N, B> {
             _ => {}
         }
         !self.ended
+    }
+
+    fn dwell(&mut self, ms: u32) {
+        if self.planner.is_full() {
+            self.retire();
+        }
+        let _ = self.planner.push_dwell(ms, 0);
     }
 
     /// The program's duration so far, seconds: every block planned, timed to a stop at the end.

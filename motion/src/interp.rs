@@ -16,7 +16,10 @@
 //! | `G92` | set the current position (all axes to 0 without words) |
 //! | `G93`, `G94` | feed in inverse time (each feed move's `F` is moves per minute), in units per minute (`G95` is refused) |
 //! | `G10 L2 P`, `G10 L20 P` | set the origin of work coordinate system `P` (1–9, 0 the active one): to the values (`L2`), or so that the position now reads as the values (`L20`) |
-//! | `G40`, `G64`, `G61`, `G61.1`, `G80` | no cutter compensation, path blending, exact stop (each move ends at rest), no canned cycle |
+//! | `G40`, `G64`, `G61`, `G61.1` | no cutter compensation, path blending, exact stop (each move ends at rest) |
+//! | `G38.2`–`G38.5` | probe towards the target: stop on contact (`.2`, `.3`) or on loss of contact (`.4`, `.5`); `.2` and `.4` are an alarm when the probe never changes. At the feed, not overridden; the kernel takes nothing else until the probe is over and goes on from where it stopped |
+//! | `G81`, `G82`, `G83`, `G80` | drilling cycles at each line's X/Y in the XY plane: drill, drill and dwell `P` seconds, peck drill by `Q` (module `drill`); `R` and `Z` (and `P`, `Q`) kept from line to line; `G80` ends the cycle mode and leaves no motion mode |
+//! | `G98`, `G99` | after each hole, back to the Z the cycle started at (or `R` if higher), to `R` |
 //! | `G43.1 Z`, `G49` | dynamic tool length offset on Z, none |
 //! | `G53` | this line's move in machine coordinates |
 //! | `G54`–`G59`, `G59.1`–`G59.3` | select a work coordinate system |
@@ -67,6 +70,7 @@ use forja_protocol::gcode::{Decimal, Line};
 use crate::arc::{ArcCenter, ArcCutter, Nm};
 use crate::config::{AxisKind, MachineConfig};
 use crate::coords::{Coordinates, SYSTEMS, Slot};
+use crate::drill::{DrillCycle, DrillKind};
 use crate::effect::{Coolant, Effect, Heater, Spindle, StopKind, Storage, TemperatureWait};
 use crate::error::CommandError;
 use crate::planner::PathLimits;
@@ -136,6 +140,20 @@ pub(crate) enum Action<'l, const N: usize> {
     ToolChange(Option<u8>),
     /// grbl's `G28`/`G30`: a rapid to `via`, then to `target`.
     Via { via: [Nm; N], target: [Nm; N] },
+    /// `G38.2`–`G38.5`: a move towards `target` that the probe ends.
+    Probe {
+        target: [Nm; N],
+        feed_mm_min: f32,
+        /// `G38.4`/`G38.5`: until the probe loses contact (else until it touches).
+        away: bool,
+        /// `G38.2`/`G38.4`: reaching the target without the probe changing is an alarm.
+        must_trip: bool,
+    },
+    /// `G81`–`G83`: one hole's canned cycle.
+    Drill {
+        cycle: DrillCycle<N>,
+        feed_mm_min: f32,
+    },
 }
 
 /// A change of the planner's limits (`M201`, `M203`, `M204`, `M205`); `None` leaves a value as
@@ -234,6 +252,34 @@ enum Motion {
     Linear,
     Cw,
     Ccw,
+    /// `G38.2`–`G38.5`.
+    Probe {
+        away: bool,
+        must_trip: bool,
+    },
+    /// `G81`–`G83`.
+    Cycle(DrillKind),
+    /// `G80`: none; a line of axis words alone is refused.
+    Cancelled,
+}
+
+/// The words of the drilling cycles, kept from line to line while a cycle is the motion mode
+/// (LinuxCNC's and grblHAL's sticky `R`, `Z`, `P`, `Q`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+struct CycleWords {
+    /// `G99`: retract to the `R` plane; else (`G98`, the default) to the higher of it and the
+    /// Z where the cycle began.
+    to_r_plane: bool,
+    /// Where Z was (machine nm) when the cycle mode began.
+    initial_z: Nm,
+    /// `R`, nm, as given (work Z under `G90`, from the Z before the hole under `G91`).
+    retract: Option<Nm>,
+    /// `Z`, nm, as given (work Z under `G90`, from `R` under `G91`).
+    bottom: Option<Nm>,
+    /// `Q`: the depth of one `G83` peck, nm.
+    peck: Option<Nm>,
+    /// `P`: the `G82` dwell, ms.
+    dwell_ms: u32,
 }
 
 /// The interpreter's state.
@@ -261,6 +307,8 @@ pub(crate) struct Interpreter<const N: usize> {
     extruder_relative: Option<bool>,
     inches: bool,
     motion: Motion,
+    /// The drilling cycles' words.
+    cycle: CycleWords,
     plane: Plane,
     pub(crate) feed_mm_min: f32,
     /// Feed-rate override (`M220`), percent.
@@ -309,6 +357,12 @@ const DECIMAL_CODE: u32 = 100_000;
 const G28_1: u32 = DECIMAL_CODE + 281;
 /// `G30.1`.
 const G30_1: u32 = DECIMAL_CODE + 301;
+/// `G38.2`.
+const G38_2: u32 = DECIMAL_CODE + 382;
+/// `G38.4`.
+const G38_4: u32 = DECIMAL_CODE + 384;
+/// `G38.5`.
+const G38_5: u32 = DECIMAL_CODE + 385;
 /// `G43.1`.
 const G43_1: u32 = DECIMAL_CODE + 431;
 /// `G59.1`.
@@ -442,6 +496,7 @@ impl<const N: usize> Interpreter<N> {
             extruder_relative: None,
             inches: false,
             motion: Motion::Rapid,
+            cycle: CycleWords::default(),
             plane: Plane::Xy,
             feed_mm_min: config.default_feed_mm_min,
             feed_percent: 100,
@@ -464,10 +519,30 @@ impl<const N: usize> Interpreter<N> {
     pub(crate) fn modal(&self) -> crate::kernel::ModalReport<N> {
         crate::kernel::ModalReport {
             motion: match self.motion {
-                Motion::Rapid => 0,
-                Motion::Linear => 1,
-                Motion::Cw => 2,
-                Motion::Ccw => 3,
+                Motion::Rapid => "G0",
+                Motion::Linear => "G1",
+                Motion::Cw => "G2",
+                Motion::Ccw => "G3",
+                Motion::Probe {
+                    away: false,
+                    must_trip: true,
+                } => "G38.2",
+                Motion::Probe {
+                    away: false,
+                    must_trip: false,
+                } => "G38.3",
+                Motion::Probe {
+                    away: true,
+                    must_trip: true,
+                } => "G38.4",
+                Motion::Probe {
+                    away: true,
+                    must_trip: false,
+                } => "G38.5",
+                Motion::Cycle(DrillKind::Drill) => "G81",
+                Motion::Cycle(DrillKind::Dwell) => "G82",
+                Motion::Cycle(DrillKind::Peck) => "G83",
+                Motion::Cancelled => "G80",
             },
             plane: match self.plane {
                 Plane::Xy => 17,
@@ -553,6 +628,7 @@ impl<const N: usize> Interpreter<N> {
         let mut distance: Option<bool> = None;
         let mut plane: Option<Plane> = None;
         let mut feed_mode: Option<bool> = None;
+        let mut retract_mode: Option<bool> = None;
         // A word given twice (`X5 X50`, or `X0x10` read as `X0 X10`) has no single meaning;
         // G and M words may repeat across modal groups (checked below).
         for (i, w) in line.words().iter().enumerate() {
@@ -587,7 +663,20 @@ impl<const N: usize> Interpreter<N> {
                 (b'G', 54..=59) => set_once(&mut system, (n - 54) as u8)?,
                 (b'G', G59_1..=G59_3) => set_once(&mut system, (n - G59_1 + 6) as u8)?,
                 (b'G', 53) => machine_coords = true,
-                (b'G', 40 | 80) => {}
+                (b'G', 40) => {}
+                (b'G', 80) => set_once(&mut motion, Motion::Cancelled)?,
+                (b'G', 81) => set_once(&mut motion, Motion::Cycle(DrillKind::Drill))?,
+                (b'G', 82) => set_once(&mut motion, Motion::Cycle(DrillKind::Dwell))?,
+                (b'G', 83) => set_once(&mut motion, Motion::Cycle(DrillKind::Peck))?,
+                (b'G', 98) => set_once(&mut retract_mode, false)?,
+                (b'G', 99) => set_once(&mut retract_mode, true)?,
+                (b'G', G38_2..=G38_5) => set_once(
+                    &mut motion,
+                    Motion::Probe {
+                        away: n >= G38_4,
+                        must_trip: n == G38_2 || n == G38_4,
+                    },
+                )?,
                 (b'G', 64) => set_once(&mut path, false)?,
                 (b'G', 61) => set_once(&mut path, true)?,
                 (b'G', G61_1) => set_once(&mut path, true)?,
@@ -662,6 +751,9 @@ impl<const N: usize> Interpreter<N> {
         if let Some(inverse) = feed_mode {
             self.inverse_time = inverse;
         }
+        if let Some(to_r) = retract_mode {
+            self.cycle.to_r_plane = to_r;
+        }
         // In inverse time (`G93`) `F` is the line's own: moves per minute, not a modal rate.
         if let Some(f) = line.get(b'F').filter(|_| !self.inverse_time) {
             let per_min = f.to_f32() * if self.inches { 25.4 } else { 1.0 };
@@ -674,11 +766,26 @@ impl<const N: usize> Interpreter<N> {
             Some((letter, n)) => self.command(letter, n, line, config, coords),
             None => {
                 if let Some(m) = motion {
+                    let was_cycle = matches!(self.motion, Motion::Cycle(_));
+                    if let (Motion::Cycle(_), false) = (m, was_cycle) {
+                        // A new cycle mode: its words start afresh, from where Z is now.
+                        let z = config.axis_index(b'Z');
+                        self.cycle = CycleWords {
+                            to_r_plane: self.cycle.to_r_plane,
+                            initial_z: z.map_or(0, |z| self.pos[z]),
+                            ..CycleWords::default()
+                        };
+                    }
                     self.motion = m;
                 }
                 let has_axis = config.axes.iter().any(|a| line.has(a.letter));
-                if has_axis || (motion.is_some() && matches!(self.motion, Motion::Cw | Motion::Ccw))
-                {
+                // An arc or a cycle stated on a line without axis words still acts (a full
+                // circle, a hole where the tool is); a probing move without them is refused.
+                let acts_alone = matches!(
+                    self.motion,
+                    Motion::Cw | Motion::Ccw | Motion::Cycle(_) | Motion::Probe { .. }
+                );
+                if has_axis || (motion.is_some() && acts_alone) {
                     self.motion_line(line, config, machine_coords)
                 } else {
                     // Unknown letters on a line without a command are reported.
@@ -801,13 +908,105 @@ impl<const N: usize> Interpreter<N> {
                 }
             }
         }
+        let cycle = matches!(self.motion, Motion::Cycle(_));
         for w in line.words() {
-            let known = matches!(w.letter, b'G' | b'F' | b'I' | b'J' | b'K' | b'R');
+            let known = matches!(w.letter, b'G' | b'F' | b'I' | b'J' | b'K' | b'R')
+                || (cycle && matches!(w.letter, b'P' | b'Q' | b'L'));
             if !known && config.axis_index(w.letter).is_none() {
                 return Err(CommandError::UnknownAxis { letter: w.letter });
             }
         }
         Ok(target)
+    }
+
+    /// One hole of the drilling cycle `kind` (the motion mode), at the X and Y of the line's
+    /// words; its sticky words (`R`, `Z`, `P`, `Q`) are taken from the line or kept from the
+    /// lines before. See [`crate::drill`] for the moves.
+    fn drill_line<'l>(
+        &mut self,
+        kind: DrillKind,
+        line: &Line<'l>,
+        config: &MachineConfig<N>,
+    ) -> Result<Action<'l, N>, CommandError> {
+        let z = config
+            .axis_index(b'Z')
+            .ok_or(CommandError::UnknownAxis { letter: b'Z' })?;
+        // The cycles drill along Z: the XY plane only, and at a feed in units per minute.
+        if self.plane != Plane::Xy || self.inverse_time {
+            return Err(CommandError::ModalConflict);
+        }
+        if let Some(l) = line.get(b'L')
+            && l.as_integer() != Some(1)
+        {
+            return Err(CommandError::BadValue { letter: b'L' });
+        }
+        let hole = self.target(line, config, false)?;
+        let mut words = self.cycle;
+        if let Some(r) = line.get(b'R') {
+            words.retract = Some(to_nm(r, self.inches, b'R')?);
+        }
+        if let Some(v) = line.get(b'Z') {
+            words.bottom = Some(to_nm(v, self.inches, b'Z')?);
+        }
+        if let Some(q) = line.get(b'Q') {
+            let q = to_nm(q, self.inches, b'Q')?;
+            if q <= 0 {
+                return Err(CommandError::BadValue { letter: b'Q' });
+            }
+            words.peck = Some(q);
+        }
+        if let Some(p) = line.get(b'P') {
+            let ms = p.to_f64() * 1000.0;
+            if !(0.0..=4.0e9).contains(&ms) {
+                return Err(CommandError::BadValue { letter: b'P' });
+            }
+            words.dwell_ms = libm::round(ms) as u32;
+        }
+        let retract = words
+            .retract
+            .ok_or(CommandError::MissingValue { letter: b'R' })?;
+        let bottom = words
+            .bottom
+            .ok_or(CommandError::MissingValue { letter: b'Z' })?;
+        let peck = match (kind, words.peck) {
+            (DrillKind::Peck, None) => return Err(CommandError::MissingValue { letter: b'Q' }),
+            (_, peck) => peck.unwrap_or(0),
+        };
+        let (retract_nm, bottom_nm) = if self.is_relative(AxisKind::Linear) {
+            let r = self.pos[z].saturating_add(retract);
+            (r, r.saturating_add(bottom))
+        } else {
+            let origin = self.origin(z, Some(z));
+            (
+                retract.saturating_add(origin),
+                bottom.saturating_add(origin),
+            )
+        };
+        if bottom_nm >= retract_nm {
+            return Err(CommandError::BadValue { letter: b'R' });
+        }
+        let clearance_nm = if words.to_r_plane {
+            retract_nm
+        } else {
+            retract_nm.max(words.initial_z)
+        };
+        let cycle = DrillCycle::new(
+            kind,
+            z,
+            self.pos,
+            hole,
+            retract_nm,
+            bottom_nm,
+            clearance_nm,
+            peck,
+            words.dwell_ms,
+        );
+        self.cycle = words;
+        self.pos = cycle.end();
+        Ok(Action::Drill {
+            cycle,
+            feed_mm_min: self.feed_mm_min,
+        })
     }
 
     fn motion_line<'l>(
@@ -816,6 +1015,12 @@ impl<const N: usize> Interpreter<N> {
         config: &MachineConfig<N>,
         machine_coords: bool,
     ) -> Result<Action<'l, N>, CommandError> {
+        match self.motion {
+            Motion::Cycle(kind) => return self.drill_line(kind, line, config),
+            // `G80`: no motion mode for axis words to follow.
+            Motion::Cancelled => return Err(CommandError::NoMotionMode),
+            _ => {}
+        }
         let target = self.target(line, config, machine_coords)?;
         let ramp = line.has(b'F') && !self.inverse_time;
         // `G93`: every feed move carries its `F`, moves per minute.
@@ -828,6 +1033,19 @@ impl<const N: usize> Interpreter<N> {
         let inverse =
             |length_mm: f64| per_minute.map(|p| ((length_mm * p) as f32).max(MIN_FEED_MM_MIN));
         let action = match self.motion {
+            Motion::Probe { away, must_trip } => {
+                if target == self.pos {
+                    return Err(CommandError::MissingValue { letter: b'Z' });
+                }
+                Action::Probe {
+                    target,
+                    feed_mm_min: inverse(distance_mm(&self.pos, &target))
+                        .unwrap_or(self.feed_mm_min),
+                    away,
+                    must_trip,
+                }
+            }
+            Motion::Cycle(_) | Motion::Cancelled => return Err(CommandError::ModalConflict),
             Motion::Rapid => Action::Move {
                 target,
                 feed_mm_min: None,
@@ -1710,7 +1928,7 @@ mod tests {
         let c = cfg();
         let mut it = Interpreter::new(&c);
         assert_eq!(
-            run(&mut it, b"G38.2 X1"),
+            run(&mut it, b"G38.6 X1"),
             Err(CommandError::Unsupported {
                 letter: b'G',
                 number: None

@@ -10,6 +10,7 @@ use forja_protocol::gcode::{Decimal, Line};
 use crate::arc::{ArcCutter, Nm};
 use crate::config::{AxisKind, MachineConfig, SoftLimits};
 use crate::coords::Coordinates;
+use crate::drill::{DrillCycle, DrillStep};
 use crate::effect::{Effect, StopKind};
 use crate::error::{Alarm, CommandError, ConfigError};
 use crate::interp::{
@@ -17,7 +18,9 @@ use crate::interp::{
 };
 use crate::planner::{MoveRequest, PathLimits, Planner};
 use crate::prep::Prep;
-use crate::queue::{MAX_DELTA, Producer, StepQueue, StopCause};
+use crate::queue::{
+    MAX_DELTA, PROBE_CONTACT, PROBE_OFF, PROBE_RELEASE, Producer, StepQueue, StopCause,
+};
 use crate::stepgen::StepGenerator;
 
 /// The largest machine position magnitude a move may reach, mm: ±99999.9999 mm, the widest
@@ -79,8 +82,8 @@ pub struct PlannerSettings<const N: usize> {
 /// The interpreter's modal state, for a parser-state report (grbl's `$G`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ModalReport<const N: usize> {
-    /// The motion mode: 0, 1, 2 or 3 (`G0`–`G3`).
-    pub motion: u8,
+    /// The motion mode as its G code: `G0`–`G3`, `G38.2`–`G38.5`, `G80`–`G83`.
+    pub motion: &'static str,
     /// The plane: 17, 18 or 19.
     pub plane: u8,
     /// `G20` (inches) rather than `G21`.
@@ -139,6 +142,26 @@ struct Homing {
     triggered: Option<i32>,
 }
 
+/// A probing move under way (`G38.2`–`G38.5`).
+#[derive(Debug, Clone, Copy)]
+struct Probing<const N: usize> {
+    /// `G38.2`/`G38.4`: a move that ends without the probe changing is an alarm.
+    must_trip: bool,
+    /// The step interrupt's counts when the move started.
+    start: [i32; N],
+    /// Its counts where the probe tripped.
+    tripped: Option<[i32; N]>,
+}
+
+/// The outcome of the last probing move, for a report (grbl's `[PRB:…]`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProbeReport<const N: usize> {
+    /// The machine position where the probe tripped, or where the move ended without it, nm.
+    pub machine_nm: [Nm; N],
+    /// Whether the probe tripped.
+    pub tripped: bool,
+}
+
 /// An axis's bounds in machine nm, worked out from the configuration when it is set (at
 /// [`split`] and by `M92`), not at every move: its travel, and how far from 0 a position may
 /// be counted and reported ([`MAX_POSITION_MM`], `i32` steps).
@@ -177,6 +200,15 @@ struct PendingArc<const N: usize> {
     exact_stop: bool,
 }
 
+/// A pending drilling cycle: moves still to be planned.
+#[derive(Debug, Clone, Copy)]
+struct PendingDrill<const N: usize> {
+    cycle: DrillCycle<N>,
+    feed_mm_min: f32,
+    /// The feed override of the cycle's line, as a factor.
+    feed_scale: f32,
+}
+
 /// The thread side of the motion kernel.
 ///
 /// `N` axes, a planner of `B` blocks (default 32) and a step queue of `Q` events (default 256,
@@ -207,7 +239,11 @@ pub struct Kernel<'q, const N: usize, const B: usize = 32, const Q: usize = 256>
     hold: bool,
     stop_requested: bool,
     arc: Option<PendingArc<N>>,
+    drill: Option<PendingDrill<N>>,
     homing: Option<Homing>,
+    probing: Option<Probing<N>>,
+    /// The last probing move's outcome, and whether it was reported since.
+    probe: Option<(ProbeReport<N>, bool)>,
     flush: Option<u32>,
     stops_seen: u32,
     lead_ticks: u32,
@@ -270,7 +306,10 @@ pub fn split<'q, const N: usize, const B: usize, const Q: usize>(
         hold: false,
         stop_requested: false,
         arc: None,
+        drill: None,
         homing: None,
+        probing: None,
+        probe: None,
         flush: None,
         stops_seen: queue.stops.load(Ordering::Relaxed),
         lead_ticks: lead,
@@ -343,6 +382,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     pub fn is_idle(&self) -> bool {
         !self.moving_planned()
             && self.arc.is_none()
+            && self.drill.is_none()
             && self.flush.is_none()
             && self.tx.len() == 0
             && self.isr_idle()
@@ -441,7 +481,9 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     pub fn can_accept(&self) -> bool {
         !self.planner.is_full()
             && self.arc.is_none()
+            && self.drill.is_none()
             && self.homing.is_none()
+            && self.probing.is_none()
             && self.flush.is_none()
             && !self.paused
             && !self.stop_requested
@@ -511,7 +553,9 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
         // Lines after a stop wait for it to complete (it drops only what came before it).
         if self.arc.is_some()
+            || self.drill.is_some()
             || self.homing.is_some()
+            || self.probing.is_some()
             || self.flush.is_some()
             || self.paused
             || self.stop_requested
@@ -559,6 +603,17 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                     feed_scale: next.feed_scale(),
                     ramp,
                     exact_stop: next.exact_stop,
+                });
+                self.drain_arc();
+                Reply::Ok
+            }
+            Action::Drill { cycle, feed_mm_min } => {
+                let (lo, hi) = cycle.bounds();
+                self.check_move(&lo, &hi)?;
+                self.drill = Some(PendingDrill {
+                    cycle,
+                    feed_mm_min,
+                    feed_scale: next.feed_scale(),
                 });
                 self.drain_arc();
                 Reply::Ok
@@ -621,6 +676,22 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 }
                 self.paused = true;
                 Reply::Effect(Effect::ToolChange(tool))
+            }
+            Action::Probe {
+                target,
+                feed_mm_min,
+                away,
+                must_trip,
+            } => {
+                if self.config.probe_switch.is_none() {
+                    return Err(CommandError::NoProbe);
+                }
+                self.check_move(&target, &target)?;
+                if !idle {
+                    return Ok(Reply::Busy);
+                }
+                self.start_probe(&target, feed_mm_min, away, must_trip);
+                Reply::Ok
             }
             Action::Via { via, target } => {
                 self.check_move(&via, &via)?;
@@ -799,6 +870,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// revives nothing. During a hold already at rest this happens at once.
     pub fn stop(&mut self) {
         self.arc = None;
+        self.drill = None;
         self.paused = false;
         if self.homing.is_some() {
             // Homing moves are slow: cut them at once.
@@ -836,7 +908,10 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// Stop the interrupt side at once and drop everything; `lose_homing` forgets the homed axes.
     fn abort(&mut self, lose_homing: bool, force_flush: bool) {
         self.arc = None;
+        self.drill = None;
         self.homing = None;
+        self.probing = None;
+        self.tx.shared().probe.store(PROBE_OFF, Ordering::Relaxed);
         self.hold = false;
         self.stop_requested = false;
         self.prep.set_hold(false);
@@ -1034,8 +1109,31 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         let _ = self.planner.push_move(&req, &self.config);
     }
 
-    /// Plan the chords of the pending arc while the planner has room.
+    /// Plan the chords of the pending arc, or the moves of the pending drilling cycle, while the
+    /// planner has room.
     fn drain_arc(&mut self) {
+        while let Some(mut d) = self.drill {
+            if self.planner.is_full() {
+                return;
+            }
+            match d.cycle.peek() {
+                Some(DrillStep::Rapid(p)) => {
+                    self.queue_move(&p, None, d.feed_scale, false, 0, false)
+                }
+                Some(DrillStep::Feed(p)) => {
+                    self.queue_move(&p, Some(d.feed_mm_min), d.feed_scale, false, 0, false);
+                }
+                Some(DrillStep::Dwell(ms)) => {
+                    let _ = self.planner.push_dwell(ms, self.line_tag);
+                }
+                None => {
+                    self.drill = None;
+                    continue;
+                }
+            }
+            d.cycle.advance();
+            self.drill = Some(d);
+        }
         while let Some(mut p) = self.arc {
             if self.planner.is_full() {
                 return;
@@ -1090,6 +1188,9 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         if self.homing.is_some() {
             self.homing_step();
         }
+        if self.probing.is_some() {
+            self.probe_step();
+        }
         self.drain_arc();
         if self.stop_requested && self.at_rest() {
             self.stop_requested = false;
@@ -1134,6 +1235,17 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                     .reset(self.tx.shared().consumed_ticks.load(Ordering::Relaxed));
                 self.request_flush();
                 // Keep the cycle going (abort() would end it).
+                return;
+            }
+            Some(StopCause::Probe) => {
+                let isr = self.tx.shared().positions();
+                if let Some(p) = self.probing.as_mut() {
+                    p.tripped = Some(isr);
+                }
+                self.planner.clear();
+                self.prep
+                    .reset(self.tx.shared().consumed_ticks.load(Ordering::Relaxed));
+                self.request_flush();
                 return;
             }
             Some(StopCause::HardLimit(i)) => self.alarm = Some(Alarm::HardLimit { axis: i }),
@@ -1264,6 +1376,72 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         target[axis] += mm_to_nm(mm);
         self.queue_move(&target, Some(feed_mm_min), 1.0, false, switch_mask, false);
         self.interp.pos = target;
+    }
+
+    /// Start a probing move to `target`: the step interrupt stops it when the probe touches
+    /// (or, `away`, loses contact). At the probing feed, not scaled by the feed override (as
+    /// grbl's), and ending at rest: the kernel takes no other line until it is over.
+    fn start_probe(&mut self, target: &[Nm; N], feed_mm_min: f32, away: bool, must_trip: bool) {
+        let q = self.tx.shared();
+        let mode = if away { PROBE_RELEASE } else { PROBE_CONTACT };
+        q.probe.store(mode, Ordering::Relaxed);
+        self.probing = Some(Probing {
+            must_trip,
+            start: q.positions(),
+            tripped: None,
+        });
+        self.queue_move(target, Some(feed_mm_min), 1.0, false, 0, true);
+    }
+
+    /// End the probing move once the machine is at rest: record where the probe tripped (the
+    /// position the kernel goes on from), or lock the machine as grbl does when the probe was
+    /// already tripped at the start ([`Alarm::ProbeFailInitial`]) or, for `G38.2`/`G38.4`,
+    /// never tripped ([`Alarm::ProbeFailContact`]).
+    fn probe_step(&mut self) {
+        let Some(p) = self.probing else { return };
+        if !self.is_idle() {
+            return;
+        }
+        self.probing = None;
+        self.tx.shared().probe.store(PROBE_OFF, Ordering::Relaxed);
+        let machine = self.machine_steps();
+        let machine_nm =
+            core::array::from_fn(|i| steps_to_nm(machine[i], self.config.axes[i].steps_per_mm));
+        let tripped = p.tripped.is_some();
+        self.probe = Some((
+            ProbeReport {
+                machine_nm,
+                tripped,
+            },
+            false,
+        ));
+        if p.tripped == Some(p.start) {
+            self.alarm = Some(Alarm::ProbeFailInitial);
+        } else if !tripped && p.must_trip {
+            self.alarm = Some(Alarm::ProbeFailContact);
+        }
+    }
+
+    /// Whether a probing move (`G38.2`–`G38.5`) is under way: the kernel takes no other line
+    /// until it is over.
+    pub fn is_probing(&self) -> bool {
+        self.probing.is_some()
+    }
+
+    /// The last probing move's outcome (`None` before the first): grbl's `$#` reports it.
+    pub fn probe_report(&self) -> Option<ProbeReport<N>> {
+        self.probe.map(|(r, _)| r)
+    }
+
+    /// The outcome of a probing move that ended since the last call, once.
+    pub fn take_probe_report(&mut self) -> Option<ProbeReport<N>> {
+        match self.probe.as_mut() {
+            Some((r, reported)) if !*reported => {
+                *reported = true;
+                Some(*r)
+            }
+            _ => None,
+        }
     }
 
     fn homing_alarm(&mut self, alarm: Alarm) {

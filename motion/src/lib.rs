@@ -59,6 +59,7 @@ extern crate std;
 mod arc;
 pub mod config;
 pub mod coords;
+mod drill;
 pub mod effect;
 pub mod error;
 pub mod estimate;
@@ -78,7 +79,7 @@ pub use error::{Alarm, CommandError, ConfigError};
 pub use estimate::Estimate;
 pub use interp::NM_PER_MM;
 pub use kernel::{
-    Kernel, MachineState, ModalReport, PlannerSettings, PositionReport, Reply, split,
+    Kernel, MachineState, ModalReport, PlannerSettings, PositionReport, ProbeReport, Reply, split,
 };
 pub use planner::PathLimits;
 pub use preview::{Piece, Preview, Travel};

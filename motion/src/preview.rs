@@ -29,6 +29,7 @@ use forja_protocol::gcode::Line;
 
 use crate::config::{AxisKind, MachineConfig};
 use crate::coords::Coordinates;
+use crate::drill::DrillStep;
 use crate::error::CommandError;
 use crate::interp::{Action, Interpreter, mm_to_nm};
 
@@ -133,6 +134,32 @@ impl<const N: usize> Preview<N> {
                     piece(self.piece(Travel::Feed, at, to));
                     at = to;
                     cutter.advance();
+                }
+                0
+            }
+            Action::Via { via, target } => {
+                piece(self.piece(Travel::Rapid, from, via));
+                piece(self.piece(Travel::Rapid, via, target));
+                0
+            }
+            // The whole way to the target: where the probe stops is the machine's to find.
+            Action::Probe { target, .. } => {
+                piece(self.piece(Travel::Feed, from, target));
+                0
+            }
+            Action::Drill { mut cycle, .. } => {
+                let mut at = from;
+                while let Some(step) = cycle.peek() {
+                    let (travel, to) = match step {
+                        DrillStep::Rapid(to) => (Travel::Rapid, to),
+                        DrillStep::Feed(to) => (Travel::Feed, to),
+                        DrillStep::Dwell(_) => (Travel::Feed, at),
+                    };
+                    if to != at {
+                        piece(self.piece(travel, at, to));
+                    }
+                    at = to;
+                    cycle.advance();
                 }
                 0
             }

@@ -106,6 +106,13 @@ impl Raw {
     }
 }
 
+/// [`StepQueue::probe`]: no probing move.
+pub(crate) const PROBE_OFF: u32 = 0;
+/// [`StepQueue::probe`]: the move stops when the probe touches (`G38.2`, `G38.3`).
+pub(crate) const PROBE_CONTACT: u32 = 1;
+/// [`StepQueue::probe`]: the move stops when the probe loses contact (`G38.4`, `G38.5`).
+pub(crate) const PROBE_RELEASE: u32 = 2;
+
 /// Why the interrupt stopped motion on its own (published in [`StepQueue`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum StopCause {
@@ -117,6 +124,8 @@ pub(crate) enum StopCause {
     Fault(u8),
     /// The queue ran dry while moving.
     Underrun,
+    /// The probe reached the state a probing move waits for.
+    Probe,
 }
 
 impl StopCause {
@@ -126,6 +135,7 @@ impl StopCause {
             Self::HomingSwitch(a) => 0x200 | u32::from(a),
             Self::Fault(a) => 0x300 | u32::from(a),
             Self::Underrun => 0x400,
+            Self::Probe => 0x500,
         }
     }
 
@@ -136,6 +146,7 @@ impl StopCause {
             2 => Some(Self::HomingSwitch(a)),
             3 => Some(Self::Fault(a)),
             4 => Some(Self::Underrun),
+            5 => Some(Self::Probe),
             _ => None,
         }
     }
@@ -175,6 +186,9 @@ pub struct StepQueue<const N: usize, const Q: usize> {
     stop_cause: AtomicU32,
     /// Axes whose switch ends the current (homing) move. Writer: thread.
     pub(crate) homing_mask: AtomicU32,
+    /// What ends the current (probing) move: [`PROBE_OFF`], [`PROBE_CONTACT`] or
+    /// [`PROBE_RELEASE`]. Writer: thread.
+    pub(crate) probe: AtomicU32,
     /// Limit switch input edges reported (wrapping count). Writers: the contexts that hold a
     /// [`SwitchAlert`]; see there why more than one is safe.
     pub(crate) switch_edges: AtomicU32,
@@ -213,6 +227,7 @@ impl<const N: usize, const Q: usize> StepQueue<N, Q> {
             stops: AtomicU32::new(0),
             stop_cause: AtomicU32::new(0),
             homing_mask: AtomicU32::new(0),
+            probe: AtomicU32::new(PROBE_OFF),
             switch_edges: AtomicU32::new(0),
         }
     }
@@ -413,6 +428,7 @@ mod tests {
             StopCause::HomingSwitch(0),
             StopCause::Fault(7),
             StopCause::Underrun,
+            StopCause::Probe,
         ] {
             assert_eq!(StopCause::decode(c.encode()), Some(c));
         }

@@ -18,7 +18,7 @@ use forja_hal_abstraction::stepper::{Direction, Stepper};
 use forja_hal_abstraction::time::{Duration, Instant};
 
 use crate::config::{HomeDirection, MachineConfig};
-use crate::queue::{Consumer, Raw, StepQueue, StopCause, SwitchAlert};
+use crate::queue::{Consumer, PROBE_CONTACT, PROBE_OFF, Raw, StepQueue, StopCause, SwitchAlert};
 
 /// No switch for this axis.
 const NO_SWITCH: u8 = u8::MAX;
@@ -58,6 +58,8 @@ pub struct StepGenerator<'q, const N: usize, const Q: usize> {
     switch_of: [u8; N],
     has_switch: u8,
     switch_neg: u8,
+    /// The probe's index among the switches ([`NO_SWITCH`]: none).
+    probe_of: u8,
     hard_limits: bool,
     pulse: Duration,
 }
@@ -96,6 +98,7 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
             switch_of,
             has_switch,
             switch_neg,
+            probe_of: config.probe_switch.unwrap_or(NO_SWITCH),
             hard_limits: config.hard_limits,
             pulse,
         }
@@ -338,9 +341,10 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
     }
 
     /// Sample every switch before the axes of `rise` step: a switch triggered towards the
-    /// motion of its axis (a homing switch, or any with hard limits on) stops motion. Keeps
-    /// sampling at the following steps until every switch reads released and settled and no
-    /// homing move is under way.
+    /// motion of its axis (a homing switch, or any with hard limits on) stops motion, and so
+    /// does the probe in the state a probing move waits for. Keeps sampling at the following
+    /// steps until every switch reads released and settled and no homing or probing move is
+    /// under way.
     #[cold]
     #[inline(never)]
     fn check_switches<L: LimitSwitch>(
@@ -355,7 +359,17 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         let toward = !(self.dir_neg ^ self.switch_neg);
         let stopping =
             rise & self.has_switch & toward & if self.hard_limits { 0xFF } else { homing };
-        let mut quiet = homing == 0;
+        let probe = q.probe.load(Ordering::Relaxed);
+        let mut quiet = homing == 0 && probe == PROBE_OFF;
+        if probe != PROBE_OFF
+            && let Some(sw) = switches.get_mut(usize::from(self.probe_of))
+        {
+            // A read error counts as contact, as a switch's counts as triggered.
+            let contact = sw.is_triggered().unwrap_or(true);
+            if contact == (probe == PROBE_CONTACT) {
+                return Err(StopCause::Probe);
+            }
+        }
         for (i, idx) in self.switch_of.iter().enumerate() {
             let Some(sw) = switches.get_mut(usize::from(*idx)) else {
                 continue;

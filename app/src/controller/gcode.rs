@@ -306,7 +306,7 @@ where
     pub(super) fn drop_waiting<W: Write>(&mut self, why: &Refusal, out: &mut W) {
         match self.link.held.take() {
             Some(Held::Line) => self.refuse(why, out),
-            Some(Held::Homing | Held::Dwell | Held::Heat { .. }) => self.ok(out),
+            Some(Held::Homing | Held::Dwell | Held::Probe | Held::Heat { .. }) => self.ok(out),
             None => {}
         }
         let mut lb = LineBuf::EMPTY;
@@ -479,6 +479,8 @@ where
                     self.link.held = Some(Held::Homing);
                 } else if line.is_command(b'G', 4) && !self.kernel.is_idle() {
                     self.link.held = Some(Held::Dwell);
+                } else if self.kernel.is_probing() {
+                    self.link.held = Some(Held::Probe);
                 } else {
                     self.ok(out);
                 }
@@ -540,7 +542,7 @@ where
                         return;
                     }
                 }
-                Some(Held::Heat { .. } | Held::Homing | Held::Dwell) => return,
+                Some(Held::Heat { .. } | Held::Homing | Held::Dwell | Held::Probe) => return,
                 None => {}
             }
             let mut lb = LineBuf::EMPTY;

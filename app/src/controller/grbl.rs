@@ -38,7 +38,7 @@ use forja_motion::config::SoftLimits;
 use forja_motion::coords::{Coordinates, Nm, Slot};
 use forja_motion::error::{Alarm as KernelAlarm, CommandError};
 use forja_motion::preview::Preview;
-use forja_motion::{MachineState, Reply as KernelReply};
+use forja_motion::{MachineState, ProbeReport, Reply as KernelReply};
 use forja_protocol::gcode::{Decimal, Line};
 use forja_protocol::grbl::{
     Alarm, Command, Error, Message, Micrometres, Realtime, Restore, State, Status,
@@ -155,6 +155,8 @@ pub(super) fn error_of(code: u16) -> Error {
         128 => Error::IdleError,
         129 => Error::ModalGroupViolation,
         130 => Error::WordRepeated,
+        132 => Error::UnsupportedCommand,
+        133 => Error::AxisWordsExist,
         190 => Error::InvalidStatement,
         191 => Error::ValueOutOfRange,
         _ => Error::InvalidInState,
@@ -170,6 +172,8 @@ fn alarm_of(code: u16) -> Alarm {
         152 => Alarm::HomingFailPulloff,
         153 => Alarm::EStop,
         155 => Alarm::MotorFault,
+        157 => Alarm::ProbeFailInitial,
+        158 => Alarm::ProbeFailContact,
         _ => Alarm::AbortCycle,
     }
 }
@@ -226,6 +230,11 @@ enum Answer {
 /// from the commanded position in work mm and in machine nm.
 fn work_offset<const N: usize>(work_mm: &[f64; N], machine_nm: &[i64; N]) -> [Micrometres; N] {
     core::array::from_fn(|i| machine_nm[i].div_euclid(1000) - micrometres(work_mm[i]))
+}
+
+/// `nm` in whole micrometres, to the nearest (halves up), as grbl rounds what it prints.
+fn nm_to_um(nm: Nm) -> Micrometres {
+    nm.saturating_add(500).div_euclid(1000)
 }
 
 /// A line of a grbl sender without its `N` number (grbl's senders number lines without a
@@ -845,9 +854,7 @@ where
     fn report_parameters<W: Write>(&mut self, out: &mut W) {
         let coords = *self.kernel.coordinates();
         let modal = self.kernel.modal_report();
-        let um =
-            |v: [Nm; N]| -> [Micrometres; N] { core::array::from_fn(|i| v[i].div_euclid(1000)) };
-        let zero = [0 as Micrometres; N];
+        let um = |v: [Nm; N]| -> [Micrometres; N] { core::array::from_fn(|i| nm_to_um(v[i])) };
         let slots = SYSTEM_NAMES
             .iter()
             .zip(0u8..)
@@ -873,15 +880,53 @@ where
         );
         say(
             out,
-            &Message::ToolLengthOffset(modal.tool_length_nm.div_euclid(1000)),
+            &Message::ToolLengthOffset(nm_to_um(modal.tool_length_nm)),
         );
+        let probe = self.kernel.probe_report();
         say(
             out,
             &Message::Probe {
-                position: &zero,
-                touched: false,
+                position: &um(probe.map_or([0; N], |p| p.machine_nm)),
+                touched: probe.is_some_and(|p| p.tripped),
             },
         );
+    }
+
+    /// The outcome of a probing move that just ended: grbl's `[PRB:x,y,z:0|1]` (machine
+    /// position); in the RepRap dialect an `echo:` line with the same.
+    pub(super) fn report_probe<W: Write>(&mut self, probe: &ProbeReport<N>, out: &mut W) {
+        let position: [Micrometres; N] = core::array::from_fn(|i| nm_to_um(probe.machine_nm[i]));
+        if self.speaks_grbl() {
+            say(
+                out,
+                &Message::Probe {
+                    position: &position,
+                    touched: probe.tripped,
+                },
+            );
+            return;
+        }
+        let mut text = Text::<120>::new();
+        let _ = core::fmt::Write::write_str(
+            &mut text,
+            if probe.tripped {
+                "Probe: contact at"
+            } else {
+                "Probe: no contact, stopped at"
+            },
+        );
+        for (letter, um) in self.letters().iter().zip(position) {
+            let _ = core::fmt::Write::write_fmt(
+                &mut text,
+                format_args!(
+                    " {}:{}.{:03}",
+                    *letter as char,
+                    um.div_euclid(1000),
+                    um.rem_euclid(1000)
+                ),
+            );
+        }
+        let _ = wire::reply(out, &forja_protocol::reply::Reply::Echo(text.as_str()));
     }
 
     /// `$G`.
@@ -891,7 +936,7 @@ where
         let _ = core::fmt::Write::write_fmt(
             &mut text,
             format_args!(
-                "G{} {} G{} G{} G{} G94 M{} M9 T0 F{} S{}",
+                "{} {} G{} G{} G{} G94 M{} M9 T0 F{} S{}",
                 m.motion,
                 SYSTEM_NAMES
                     .get(usize::from(m.coordinate_system))

@@ -154,7 +154,7 @@ where
         }
         let waiting = matches!(
             self.link.held,
-            Some(Held::Line | Held::Homing | Held::Dwell)
+            Some(Held::Line | Held::Homing | Held::Dwell | Held::Probe)
         );
         // A grbl sender has no keep-alive line: it polls with `?`.
         if !waiting || self.host.busy_interval_ms == 0 || self.speaks_grbl() {

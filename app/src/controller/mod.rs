@@ -714,6 +714,9 @@ enum Held {
     /// its `ok` is sent when the machine is at rest (a host that ends its job on that `ok`,
     /// CNCjs, ends it when the machine has).
     Dwell,
+    /// A `G38.2`–`G38.5` probing move runs; its `ok` is sent when it ends, after the probe's
+    /// report, as grbl answers it (a sender's probe macro reads `[PRB:…]` before it goes on).
+    Probe,
     /// An `M109`/`M190`/`M116` waits for its heaters; its `ok` is sent when they are there.
     Heat {
         /// What it waits for.
@@ -1273,6 +1276,13 @@ where
         if matches!(self.link.held, Some(Held::Homing))
             && self.kernel.state() != MachineState::Homing
         {
+            self.link.held = None;
+            self.ok(out);
+        }
+        if let Some(probe) = self.kernel.take_probe_report() {
+            self.report_probe(&probe, out);
+        }
+        if matches!(self.link.held, Some(Held::Probe)) && !self.kernel.is_probing() {
             self.link.held = None;
             self.ok(out);
         }

@@ -647,7 +647,8 @@ fn refused_commands_get_a_fault_line_and_ok_and_change_nothing() {
     let mut b = Bench::new();
     b.take();
     assert_eq!(b.ask("M31"), ["echo:Unknown command: \"M31\"", "ok"]);
-    assert_eq!(b.ask("G38.2 X1"), ["echo:Unknown command: \"G38.2\"", "ok"]);
+    assert_eq!(b.ask("G38.6 X1"), ["echo:Unknown command: \"G38.6\"", "ok"]);
+    assert_eq!(b.ask("G38.2 X1"), ["echo:E132 no-probe", "ok"]);
     assert_eq!(b.ask("M106 P7 S100"), ["echo:E194 no-device fan 7", "ok"]);
     assert_eq!(b.ask("T3"), ["echo:E121 bad-value T3", "ok"]);
     assert_eq!(b.ask("M104 S900"), ["echo:E195 device-range", "ok"]);
@@ -658,7 +659,7 @@ fn refused_commands_get_a_fault_line_and_ok_and_change_nothing() {
     assert_eq!(b.ask("G1 X250"), ["echo:E124 soft-limit X", "ok"]);
     b.idle();
     assert_eq!(b.position_mm()[..2], [1.0, 1.0]);
-    assert_eq!(b.ctl.stats().refused, 6);
+    assert_eq!(b.ctl.stats().refused, 7);
 }
 
 #[test]

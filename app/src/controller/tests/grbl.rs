@@ -435,3 +435,68 @@ fn program_end_and_coolant_off_answer_as_grbl() {
     assert_eq!(b.ask("M30"), ["[MSG:Pgm End]", "ok"]);
     assert_eq!(b.ctl.kernel().feed_override_percent(), 100);
 }
+
+#[test]
+fn a_probe_answers_after_its_report_and_sets_what_a_probe_macro_expects() {
+    let mut config = machine();
+    config.probe_switch = Some(2);
+    let mut b = Bench::with_machine(config);
+    // The probe: a touch plate the tool meets 2.5 mm below where Z starts (400 steps/mm).
+    b.wiring.add_switch(2, -1000, true);
+    b.take();
+    b.send_raw(&[0x18]);
+    b.run_ms(5);
+    b.take();
+    // CNCjs's "probe Z" macro: relative probe down, then the plate's thickness as work Z.
+    assert_eq!(b.ask("G91"), ["ok"]);
+    b.send("G38.2 Z-10 F100");
+    b.run_ms(20);
+    assert_eq!(
+        b.take(),
+        Vec::<String>::new(),
+        "no ok while the probe moves"
+    );
+    b.idle();
+    b.run_ms(5);
+    assert_eq!(b.take(), ["[PRB:0.000,0.000,-2.500:1]", "ok"]);
+    assert_eq!(b.position_mm()[2], -2.5);
+    assert_eq!(b.ask("G90"), ["ok"]);
+    assert_eq!(b.ask("G10 L20 P1 Z0.5"), ["ok"]);
+    let params = b.ask("$#");
+    assert!(
+        params.contains(&"[G54:0.000,0.000,-3.000]".to_string()),
+        "{params:?}"
+    );
+    assert!(
+        params.contains(&"[PRB:0.000,0.000,-2.500:1]".to_string()),
+        "{params:?}"
+    );
+    // Probing again while touching the plate: grbl's ALARM:4, and nothing moves.
+    b.send("G38.2 Z-12 F100");
+    b.idle();
+    b.run_ms(5);
+    let out = b.take();
+    assert!(out.contains(&"ALARM:4".to_string()), "{out:?}");
+    assert_eq!(b.position_mm()[2], -2.5);
+    assert_eq!(b.ask("$X"), ["[MSG:Caution: Unlocked]", "ok"]);
+    // Up and away from the plate (work Z 3 is machine Z 0): G38.4 stops where the contact
+    // opens, one step above it.
+    b.send("G38.4 Z3 F50");
+    b.idle();
+    b.run_ms(5);
+    assert_eq!(b.take(), ["[PRB:0.000,0.000,-2.497:1]", "ok"]);
+}
+
+#[test]
+fn drilling_cycles_run_in_the_grbl_dialect_and_the_parser_state_names_them() {
+    let mut b = grbl();
+    assert_eq!(b.ask("G0 X10 Y10 Z5"), ["ok"]);
+    assert_eq!(b.ask("G99 G83 X20 Y20 Z-3 R1 Q1 F300"), ["ok"]);
+    assert_eq!(b.ask("X30"), ["ok"]);
+    let state = b.ask("$G");
+    assert!(state[0].starts_with("[GC:G83 G54 G17 G21 G90"), "{state:?}");
+    assert_eq!(b.ask("G80"), ["ok"]);
+    assert_eq!(b.ask("X40"), ["error:31"]);
+    b.idle();
+    assert_eq!(b.position_mm(), [30.0, 20.0, 1.0]);
+}

@@ -7,7 +7,8 @@ fn a_command_the_firmware_lacks_is_unknown_not_an_error() {
     let mut b = Bench::new();
     b.take();
     assert_eq!(b.ask("M123 S1"), ["echo:Unknown command: \"M123\"", "ok"]);
-    assert_eq!(b.ask("G38.2 X1"), ["echo:Unknown command: \"G38.2\"", "ok"]);
+    assert_eq!(b.ask("G38.6 X1"), ["echo:Unknown command: \"G38.6\"", "ok"]);
+    assert_eq!(b.ask("G38.2 X1"), ["echo:E132 no-probe", "ok"]);
     assert_eq!(b.ctl.stats().executed, 0);
 }
 
