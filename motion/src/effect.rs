@@ -67,6 +67,12 @@ pub enum Spindle {
     },
     /// `M5`: stopped.
     Off,
+    /// `S` alone on a line: the speed of the spindle if it runs, and of the next `M3`/`M4`
+    /// without `S`.
+    Speed {
+        /// The `S` word.
+        rpm: Decimal,
+    },
 }
 
 /// Coolant state (`M7`/`M8`/`M9`), as grbl and LinuxCNC have it: mist and flood are turned on

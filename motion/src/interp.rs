@@ -311,6 +311,9 @@ pub(crate) struct Interpreter<const N: usize> {
     cycle: CycleWords,
     plane: Plane,
     pub(crate) feed_mm_min: f32,
+    /// The spindle speed (`S`), rpm: of `M3`/`M4` without `S`, and carried by the moves
+    /// planned while it is in force (an `S` on a motion line changes it with that motion).
+    spindle_rpm: u32,
     /// Feed-rate override (`M220`), percent.
     feed_percent: u16,
     /// What `M220 B` backed up and `M220 R` restores, percent.
@@ -406,6 +409,11 @@ fn spindle_speed(s: Option<Decimal>) -> Result<Option<Decimal>, CommandError> {
     }
 }
 
+/// The rpm of a checked `S` word ([`spindle_speed`]), rounded.
+fn rpm_of(s: Decimal) -> u32 {
+    libm::round(s.to_f64()).clamp(0.0, f64::from(u32::MAX)) as u32
+}
+
 /// The `G28` flags that are not axes and change nothing here: Prusa's `W` (home without mesh
 /// levelling; there is no mesh).
 const HOMING_FLAGS: &[u8] = b"W";
@@ -499,10 +507,16 @@ impl<const N: usize> Interpreter<N> {
             cycle: CycleWords::default(),
             plane: Plane::Xy,
             feed_mm_min: config.default_feed_mm_min,
+            spindle_rpm: 0,
             feed_percent: 100,
             feed_percent_backup: 100,
             flow_percent: [100; N],
         }
+    }
+
+    /// The spindle speed in force (`S`), rpm.
+    pub(crate) fn spindle_rpm(&self) -> u32 {
+        self.spindle_rpm
     }
 
     /// The feed-rate override (`M220`), percent.
@@ -765,6 +779,14 @@ impl<const N: usize> Interpreter<N> {
         match command {
             Some((letter, n)) => self.command(letter, n, line, config, coords),
             None => {
+                // `S` without a command: the spindle speed, alone or with the line's motion.
+                let speed = match spindle_speed(line.get(b'S'))? {
+                    Some(s) => {
+                        self.spindle_rpm = rpm_of(s);
+                        Some(s)
+                    }
+                    None => None,
+                };
                 if let Some(m) = motion {
                     let was_cycle = matches!(self.motion, Motion::Cycle(_));
                     if let (Motion::Cycle(_), false) = (m, was_cycle) {
@@ -787,10 +809,14 @@ impl<const N: usize> Interpreter<N> {
                 );
                 if has_axis || (motion.is_some() && acts_alone) {
                     self.motion_line(line, config, machine_coords)
+                } else if let (Some(rpm), None) = (speed, motion) {
+                    only_words(line, b"FS")?;
+                    Ok(Action::Effect(Effect::Spindle(Spindle::Speed { rpm })))
                 } else {
                     // Unknown letters on a line without a command are reported.
                     for w in line.words() {
-                        let known = matches!(w.letter, b'G' | b'F' | b'I' | b'J' | b'K' | b'R');
+                        let known =
+                            matches!(w.letter, b'G' | b'F' | b'I' | b'J' | b'K' | b'R' | b'S');
                         if !known && config.axis_index(w.letter).is_none() {
                             return Err(CommandError::UnknownAxis { letter: w.letter });
                         }
@@ -910,7 +936,7 @@ impl<const N: usize> Interpreter<N> {
         }
         let cycle = matches!(self.motion, Motion::Cycle(_));
         for w in line.words() {
-            let known = matches!(w.letter, b'G' | b'F' | b'I' | b'J' | b'K' | b'R')
+            let known = matches!(w.letter, b'G' | b'F' | b'I' | b'J' | b'K' | b'R' | b'S')
                 || (cycle && matches!(w.letter, b'P' | b'Q' | b'L'));
             if !known && config.axis_index(w.letter).is_none() {
                 return Err(CommandError::UnknownAxis { letter: w.letter });
@@ -1406,12 +1432,17 @@ impl<const N: usize> Interpreter<N> {
                 Action::None
             }
             (b'M', 114) => Action::Report,
-            (b'M', 3) => Action::Effect(Effect::Spindle(Spindle::Clockwise {
-                rpm: spindle_speed(s)?,
-            })),
-            (b'M', 4) => Action::Effect(Effect::Spindle(Spindle::CounterClockwise {
-                rpm: spindle_speed(s)?,
-            })),
+            (b'M', 3 | 4) => {
+                let rpm = spindle_speed(s)?;
+                if let Some(v) = rpm {
+                    self.spindle_rpm = rpm_of(v);
+                }
+                Action::Effect(Effect::Spindle(if n == 3 {
+                    Spindle::Clockwise { rpm }
+                } else {
+                    Spindle::CounterClockwise { rpm }
+                }))
+            }
             (b'M', 5) => Action::Effect(Effect::Spindle(Spindle::Off)),
             (b'M', 7) => Action::Effect(Effect::Coolant(Coolant::Mist)),
             (b'M', 8) => Action::Effect(Effect::Coolant(Coolant::Flood)),

@@ -5,7 +5,7 @@ use core::sync::atomic::Ordering;
 
 use forja_hal_abstraction::stepper::StepTiming;
 use forja_hal_abstraction::time::{Duration, Instant};
-use forja_protocol::gcode::{Decimal, Line};
+use forja_protocol::gcode::{Decimal, Line, MAX_WORDS, Word};
 
 use crate::arc::{ArcCutter, Nm};
 use crate::config::{AxisKind, MachineConfig, SoftLimits};
@@ -100,6 +100,21 @@ pub struct ModalReport<const N: usize> {
     pub tool_length_nm: i64,
     /// The `G92` offset of each axis, nm (grbl's sign: work = machine − origin − this).
     pub g92_nm: [i64; N],
+}
+
+/// The motion now ([`Kernel::motion_now`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MotionNow {
+    /// The speed along the path, mm/min; 0 at rest.
+    pub speed_mm_min: f32,
+    /// That speed as a fraction of the move's programmed speed (after the overrides): 0 at
+    /// rest, 1 at the programmed speed, below it while accelerating, decelerating or cornering.
+    pub fraction: f32,
+    /// The move is a rapid (`G0`).
+    pub rapid: bool,
+    /// The spindle speed (`S`) in force for the move, rpm; at rest, the one the lines taken so
+    /// far set.
+    pub spindle_rpm: u32,
 }
 
 /// The machine's state, as the controller reports it.
@@ -245,6 +260,10 @@ pub struct Kernel<'q, const N: usize, const B: usize = 32, const Q: usize = 256>
     /// The last probing move's outcome, and whether it was reported since.
     probe: Option<(ProbeReport<N>, bool)>,
     flush: Option<u32>,
+    /// The realtime feed and rapid overrides, percent.
+    overrides: (u16, u16),
+    /// The spindle speed the moves queued now carry, rpm.
+    block_rpm: u32,
     stops_seen: u32,
     lead_ticks: u32,
     line_tag: u32,
@@ -311,6 +330,8 @@ pub fn split<'q, const N: usize, const B: usize, const Q: usize>(
         probing: None,
         probe: None,
         flush: None,
+        overrides: (100, 100),
+        block_rpm: 0,
         stops_seen: queue.stops.load(Ordering::Relaxed),
         lead_ticks: lead,
         line_tag: 0,
@@ -501,9 +522,62 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         if line.is_empty() {
             return Ok(Reply::Ok);
         }
+        if let Some((first, then)) = split_spindle_and_motion(line) {
+            return self.execute_in_order(first, &then);
+        }
         let mut next = self.interp;
         let action = next.interpret(line, &self.config, &self.coords)?;
         self.act(action, next)
+    }
+
+    /// A line with both a spindle or coolant command and motion (`G0 X0 Y0 S16000 M3`, as CAM
+    /// posts write them): the command first, at rest after the motion before it, then the
+    /// motion (RS274's order of execution). Both are checked before either acts: a refused
+    /// line changes nothing.
+    fn execute_in_order<'l>(
+        &mut self,
+        first: Line<'l>,
+        then: &Line<'l>,
+    ) -> Result<Reply<'l, N>, CommandError> {
+        let mut next = self.interp;
+        let command = next.interpret(&first, &self.config, &self.coords)?;
+        let mut after = next;
+        let motion = after.interpret(then, &self.config, &self.coords)?;
+        let Action::Effect(effect) = command else {
+            return Err(CommandError::ModalConflict);
+        };
+        self.check_action(&motion)?;
+        match self.act(Action::Effect(effect), next)? {
+            Reply::Effect(e) => {
+                // At rest: the motion is taken (checked above, the planner empty).
+                let _ = self.act(motion, after)?;
+                Ok(Reply::Effect(e))
+            }
+            other => Ok(other),
+        }
+    }
+
+    /// Refuse `action` as [`Kernel::act`] would for the place it goes to, without acting.
+    fn check_action(&self, action: &Action<'_, N>) -> Result<(), CommandError> {
+        match *action {
+            Action::Move { target, .. } | Action::Probe { target, .. } => {
+                self.check_move(&target, &target)
+            }
+            Action::Arc { cutter, .. } => {
+                let (lo, hi) = cutter.bounds();
+                self.check_move(&lo, &hi)
+            }
+            Action::Drill { cycle, .. } => {
+                let (lo, hi) = cycle.bounds();
+                self.check_move(&lo, &hi)
+            }
+            Action::Via { via, target } => {
+                self.check_move(&via, &via)?;
+                self.check_move(&target, &target)
+            }
+            Action::None | Action::Dwell { .. } => Ok(()),
+            _ => Err(CommandError::ModalConflict),
+        }
     }
 
     /// A rapid move to `target` (machine nm), as a `G0` naming every axis would be taken:
@@ -564,6 +638,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return Ok(Reply::Busy);
         }
         let idle = self.is_idle();
+        self.block_rpm = next.spindle_rpm();
         let reply = match action {
             Action::None => Reply::Ok,
             Action::SetCoordinates { slot, values } => {
@@ -815,7 +890,49 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
     }
 
-    /// The feed-rate override, percent (`M220`, grbl's `0x90`–`0x94`).
+    /// The realtime feed and rapid overrides (grbl's `0x90`–`0x98`), percent.
+    pub fn realtime_overrides(&self) -> (u16, u16) {
+        self.overrides
+    }
+
+    /// Set the realtime overrides, percent: `feed` scales every feed move and `rapid` every
+    /// rapid, those queued and the one under way included, at once (grbl's overrides; homing
+    /// and probing are not scaled). Back to 100 % at [`Kernel::reset`].
+    pub fn set_realtime_overrides(&mut self, feed: u16, rapid: u16) {
+        self.overrides = (feed, rapid);
+        let tail = self
+            .planner
+            .set_overrides(f32::from(feed) / 100.0, f32::from(rapid) / 100.0);
+        if let Some(nominal_sqr) = tail {
+            self.prep.set_nominal(nominal_sqr);
+        }
+    }
+
+    /// The motion now, as prepared (`queue_lead_ms` ahead of the steps): grbl's realtime feed
+    /// rate (`FS:`), and what a laser's power follows.
+    pub fn motion_now(&self) -> MotionNow {
+        match self.prep.motion() {
+            Some((v, fraction, rapid, spindle_rpm)) if !self.at_rest() => MotionNow {
+                speed_mm_min: (v * 60.0) as f32,
+                fraction: fraction as f32,
+                rapid,
+                spindle_rpm,
+            },
+            _ => MotionNow {
+                speed_mm_min: 0.0,
+                fraction: 0.0,
+                rapid: false,
+                spindle_rpm: self.interp.spindle_rpm(),
+            },
+        }
+    }
+
+    /// The speed along the path now, mm/min (0 at rest): grbl's realtime feed rate (`FS:`).
+    pub fn speed_mm_min(&self) -> f32 {
+        self.motion_now().speed_mm_min
+    }
+
+    /// The feed-rate override, percent (`M220`).
     pub fn feed_override_percent(&self) -> u16 {
         self.interp.feed_percent()
     }
@@ -903,6 +1020,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         self.halted = false;
         self.paused = false;
         self.interp.reset_modal(&self.config, &self.coords);
+        self.set_realtime_overrides(100, 100);
     }
 
     /// Stop the interrupt side at once and drop everything; `lose_homing` forgets the homed axes.
@@ -1106,6 +1224,9 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         );
         req.feed_scale = feed_scale;
         req.exact_stop = exact_stop;
+        // Homing and probing run at their own feeds whatever the overrides.
+        req.fixed = homing_mask != 0 || self.homing.is_some() || self.probing.is_some();
+        req.spindle_rpm = self.block_rpm;
         let _ = self.planner.push_move(&req, &self.config);
     }
 
@@ -1448,6 +1569,47 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         self.abort(true, false);
         self.alarm = Some(alarm);
     }
+}
+
+/// The spindle and coolant commands that may share a line with motion.
+fn is_spindle_or_coolant(w: &Word) -> bool {
+    w.letter == b'M' && matches!(w.value.as_integer(), Some(3 | 4 | 5 | 7 | 8 | 9))
+}
+
+/// A line with one spindle or coolant `M` word (with its `S`) and motion, as two lines in the
+/// order they act: the command, then the rest. `None` for any other line.
+fn split_spindle_and_motion<'l>(line: &Line<'l>) -> Option<(Line<'l>, Line<'l>)> {
+    let words = line.words();
+    if words.iter().filter(|w| is_spindle_or_coolant(w)).count() != 1
+        || words
+            .iter()
+            .any(|w| w.letter == b'M' && !is_spindle_or_coolant(w))
+    {
+        return None;
+    }
+    let mut first = [Word::bare(b'S'); MAX_WORDS];
+    let mut rest = [Word::bare(b'S'); MAX_WORDS];
+    let (mut n_first, mut n_rest) = (0, 0);
+    for w in words {
+        let (slot, n) = if is_spindle_or_coolant(w) || w.letter == b'S' {
+            (&mut first, &mut n_first)
+        } else {
+            (&mut rest, &mut n_rest)
+        };
+        if let Some(s) = slot.get_mut(*n) {
+            *s = *w;
+            *n += 1;
+        }
+    }
+    let (first, rest) = (first.get(..n_first)?, rest.get(..n_rest)?);
+    // Only `F` or nothing besides the command: a line of its own.
+    if rest.iter().all(|w| w.letter == b'F') {
+        return None;
+    }
+    Some((
+        Line::from_parts(None, first, None).ok()?,
+        Line::from_parts(None, rest, None).ok()?,
+    ))
 }
 
 /// The refusal of a setting that leaves `config` invalid: a bad value of the axis the error

@@ -79,7 +79,8 @@ pub use error::{Alarm, CommandError, ConfigError};
 pub use estimate::Estimate;
 pub use interp::NM_PER_MM;
 pub use kernel::{
-    Kernel, MachineState, ModalReport, PlannerSettings, PositionReport, ProbeReport, Reply, split,
+    Kernel, MachineState, ModalReport, MotionNow, PlannerSettings, PositionReport, ProbeReport,
+    Reply, split,
 };
 pub use planner::PathLimits;
 pub use preview::{Piece, Preview, Travel};

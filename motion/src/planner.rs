@@ -16,6 +16,13 @@
 //! The oldest block (`tail`) belongs to segment preparation once it has started on it: the
 //! passes never change its entry speed, only its exit (the next block's entry), and
 //! preparation caps that exit at what it can still reach from where it is.
+//!
+//! **Realtime overrides** (grbl's `0x90`–`0x98`, [`Planner::set_overrides`]) scale the
+//! nominal speed of every block in the ring at once, the oldest included, and of the blocks
+//! added after: feed moves by the feed override, rapids by the rapid override. Each block keeps
+//! what its speed is made of (the feed before the overrides, the slowest feed of its kind, the
+//! axes' cap, its corner speed), so that a change re-derives its nominal and maximum entry
+//! speeds and re-plans the whole ring.
 
 use libm::sqrtf;
 
@@ -52,6 +59,52 @@ pub(crate) struct Block<const N: usize> {
     pub line: u32,
     /// Axes whose switch ends this move (homing).
     pub homing_mask: u8,
+    /// What the nominal speed is made of, for the realtime overrides.
+    pub speed: SpeedParts,
+    /// The spindle speed (`S`) in force for the move, rpm.
+    pub spindle_rpm: u32,
+}
+
+/// The parts of a block's nominal and maximum entry speeds that the realtime overrides do not
+/// change, kept so that an override change can work them out again.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct SpeedParts {
+    /// The speed asked for before the realtime overrides, mm/s (a rapid: the axes' cap).
+    pub wanted: f32,
+    /// The slowest speed of the block's kind ([`PathLimits`]), mm/s; 0 for none.
+    pub floor: f32,
+    /// The fastest the axes allow along the block, mm/s.
+    pub cap: f32,
+    /// The junction's corner speed with the block before, squared; 0 when it starts at rest.
+    pub junction_sqr: f32,
+    /// A rapid: the rapid override scales it, else the feed override.
+    pub rapid: bool,
+    /// A homing or probing move: no override scales it (grbl's rule).
+    pub fixed: bool,
+    /// A feed ramp: it may enter above its own nominal speed (up to `cap`).
+    pub ramp: bool,
+}
+
+impl SpeedParts {
+    const NONE: Self = Self {
+        wanted: 0.0,
+        floor: 0.0,
+        cap: 0.0,
+        junction_sqr: 0.0,
+        rapid: false,
+        fixed: false,
+        ramp: false,
+    };
+
+    /// The nominal speed under the overrides `feed` and `rapid` (factors), mm/s.
+    fn nominal(&self, feed: f32, rapid: f32) -> f32 {
+        let scale = match (self.fixed, self.rapid) {
+            (true, _) => 1.0,
+            (false, true) => rapid,
+            (false, false) => feed,
+        };
+        (self.wanted * scale).max(self.floor).min(self.cap)
+    }
 }
 
 impl<const N: usize> Block<N> {
@@ -65,6 +118,8 @@ impl<const N: usize> Block<N> {
         entry_sqr: 0.0,
         line: 0,
         homing_mask: 0,
+        speed: SpeedParts::NONE,
+        spindle_rpm: 0,
     };
 }
 
@@ -186,6 +241,10 @@ pub(crate) struct MoveRequest<const N: usize> {
     pub homing_mask: u8,
     /// `G61`: the move starts from rest (the one before it ends at rest).
     pub exact_stop: bool,
+    /// A homing or probing move: the realtime overrides do not scale it.
+    pub fixed: bool,
+    /// The spindle speed (`S`) in force for the move, rpm.
+    pub spindle_rpm: u32,
 }
 
 impl<const N: usize> MoveRequest<N> {
@@ -214,6 +273,8 @@ impl<const N: usize> MoveRequest<N> {
             line,
             homing_mask,
             exact_stop: false,
+            fixed: homing_mask != 0,
+            spindle_rpm: 0,
         }
     }
 }
@@ -227,6 +288,10 @@ pub(crate) struct Planner<const N: usize, const B: usize> {
     len: usize,
     previous: Option<Previous<N>>,
     limits: PathLimits,
+    /// The realtime feed override, as a factor.
+    feed_override: f32,
+    /// The realtime rapid override, as a factor.
+    rapid_override: f32,
 }
 
 const fn next(i: usize, b: usize) -> usize {
@@ -247,7 +312,48 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             len: 0,
             previous: None,
             limits: PathLimits::NONE,
+            feed_override: 1.0,
+            rapid_override: 1.0,
         }
+    }
+
+    /// Scale feed moves by `feed` and rapids by `rapid` (factors), from now on and for every
+    /// block in the ring, the oldest included; re-plan the ring. Returns the oldest block's
+    /// new nominal speed squared, for the preparation working on it.
+    pub(crate) fn set_overrides(&mut self, feed: f32, rapid: f32) -> Option<f32> {
+        self.feed_override = feed;
+        self.rapid_override = rapid;
+        let mut before: Option<f32> = None;
+        for k in 0..self.len {
+            let Some(b) = self.blocks.get_mut((self.tail + k) % B) else {
+                continue;
+            };
+            if b.kind != BlockKind::Move {
+                before = None;
+                continue;
+            }
+            let nominal = b.speed.nominal(feed, rapid);
+            b.nominal_sqr = nominal * nominal;
+            // The oldest block has already entered: its entry stays as it is.
+            if k > 0 {
+                let own = if b.speed.ramp {
+                    b.speed.cap * b.speed.cap
+                } else {
+                    b.nominal_sqr
+                };
+                b.max_entry_sqr = match before {
+                    Some(p) => b.speed.junction_sqr.min(p).min(own),
+                    None => 0.0,
+                };
+            }
+            before = Some(b.nominal_sqr);
+        }
+        if let (Some(p), Some(n)) = (self.previous.as_mut(), before) {
+            p.nominal_sqr = n;
+        }
+        self.planned = self.tail;
+        self.recalculate();
+        self.tail().map(|b| b.nominal_sqr)
     }
 
     /// The limits along the path that moves are planned with.
@@ -385,21 +491,33 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             None => rate * req.feed_scale,
         };
         let floor = self.limits.min_feed_mm_s(kind);
-        let nominal = if floor > 0.0 {
-            wanted.max(floor * length / feed_len)
-        } else {
-            wanted
-        }
-        .min(rate);
+        let junction_sqr = match (self.len, self.previous) {
+            (0, _) | (_, None) => 0.0,
+            _ if req.exact_stop => 0.0,
+            (_, Some(p)) => junction_speed_sqr(&p.unit, &unit, config, cap),
+        };
+        let speed = SpeedParts {
+            wanted,
+            floor: if floor > 0.0 {
+                floor * length / feed_len
+            } else {
+                0.0
+            },
+            cap: rate,
+            junction_sqr,
+            rapid: req.feed_mm_min.is_none(),
+            fixed: req.fixed,
+            ramp: req.ramp,
+        };
+        let nominal = speed.nominal(self.feed_override, self.rapid_override);
         let nominal_sqr = nominal * nominal;
         let max_entry_sqr = match (self.len, self.previous) {
             (0, _) | (_, None) => 0.0,
             _ if req.exact_stop => 0.0,
             (_, Some(p)) => {
-                let junction = junction_speed_sqr(&p.unit, &unit, config, cap);
                 // A feed ramp may enter above its own feed, never above what its axes allow.
                 let own = if req.ramp { rate * rate } else { nominal_sqr };
-                junction.min(p.nominal_sqr).min(own)
+                junction_sqr.min(p.nominal_sqr).min(own)
             }
         };
         let block = Block {
@@ -412,6 +530,8 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             entry_sqr: 0.0,
             line: req.line,
             homing_mask: req.homing_mask,
+            speed,
+            spindle_rpm: req.spindle_rpm,
         };
         self.insert(block);
         self.previous = Some(Previous { unit, nominal_sqr });
@@ -548,6 +668,8 @@ mod tests {
             line: 0,
             homing_mask: 0,
             exact_stop: false,
+            fixed: false,
+            spindle_rpm: 0,
         }
     }
 
@@ -650,6 +772,8 @@ mod tests {
             line: 0,
             homing_mask: 0,
             exact_stop: false,
+            fixed: false,
+            spindle_rpm: 0,
         }
     }
 

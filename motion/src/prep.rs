@@ -417,6 +417,10 @@ pub(crate) struct Prep<const N: usize> {
     hold: bool,
     held: bool,
     line: u32,
+    /// The block in preparation is a rapid.
+    rapid: bool,
+    /// The spindle speed of the block in preparation, rpm.
+    spindle_rpm: u32,
 }
 
 impl<const N: usize> Prep<N> {
@@ -443,6 +447,8 @@ impl<const N: usize> Prep<N> {
             hold: false,
             held: false,
             line: 0,
+            rapid: false,
+            spindle_rpm: 0,
         }
     }
 
@@ -469,6 +475,30 @@ impl<const N: usize> Prep<N> {
         if !hold {
             self.held = false;
         }
+    }
+
+    /// A realtime override changed the nominal speed of the block in preparation (squared):
+    /// re-plan the rest of it from the last prepared step.
+    pub(crate) fn set_nominal(&mut self, nominal_sqr: f32) {
+        if let Some(cur) = self.cur.as_mut() {
+            cur.nominal = sqrt(f64::from(nominal_sqr));
+            // Never equal to the planner's exit: the next fill re-anchors.
+            cur.exit_used = f32::NAN;
+        }
+    }
+
+    /// The motion in preparation: its speed along the path at the last prepared step (mm/s,
+    /// 0 at rest: the speed now, `queue_lead_ms` ahead), that speed as a fraction of the
+    /// block's nominal speed, whether the block is a rapid, and its spindle speed (rpm).
+    pub(crate) fn motion(&self) -> Option<(f64, f64, bool, u32)> {
+        let cur = self.cur.as_ref()?;
+        let v = cur.profile.speed_at(cur.last_s - cur.s_anchor);
+        let fraction = if cur.nominal > 0.0 {
+            v / cur.nominal
+        } else {
+            0.0
+        };
+        Some((v, fraction, self.rapid, self.spindle_rpm))
     }
 
     /// Whether a hold has come to rest in the prepared stream.
@@ -629,6 +659,8 @@ impl<const N: usize> Prep<N> {
             cruise: [Cruise::default(); N],
         };
         self.line = block.line;
+        self.rapid = block.speed.rapid;
+        self.spindle_rpm = block.spindle_rpm;
         cur.profile = cur.profile_for(self.v_carry, exit_sqr, self.hold);
         cur.plan_cruise(self.ticks_per_s);
         for i in 0..N {

@@ -518,3 +518,89 @@ fn reversals_at_corners_honour_the_direction_set_up_time() {
     assert_eq!(r.position, [0, steps(100.0), 0]);
     assert!(r.violations.is_empty(), "{:?}", r.violations);
 }
+
+#[test]
+fn realtime_overrides_change_the_move_under_way_and_those_queued() {
+    let run = |change: Option<(u16, u16)>| {
+        let mut q = StepQueue::<3, 256>::new();
+        let mut s = sim(&mut q, machine(), HZ);
+        s.send("G1 X20 F600").expect("ok");
+        s.send("G1 X40").expect("ok");
+        s.send("G0 X100").expect("ok");
+        s.advance(u64::from(HZ));
+        let before = s.kernel.speed_mm_min();
+        if let Some((feed, rapid)) = change {
+            s.kernel.set_realtime_overrides(feed, rapid);
+        }
+        s.advance(u64::from(HZ) / 2);
+        let after = s.kernel.speed_mm_min();
+        assert!(s.run_until_idle(60 * u64::from(HZ)));
+        let r = s.record();
+        assert_eq!(r.position[0], steps(100.0));
+        assert!(r.violations.is_empty(), "{:?}", r.violations);
+        (s.now(), before, after)
+    };
+    let (plain, before, after) = run(None);
+    assert!(
+        (before - 600.0).abs() < 1.0 && (after - 600.0).abs() < 1.0,
+        "{before} {after}"
+    );
+    // Twice the feed from the second second on: the 30 mm of feed left at 1200 mm/min.
+    let (faster, _, after) = run(Some((200, 100)));
+    assert!((after - 1200.0).abs() < 1.0, "{after}");
+    let saved = plain - faster;
+    // About 1.5 s saved (30 mm in half the time), the rapid unchanged.
+    assert!((1_350_000..1_650_000).contains(&saved), "{plain} {faster}");
+    // A quarter of the rapid: the 60 mm of rapid at 1500 mm/min instead of 6000.
+    let (slow_rapid, _, _) = run(Some((100, 25)));
+    let lost = slow_rapid - plain;
+    assert!(
+        (1_700_000..2_100_000).contains(&lost),
+        "{plain} {slow_rapid}"
+    );
+}
+
+#[test]
+fn a_spindle_command_on_a_motion_line_acts_first_at_rest_and_s_rides_on_the_moves() {
+    use forja_motion::effect::Spindle;
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    s.send("G1 X10 F3000").expect("ok");
+    // The command waits for the motion before it (the line is offered again).
+    let line = Line::parse(b"G0 X20 Y5 S16000 M3").unwrap();
+    assert_eq!(s.kernel.execute(&line), Ok(Reply::Busy));
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    match s.kernel.execute(&line) {
+        Ok(Reply::Effect(Effect::Spindle(Spindle::Clockwise { rpm: Some(rpm) }))) => {
+            assert_eq!(rpm.as_integer(), Some(16000));
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(s.positions()[..2], [steps(20.0), steps(5.0)]);
+    // A line refused in its motion changes nothing, its command included.
+    let far = Line::parse(b"G1 X10000 M5").unwrap();
+    assert_eq!(
+        s.kernel.execute(&far),
+        Err(CommandError::OutOfReach { axis: 0 })
+    );
+    // `S` on motion lines: carried by the moves; alone: an effect.
+    s.send("G1 X30 S8000").expect("ok");
+    s.advance(u64::from(HZ) / 10);
+    let now = s.kernel.motion_now();
+    assert_eq!(now.spindle_rpm, 8000);
+    assert!(
+        now.speed_mm_min > 0.0 && now.fraction > 0.0 && !now.rapid,
+        "{now:?}"
+    );
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    let alone = Line::parse(b"S9000").unwrap();
+    match s.kernel.execute(&alone) {
+        Ok(Reply::Effect(Effect::Spindle(Spindle::Speed { rpm }))) => {
+            assert_eq!(rpm.as_integer(), Some(9000));
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(s.kernel.motion_now().spindle_rpm, 9000);
+    assert_eq!(s.send("S-1"), Err(CommandError::BadValue { letter: b'S' }));
+}

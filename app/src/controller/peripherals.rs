@@ -433,12 +433,26 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
     }
 
     /// Start, reverse or stop the spindle (`M3`, `M4`, `M5`); a speed of `None` is the last
-    /// one that ran.
+    /// one that ran. `S` alone sets the speed of the running spindle (of the next start when
+    /// it is stopped, or on a machine without one).
     pub(crate) fn set_spindle(&mut self, command: Spindle) -> Result<(), PeripheralError> {
+        if let Spindle::Speed { rpm } = command {
+            let rpm = rpm_or(rpm.round_to_scale(0), self.rpm);
+            self.rpm = rpm;
+            return match (self.spindle, self.parts.spindle()) {
+                (Some((rotation, _)), Some(spindle)) => {
+                    spindle.run(rotation, rpm)?;
+                    self.spindle = Some((rotation, rpm));
+                    Ok(())
+                }
+                _ => Ok(()),
+            };
+        }
         let spindle = self.parts.spindle().ok_or(PeripheralError::NoDevice)?;
         let (rotation, rpm) = match command {
             Spindle::Clockwise { rpm } => (Rotation::Clockwise, rpm),
             Spindle::CounterClockwise { rpm } => (Rotation::CounterClockwise, rpm),
+            Spindle::Speed { .. } => return Ok(()),
             Spindle::Off => {
                 spindle.stop()?;
                 self.spindle = None;
