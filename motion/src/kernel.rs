@@ -1578,7 +1578,7 @@ fn is_spindle_or_coolant(w: &Word) -> bool {
 
 /// A line with one spindle or coolant `M` word (with its `S`) and motion, as two lines in the
 /// order they act: the command, then the rest. `None` for any other line.
-fn split_spindle_and_motion<'l>(line: &Line<'l>) -> Option<(Line<'l>, Line<'l>)> {
+pub(crate) fn split_spindle_and_motion<'l>(line: &Line<'l>) -> Option<(Line<'l>, Line<'l>)> {
     let words = line.words();
     if words.iter().filter(|w| is_spindle_or_coolant(w)).count() != 1
         || words

@@ -102,6 +102,12 @@ impl<const N: usize> Preview<N> {
         preview
     }
 
+    /// Read the lines after this in the grbl dialect's meanings (`G28`/`G30` to the stored
+    /// positions), as a link in the grbl dialect runs them, or in the RepRap dialect's.
+    pub fn set_grbl_dialect(&mut self, grbl: bool) {
+        self.interp.grbl = grbl;
+    }
+
     /// Take the program's next line: `piece` is called for each straight [`Piece`] it moves
     /// along, in order. Returns the axes the line homed (bit `i` for axis `i`; 0 for a line
     /// that does not home): the path starts again where homing left them.
@@ -112,6 +118,13 @@ impl<const N: usize> Preview<N> {
         line: &Line<'_>,
         mut piece: impl FnMut(Piece<N>),
     ) -> Result<u8, CommandError> {
+        // A spindle or coolant command beside motion acts first, as the kernel takes it.
+        if let Some((first, then)) = crate::kernel::split_spindle_and_motion(line) {
+            let mut next = self.interp;
+            next.interpret(&first, &self.config, &self.coords)?;
+            let saved = core::mem::replace(&mut self.interp, next);
+            return self.line(&then, piece).inspect_err(|_| self.interp = saved);
+        }
         let mut next = self.interp;
         let from = self.interp.pos;
         let homed = match next.interpret(line, &self.config, &self.coords)? {
@@ -135,6 +148,10 @@ impl<const N: usize> Preview<N> {
                     at = to;
                     cutter.advance();
                 }
+                0
+            }
+            Action::SetCoordinates { slot, values } => {
+                self.coords.set(slot, values);
                 0
             }
             Action::Via { via, target } => {

@@ -1414,3 +1414,17 @@ mod tests {
         assert_eq!(line.checksum(), Some(15));
     }
 }
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod comment_tests {
+    use super::*;
+
+    #[test]
+    fn a_semicolon_inside_parentheses_is_comment_text() {
+        let l = Line::parse(b"(tool: 3.175 mm; stock top at Z0; zero here)").unwrap();
+        assert!(l.is_empty());
+        let l = Line::parse(b"G1 X5 (a; b) Y6 ; the rest").unwrap();
+        assert_eq!(l.get(b'Y').and_then(|v| v.as_integer()), Some(6));
+    }
+}

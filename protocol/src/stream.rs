@@ -21,7 +21,8 @@
 //!
 //! ## Rules
 //!
-//! - A record ends at `\n` or `\r` (so CR, LF and CRLF all work); empty records are dropped.
+//! - A record ends at `\n` or `\r` (so CR, LF and CRLF all work); empty records are dropped,
+//!   or given as empty lines when asked for (grbl's blank lines: [`Decoder::set_blank_lines`]).
 //! - A record that [is a frame](crate::frame::is_frame) is [`Event::Frame`]; any other is
 //!   [`Event::Line`], the terminator stripped. A frame needs no terminator: one is complete when
 //!   its 53rd byte is followed by a terminator, by `N` (the next frame) or by a control byte;
@@ -56,8 +57,9 @@ pub fn is_frame_record(bytes: &[u8]) -> bool {
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[non_exhaustive]
 pub enum Event<'a> {
-    /// A G-code line (or, on a client, a reply line), without terminator, never empty. Parse it
-    /// with [`crate::gcode::Line::parse`] or [`crate::reply::Reply::parse`].
+    /// A G-code line (or, on a client, a reply line), without terminator; empty only for a
+    /// blank line when [`Decoder::set_blank_lines`] asks for them. Parse it with
+    /// [`crate::gcode::Line::parse`] or [`crate::reply::Reply::parse`].
     Line(&'a [u8]),
     /// A structurally valid frame. Decode it with [`crate::frame::ClientMessage::parse`] on the
     /// controller or [`crate::frame::ControllerMessage::parse`] on the client.
@@ -135,6 +137,10 @@ pub struct Decoder {
     start_with_n: bool,
     /// A frame at this offset of the buffer is still to be given (after its garbage prefix).
     pending_frame: Option<usize>,
+    /// Empty records are given as empty lines ([`Decoder::set_blank_lines`]).
+    blank_lines: bool,
+    /// The last byte taken was `\r` (a `\n` right after it ends the same line).
+    after_cr: bool,
     stats: Stats,
 }
 
@@ -162,6 +168,8 @@ impl Decoder {
             clear: false,
             start_with_n: false,
             pending_frame: None,
+            blank_lines: false,
+            after_cr: false,
             stats: Stats {
                 lines: 0,
                 frames: 0,
@@ -179,6 +187,13 @@ impl Decoder {
         self.clear = false;
         self.start_with_n = false;
         self.pending_frame = None;
+    }
+
+    /// Give an empty record as an empty [`Event::Line`] (`on`), or drop it (the default).
+    /// grbl answers a blank line `ok`, and a sender that counts characters counts on that
+    /// answer. A `\n` right after a `\r` ends the same line (CRLF), not an empty one.
+    pub fn set_blank_lines(&mut self, on: bool) {
+        self.blank_lines = on;
     }
 
     /// What has been seen so far.
@@ -233,11 +248,14 @@ impl Decoder {
             let taken = self.take_run(rest);
             if taken > 0 {
                 i += taken;
+                self.after_cr = false;
                 continue;
             }
             let Some(&b) = rest.first() else { break };
             i += 1;
-            if let Some(ready) = self.step(b) {
+            let ready = self.step(b);
+            self.after_cr = b == b'\r';
+            if let Some(ready) = ready {
                 return FeedResult {
                     event: Some(self.event(ready)),
                     remaining: input.get(i..).unwrap_or(&[]),
@@ -373,6 +391,10 @@ impl Decoder {
             }
             State::Record => {
                 if is_terminator(b) {
+                    let crlf = b == b'\n' && self.after_cr;
+                    if self.buf.is_empty() && self.blank_lines && !crlf {
+                        return Some(Ready::Line);
+                    }
                     return self.end_record();
                 }
                 let frame_done = is_frame_record(&self.buf);
@@ -678,5 +700,38 @@ mod tests {
         let mut events = StdVec::new();
         decoder.feed_all(b"G28\n", |e| events.push(owned(e)));
         assert_eq!(events, [line(b"G28")]);
+    }
+}
+
+#[cfg(test)]
+mod blank_line_tests {
+    extern crate std;
+    use std::vec::Vec as StdVec;
+
+    use super::*;
+
+    fn lines(decoder: &mut Decoder, input: &[u8]) -> StdVec<StdVec<u8>> {
+        let mut out = StdVec::new();
+        decoder.feed_all(input, |e| {
+            if let Event::Line(l) = e {
+                out.push(l.to_vec());
+            }
+        });
+        out
+    }
+
+    #[test]
+    fn blank_lines_are_given_only_when_asked_for_and_crlf_is_one_line_end() {
+        let mut d = Decoder::new();
+        assert_eq!(
+            lines(&mut d, b"G1\n\n\r\nG2\r\n"),
+            [b"G1".to_vec(), b"G2".to_vec()]
+        );
+        let mut d = Decoder::new();
+        d.set_blank_lines(true);
+        let got = lines(&mut d, b"G1\n\nG2\r\n\r\n\r\rG3\n");
+        // G1, a blank, G2 (its CRLF one end), a blank by CRLF, two by lone CRs, G3.
+        let want: StdVec<&[u8]> = std::vec![b"G1", b"", b"G2", b"", b"", b"", b"G3"];
+        assert_eq!(got, want);
     }
 }

@@ -638,6 +638,9 @@ where
             Effect::ReportFirmware => Done::Firmware,
             Effect::ReportEndstops => Done::Endstops,
             Effect::Storage(s) => Done::Files(FileCommand::new(&s)),
+            // A machine without extruders selects a cutting tool, which only `M6` changes
+            // (grbl's and LinuxCNC's `T`); a printer selects one of its extruders.
+            Effect::SelectTool(_) if config.extruders == 0 => Done::Ok,
             Effect::SelectTool(t) if t < config.extruders.max(1) => Done::Ok,
             Effect::SelectTool(t) => Done::Refused(Refusal::with(
                 &CommandError::BadValue { letter: b'T' },

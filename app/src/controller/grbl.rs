@@ -18,17 +18,22 @@
 //!
 //! - **Realtime bytes** ([`Realtime`]) are taken out of the stream as they arrive, wherever
 //!   they fall, before any line is decoded: `?` reports, `!` holds, `~` resumes, `0x18` resets,
-//!   `0x85` cancels a jog, `0x90`–`0x9D` change the overrides, `0xA0`/`0xA1` toggle coolant.
+//!   `0x85` cancels a jog, `0x90`–`0x9D` change the feed, rapid and spindle overrides (the
+//!   kernel's realtime overrides, the devices' spindle override), `0x9E` stops the spindle
+//!   during a hold, `0xA0`/`0xA1` toggle coolant.
 //! - **Every line gets exactly one answer**: `ok`, or `error:N` with grbl's number (the
-//!   table in `docs/protocol.md`); blank and comment-only lines get `ok`. Lines are not
-//!   numbered: `N10 G0 X5` runs and `N` is the line number `Ln:` reports.
+//!   table in `docs/protocol.md`); blank and comment-only lines get `ok`, and so does a line
+//!   that is only `%` (a program's start or end marker). Lines are not numbered: `N10 G0 X5`
+//!   runs and `N` is the line number `Ln:` reports.
 //! - **Faults** that stop the machine are `ALARM:N`, followed by `[MSG:…]`.
 //! - **`$` commands** ([`Command`]) as grbl 1.1 and grblHAL define them; `$$` and `$<n>=` are
-//!   the controller's settings under grbl's numbers.
-//! - **Soft reset** (`0x18`) stops at once. Lines received and not yet answered are dropped
-//!   without an answer, as grbl flushes its receive buffer (a sender clears its own count at
-//!   reset). Motion cut mid-move leaves the machine in `ALARM:3` (steps may be lost: `$H` or
-//!   `$X`).
+//!   the controller's settings under grbl's numbers, `$N0=`/`$N1=` its startup lines.
+//! - **Soft reset** (`0x18`) stops at once, the spindle and the coolant too, and the overrides
+//!   go back to 100 %. Lines received and not yet answered are dropped without an answer, as
+//!   grbl flushes its receive buffer (a sender clears its own count at reset). Motion cut
+//!   mid-move leaves the machine in `ALARM:3` (steps may be lost: `$H` or `$X`). Out of an
+//!   alarm, the startup lines run after the banner, each echoed `>LINE:ok` (or
+//!   `>LINE:error:N`); they run at power-on too.
 
 use embedded_io::Write;
 use forja_hal_abstraction::device::Rotation;
@@ -44,10 +49,10 @@ use forja_protocol::grbl::{
     Alarm, Command, Error, Message, Micrometres, Realtime, Restore, State, Status,
 };
 
-use super::peripherals::Peripherals;
-use super::settings::{AxisField, Key};
+use super::peripherals::{Peripherals, SpindleMotion};
+use super::settings::{AxisField, Key, MAX_STARTUP_LINE_LEN};
 use super::text::{Refusal, Text};
-use super::{Core, READ_AHEAD_BYTES, wire};
+use super::{Core, Held, LineBuf, READ_AHEAD_BYTES, wire};
 
 /// Which dialect a link speaks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -61,8 +66,6 @@ pub(super) enum Dialect {
 /// The grbl state of a link.
 #[derive(Debug, Clone, Copy)]
 pub(super) struct GrblLink {
-    /// `$10`: bit 0 sends `MPos` (else `WPos`), bit 1 the buffer state `Bf`.
-    pub(super) status_mask: u8,
     /// A `$J=` jog runs.
     pub(super) jogging: bool,
     /// Status reports sent since `WCO` was last sent (grbl sends it every 10 reports, or at
@@ -75,7 +78,6 @@ pub(super) struct GrblLink {
 impl GrblLink {
     pub(super) const fn new() -> Self {
         Self {
-            status_mask: 1,
             jogging: false,
             reports_since_offset: u8::MAX,
             reports_since_overrides: u8::MAX,
@@ -191,6 +193,25 @@ fn micrometres(mm: f64) -> Micrometres {
     libm::round(mm * 1000.0) as Micrometres
 }
 
+/// Millimetres in an inch.
+const MM_PER_INCH: f64 = 25.4;
+
+/// A position of µm as grbl reports it: unchanged, or with `$13=1` in thousandths of an inch
+/// (written with three decimals: inches).
+fn reported(um: Micrometres, inches: bool) -> Micrometres {
+    if inches {
+        libm::round(um as f64 / MM_PER_INCH) as Micrometres
+    } else {
+        um
+    }
+}
+
+/// A rate of mm/min as grbl reports it, whole: mm/min, or with `$13=1` inches/min.
+fn reported_rate(mm_min: f32, inches: bool) -> u32 {
+    let rate = f64::from(mm_min) / if inches { MM_PER_INCH } else { 1.0 };
+    libm::round(rate).clamp(0.0, f64::from(u32::MAX)) as u32
+}
+
 /// Up to eight letters of a status report field (`Pn:`, `A:`).
 struct Letters {
     buf: [u8; 8],
@@ -238,13 +259,17 @@ fn nm_to_um(nm: Nm) -> Micrometres {
 }
 
 /// A line of a grbl sender without its `N` number (grbl's senders number lines without a
-/// checksum, which the RepRap syntax refuses), and the number.
+/// checksum, which the RepRap syntax refuses), and the number. A line that is only `%` (the
+/// start or end marker of a program, as Fusion 360's posts write it, which grblHAL ignores)
+/// comes back empty: it is answered `ok` and does nothing.
 pub(super) fn strip_line_number(bytes: &[u8]) -> (&[u8], Option<u32>) {
-    let start = bytes
-        .iter()
-        .take_while(|b| matches!(b, b' ' | b'\t'))
-        .count();
+    let blank = |b: &&u8| matches!(b, b' ' | b'\t');
+    let start = bytes.iter().take_while(blank).count();
     let rest = bytes.get(start..).unwrap_or(&[]);
+    let end = rest.len() - rest.iter().rev().take_while(blank).count();
+    if rest.get(..end) == Some(b"%") {
+        return (&[], None);
+    }
     let Some((b'N' | b'n', tail)) = rest.split_first() else {
         return (bytes, None);
     };
@@ -300,12 +325,15 @@ pub(super) fn load_coordinates<S: RecordStorage, const N: usize>(
 /// A grbl setting: its number and what it is in the controller's settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum GrblSetting {
-    /// `$10`, the status report mask (the link's).
-    StatusMask,
     /// A setting of the controller, by key.
     Stored(Key),
     /// `$130`+: an axis's travel, `max - min` (setting it moves `max`).
     Travel(usize),
+    /// `$22`, homing enable: 1 when an axis homes (the machine configuration's; read-only).
+    HomingEnable,
+    /// `$24`, `$25`, `$27`: a homing setting of every axis that homes (`$$` reports the
+    /// first's, setting it sets every one).
+    Homing(AxisField),
 }
 
 impl<const N: usize, const B: usize, const Q: usize, P, X, S> Core<'_, N, B, Q, P, X, S>
@@ -341,13 +369,48 @@ where
         }
     }
 
-    /// `M2`/`M30` of the link, in the grbl dialect: `[MSG:Pgm End]`, and the feed override back
-    /// to 100 % (grbl's default build). Nothing in the RepRap dialect.
+    /// `M2`/`M30` of the link, in the grbl dialect: `[MSG:Pgm End]`, and the feed, rapid and
+    /// spindle overrides back to 100 % (grbl's default build). Nothing in the RepRap dialect.
     pub(super) fn program_end_notice<W: Write>(&mut self, out: &mut W) {
         if self.speaks_grbl() {
-            self.kernel.set_feed_override_percent(100);
+            self.reset_overrides();
             say(out, &Message::Feedback("Pgm End"));
         }
+    }
+
+    /// grbl's feed, rapid and spindle overrides back to 100 %.
+    fn reset_overrides(&mut self) {
+        self.kernel.set_realtime_overrides(100, 100);
+        let _ = self.devices.set_spindle_override(100);
+        self.link.grbl.reports_since_overrides = u8::MAX;
+    }
+
+    /// Let the spindle follow the motion now (each poll; cheap): the `S` of the move under way,
+    /// and in laser mode (`$32`) a laser's power, off in rapids, homing and jogs, and at rest
+    /// outside `G1`/`G2`/`G3`.
+    pub(super) fn follow_spindle(&mut self) {
+        let laser = self.settings.laser_mode();
+        let now = self.kernel.motion_now();
+        let state = self.kernel.state();
+        let cutting = laser
+            && match state {
+                MachineState::Homing => false,
+                _ if self.link.grbl.jogging => false,
+                _ if now.speed_mm_min > 0.0 => !now.rapid,
+                _ => matches!(self.kernel.modal_report().motion, "G1" | "G2" | "G3"),
+            };
+        let motion = SpindleMotion {
+            rpm: now.spindle_rpm,
+            laser,
+            fraction: now.fraction,
+            cutting,
+            held: matches!(
+                state,
+                MachineState::Hold { stopped: true } | MachineState::Paused
+            ),
+            running: matches!(state, MachineState::Running | MachineState::Homing),
+        };
+        let _ = self.devices.follow(motion);
     }
 
     /// `M6`: tell the operator which tool to put in and how to go on: `[MSG:…]` in the grbl
@@ -384,7 +447,11 @@ where
             Realtime::SoftReset => self.grbl_reset(out),
             Realtime::StatusReport => self.grbl_status(out),
             Realtime::FeedHold => self.kernel.hold(),
-            Realtime::CycleStart => self.kernel.resume(),
+            Realtime::CycleStart => {
+                // A spindle stopped during the hold (`0x9E`, a laser's) runs again first.
+                let _ = self.devices.restore_spindle();
+                self.kernel.resume();
+            }
             Realtime::SafetyDoor => self.kernel.hold(),
             Realtime::JogCancel => {
                 if self.link.grbl.jogging {
@@ -393,13 +460,27 @@ where
                 }
             }
             Realtime::FeedOverride(step) => {
-                let now = self.kernel.feed_override_percent();
-                let next = step.apply(now.min(255) as u8, 10, 200);
-                self.kernel.set_feed_override_percent(u16::from(next));
+                let (feed, rapid) = self.kernel.realtime_overrides();
+                let next = step.apply(feed.min(255) as u8, 10, 200);
+                self.kernel.set_realtime_overrides(u16::from(next), rapid);
                 self.link.grbl.reports_since_overrides = u8::MAX;
             }
-            // The rapid and spindle overrides stay at 100 %, as `Ov:` reports them.
-            Realtime::RapidOverride(_) | Realtime::SpindleOverride(_) | Realtime::SpindleStop => {}
+            Realtime::RapidOverride(percent) => {
+                let (feed, _) = self.kernel.realtime_overrides();
+                self.kernel.set_realtime_overrides(feed, u16::from(percent));
+                self.link.grbl.reports_since_overrides = u8::MAX;
+            }
+            Realtime::SpindleOverride(step) => {
+                let next = step.apply(self.devices.spindle_override(), 10, 200);
+                let _ = self.devices.set_spindle_override(next);
+                self.link.grbl.reports_since_overrides = u8::MAX;
+            }
+            // grbl's rule: only in a hold, once at rest.
+            Realtime::SpindleStop => {
+                if self.kernel.state() == (MachineState::Hold { stopped: true }) {
+                    let _ = self.devices.toggle_spindle_stop();
+                }
+            }
             Realtime::FloodToggle | Realtime::MistToggle => self.toggle_coolant(r),
         }
     }
@@ -419,6 +500,9 @@ where
         }
         self.reset(out);
         self.kernel.reset();
+        // grbl's reset stops the spindle and the coolant, and the overrides go back to 100 %.
+        let _ = self.devices.end_program();
+        self.reset_overrides();
         if moving {
             // grbl's order: the alarm, then the banner and how to unlock.
             self.kernel.lock_after_reset();
@@ -434,6 +518,51 @@ where
         say(out, &Message::Welcome);
         if matches!(self.kernel.state(), MachineState::Alarm(_)) {
             say(out, &Message::Feedback("'$H'|'$X' to unlock"));
+        } else {
+            self.run_startup_lines(out);
+        }
+    }
+
+    /// At power-on: the startup lines, run as in the grbl dialect whatever the link speaks
+    /// (the link stays in its dialect), unless the machine starts in an alarm.
+    pub(super) fn power_on_startup_lines<W: Write>(&mut self, out: &mut W) {
+        let none = (0..2).all(|i| self.settings.startup_line(i).is_empty());
+        if none || matches!(self.kernel.state(), MachineState::Alarm(_)) {
+            return;
+        }
+        let (dialect, gcode_seen) = (self.link.dialect, self.link.gcode_seen);
+        self.enter_grbl();
+        self.run_startup_lines(out);
+        self.link.gcode_seen = gcode_seen;
+        if dialect == Dialect::RepRap {
+            self.link.dialect = Dialect::RepRap;
+            self.kernel.set_grbl_dialect(false);
+        }
+    }
+
+    /// grbl's startup lines (`$N0`, `$N1`), in order: each runs as a line of the link would,
+    /// and is echoed `>LINE:ok` or `>LINE:error:N` (an error does not stop the next). A line
+    /// that waits for its motion or dwell is not waited for (`ok` at once); one that cannot be
+    /// taken before the motion of the line before it ends is refused (`error:8`).
+    fn run_startup_lines<W: Write>(&mut self, out: &mut W) {
+        for index in 0..2 {
+            let line = LineBuf::new(self.settings.startup_line(index).as_bytes());
+            if line.bytes().is_empty() {
+                continue;
+            }
+            // The echo's head, then the line's own answer (`ok`, `error:N`) completes it: the
+            // line runs through the link's own path, to the link's own writer.
+            let _ = out.write_all(b">");
+            let _ = out.write_all(line.bytes());
+            let _ = out.write_all(b":");
+            self.on_line(line.bytes(), out);
+            // A line that waits (its motion, a dwell, heaters) is not waited for: `ok` now. One
+            // the kernel could not take yet is dropped.
+            match self.link.held.take() {
+                Some(Held::Line) => say(out, &Message::Error(Error::IdleError)),
+                Some(_) => self.ok(out),
+                None => {}
+            }
         }
     }
 
@@ -453,11 +582,13 @@ where
         if matches!(state, State::Idle) {
             self.link.grbl.jogging = false;
         }
+        let inches = self.settings.report_inches();
         let p = self.kernel.position();
         let commanded = self.kernel.commanded_position_nm();
-        let machine: [Micrometres; N] = core::array::from_fn(|i| micrometres(p.machine_mm[i]));
-        let offset = work_offset(&p.work_mm, &commanded);
-        let mask = self.link.grbl.status_mask;
+        let machine: [Micrometres; N] =
+            core::array::from_fn(|i| reported(micrometres(p.machine_mm[i]), inches));
+        let offset = work_offset(&p.work_mm, &commanded).map(|um| reported(um, inches));
+        let mask = self.settings.status_mask();
         let free_blocks = B.saturating_sub(self.kernel.planned_blocks()) as u16;
         let free_bytes = self.link.queue.free_bytes().min(READ_AHEAD_BYTES) as u16;
         let g = &mut self.link.grbl;
@@ -473,7 +604,13 @@ where
         } else {
             g.reports_since_overrides.saturating_add(1)
         };
-        let feed = self.kernel.feed_override_percent().min(255) as u8;
+        let (feed, rapid) = self.kernel.realtime_overrides();
+        let overrides = [
+            feed.min(255) as u8,
+            rapid.min(255) as u8,
+            self.devices.spindle_override(),
+        ];
+        let spindle = self.devices.spindle_output();
         let mut pins = Letters::new();
         for i in 0..N {
             if self.devices.parts.endstop(i) == Some(true) {
@@ -481,7 +618,7 @@ where
             }
         }
         let mut accessories = Letters::new();
-        match self.devices.spindle_state() {
+        match spindle {
             Some((Rotation::Clockwise, _)) => accessories.push(b'S'),
             Some((Rotation::CounterClockwise, _)) => accessories.push(b'C'),
             None => {}
@@ -501,9 +638,9 @@ where
             send_offset,
             buffer: (mask & 2 != 0).then_some((free_blocks, free_bytes)),
             line: Some(self.kernel.current_line()),
-            feed_mm_min: self.kernel.feed_rate_mm_min() as u32,
-            spindle_rpm: Some(self.devices.spindle_state().map_or(0, |(_, rpm)| rpm)),
-            overrides: send_overrides.then_some([feed, 100, 100]),
+            feed_mm_min: reported_rate(self.kernel.motion_now().speed_mm_min, inches),
+            spindle_rpm: Some(spindle.map_or(0, |(_, rpm)| rpm)),
+            overrides: send_overrides.then_some(overrides),
             pins: pins.as_bytes(),
             accessories: accessories.as_bytes(),
         };
@@ -582,8 +719,10 @@ where
                 say(out, &options);
             }
             Command::StartupLines => {
-                say(out, &Message::StartupLine { index: 0, line: "" });
-                say(out, &Message::StartupLine { index: 1, line: "" });
+                for index in 0..2 {
+                    let line = self.settings.startup_line(index);
+                    say(out, &Message::StartupLine { index, line });
+                }
             }
             Command::CheckMode => {
                 if !idle {
@@ -639,6 +778,10 @@ where
                 if matches!(what, Restore::Settings | Restore::All) {
                     self.restore_settings()?;
                 }
+                if what == Restore::All {
+                    self.store_grbl(Key::StartupLine(0), "")?;
+                    self.store_grbl(Key::StartupLine(1), "")?;
+                }
                 if matches!(what, Restore::Parameters | Restore::All) {
                     self.kernel.reset_modal_state();
                     self.kernel.set_coordinates(Coordinates::ZERO);
@@ -658,11 +801,34 @@ where
                 if !idle {
                     return Err(Error::IdleError);
                 }
-                self.set_grbl_setting(number, value)?;
+                self.set_grbl_setting(number, value, out)?;
             }
-            Command::SetStartupLine { .. } => return Err(Error::InvalidStatement),
+            Command::SetStartupLine { index, line } => {
+                if !idle {
+                    return Err(Error::IdleError);
+                }
+                self.set_startup_line(index, line)?;
+            }
         }
         Ok(Answer::Now)
+    }
+
+    /// `$N0=…`, `$N1=…`: store a startup line once it checks (run through a preview of the
+    /// interpreter, as `$C` checks lines: nothing runs); empty, the line is cleared.
+    fn set_startup_line(&mut self, index: u8, line: &[u8]) -> Result<(), Error> {
+        if line.len() > MAX_STARTUP_LINE_LEN {
+            return Err(Error::LineLengthExceeded);
+        }
+        let text = core::str::from_utf8(line).map_err(|_| Error::InvalidStatement)?;
+        if !text.is_empty() {
+            let (body, _) = strip_line_number(line);
+            let parsed = Line::parse(body).map_err(|e| error_of(Refusal::new(&e).code))?;
+            let mut check = Preview::new(self.kernel.config(), self.kernel.commanded_position_nm());
+            check
+                .line(&parsed, |_| {})
+                .map_err(|e| error_of(e.code()))?;
+        }
+        self.store_grbl(Key::StartupLine(index), text)
     }
 
     /// The axes that home with `$H`.
@@ -697,13 +863,22 @@ where
         }
     }
 
-    /// The settings under grbl's numbers, in grbl's order.
+    /// The settings under grbl's numbers, in grbl's order (`$24`, `$25`, `$27` only when an
+    /// axis homes).
     fn grbl_settings(&self) -> impl Iterator<Item = (u16, GrblSetting)> {
+        let homes = self.homing_mask() != 0;
         let globals = [
-            (10, GrblSetting::StatusMask),
+            (10, GrblSetting::Stored(Key::StatusMask)),
             (11, GrblSetting::Stored(Key::JunctionDeviation)),
+            (12, GrblSetting::Stored(Key::ArcTolerance)),
+            (13, GrblSetting::Stored(Key::ReportInches)),
             (20, GrblSetting::Stored(Key::SoftLimits)),
             (21, GrblSetting::Stored(Key::HardLimits)),
+            (22, GrblSetting::HomingEnable),
+            (24, GrblSetting::Homing(AxisField::HomingLocate)),
+            (25, GrblSetting::Homing(AxisField::HomingSeek)),
+            (27, GrblSetting::Homing(AxisField::HomingPullOff)),
+            (32, GrblSetting::Stored(Key::LaserMode)),
         ];
         let axis = |base: u16, field: Option<AxisField>| {
             (0..N.min(10)).map(move |axis| {
@@ -716,26 +891,56 @@ where
         };
         globals
             .into_iter()
+            .filter(move |(_, s)| homes || !matches!(s, GrblSetting::Homing(_)))
             .chain(axis(100, Some(AxisField::StepsPerMm)))
             .chain(axis(110, Some(AxisField::MaxRate)))
             .chain(axis(120, Some(AxisField::Accel)))
             .chain(axis(130, None))
     }
 
+    /// The keys of `field` of every axis that homes.
+    fn homing_keys(&self, field: AxisField) -> impl Iterator<Item = Key> + '_ {
+        let mask = self.homing_mask();
+        (0..N)
+            .filter(move |axis| mask & (1 << axis) != 0)
+            .map(move |axis| Key::Axis { axis, field })
+    }
+
     /// The value of a setting, as `$$` writes it.
     fn grbl_setting_value(&self, setting: GrblSetting) -> Decimal {
+        let key = match setting {
+            GrblSetting::Stored(key) => key,
+            GrblSetting::Travel(axis) => {
+                let m = self.settings.machine();
+                return m.axes.get(axis).map_or(Decimal::ZERO, |a| {
+                    Decimal::from_f32(a.max_mm - a.min_mm, 3).unwrap_or(Decimal::ZERO)
+                });
+            }
+            GrblSetting::HomingEnable => {
+                return Decimal::from_integer(i64::from(self.homing_mask() != 0));
+            }
+            GrblSetting::Homing(field) => match self.homing_keys(field).next() {
+                Some(key) => key,
+                None => return Decimal::ZERO,
+            },
+        };
         let m = self.settings.machine();
         let number = |v: f32| Decimal::from_f32(v, 3).unwrap_or(Decimal::ZERO);
-        match setting {
-            GrblSetting::StatusMask => Decimal::from_integer(i64::from(self.link.grbl.status_mask)),
-            GrblSetting::Stored(Key::JunctionDeviation) => number(m.junction_deviation_mm),
-            GrblSetting::Stored(Key::SoftLimits) => {
-                Decimal::from_integer(i64::from(m.soft_limits != SoftLimits::Off))
-            }
-            GrblSetting::Stored(Key::HardLimits) => Decimal::from_integer(i64::from(m.hard_limits)),
-            GrblSetting::Stored(Key::Axis { axis, field }) => {
+        let flag = |on: bool| Decimal::from_integer(i64::from(on));
+        match key {
+            Key::StatusMask => Decimal::from_integer(i64::from(self.settings.status_mask())),
+            Key::JunctionDeviation => number(m.junction_deviation_mm),
+            Key::ArcTolerance => number(m.arc_tolerance_mm),
+            Key::ReportInches => flag(self.settings.report_inches()),
+            Key::SoftLimits => flag(m.soft_limits != SoftLimits::Off),
+            Key::HardLimits => flag(m.hard_limits),
+            Key::LaserMode => flag(self.settings.laser_mode()),
+            Key::Axis { axis, field } => {
                 let Some(a) = m.axes.get(axis) else {
                     return Decimal::ZERO;
+                };
+                let homing = |f: fn(&forja_motion::config::HomingConfig) -> f32| {
+                    a.homing.as_ref().map_or(0.0, f)
                 };
                 number(match field {
                     AxisField::StepsPerMm => a.steps_per_mm,
@@ -743,13 +948,12 @@ where
                     AxisField::Accel => a.accel_mm_s2,
                     AxisField::Min => a.min_mm,
                     AxisField::Max => a.max_mm,
+                    AxisField::HomingSeek => homing(|h| h.seek_mm_min),
+                    AxisField::HomingLocate => homing(|h| h.locate_mm_min),
+                    AxisField::HomingPullOff => homing(|h| h.pull_off_mm),
                 })
             }
-            GrblSetting::Travel(axis) => m
-                .axes
-                .get(axis)
-                .map_or(Decimal::ZERO, |a| number(a.max_mm - a.min_mm)),
-            GrblSetting::Stored(_) => Decimal::ZERO,
+            _ => Decimal::ZERO,
         }
     }
 
@@ -762,32 +966,75 @@ where
     }
 
     /// `$<n>=<value>`.
-    fn set_grbl_setting(&mut self, number: u16, value: Decimal) -> Result<(), Error> {
+    fn set_grbl_setting<W: Write>(
+        &mut self,
+        number: u16,
+        value: Decimal,
+        out: &mut W,
+    ) -> Result<(), Error> {
         let (_, setting) = self
             .grbl_settings()
             .find(|(n, _)| *n == number)
             .ok_or(Error::InvalidStatement)?;
-        if value.mantissa() < 0 && !matches!(setting, GrblSetting::StatusMask) {
+        if value.mantissa() < 0 {
             return Err(Error::NegativeValue);
         }
+        // The value as written (a decimal, never through a float's formatting).
+        let mut text = Text::<32>::new();
         let (key, text_value) = match setting {
-            GrblSetting::StatusMask => {
+            GrblSetting::Stored(
+                key @ (Key::SoftLimits | Key::HardLimits | Key::ReportInches | Key::LaserMode),
+            ) => {
+                let on = value.as_integer().ok_or(Error::ValueOutOfRange)? != 0;
+                let text = match (key, on) {
+                    (Key::SoftLimits, false) => "off",
+                    (Key::SoftLimits, true) => "homed",
+                    (_, false) => "0",
+                    (_, true) => "1",
+                };
+                return self.store_grbl(key, text);
+            }
+            GrblSetting::Stored(Key::StatusMask) => {
                 let mask = value
                     .as_integer()
                     .and_then(|v| u8::try_from(v).ok())
                     .ok_or(Error::ValueOutOfRange)?;
-                self.link.grbl.status_mask = mask;
-                return Ok(());
+                let _ = core::fmt::Write::write_fmt(&mut text, format_args!("{mask}"));
+                return self.store_grbl(Key::StatusMask, text.as_str());
             }
-            GrblSetting::Stored(Key::SoftLimits) => {
-                let on = value.as_integer().ok_or(Error::ValueOutOfRange)?;
-                let text = if on == 0 { "off" } else { "homed" };
-                return self.store_grbl(Key::SoftLimits, text);
+            GrblSetting::HomingEnable => {
+                let on = value.as_integer().ok_or(Error::ValueOutOfRange)? != 0;
+                if on == (self.homing_mask() != 0) {
+                    return Ok(());
+                }
+                say(
+                    out,
+                    &Message::Feedback("$22 follows the axes' homing in the machine configuration"),
+                );
+                return Err(Error::ValueOutOfRange);
             }
-            GrblSetting::Stored(Key::HardLimits) => {
-                let on = value.as_integer().ok_or(Error::ValueOutOfRange)?;
-                let text = if on == 0 { "0" } else { "1" };
-                return self.store_grbl(Key::HardLimits, text);
+            GrblSetting::Homing(field) => {
+                let _ = core::fmt::Write::write_fmt(&mut text, format_args!("{value}"));
+                let mut keys = [Key::StatusMask; 8];
+                let mut count = 0;
+                for (slot, key) in keys.iter_mut().zip(self.homing_keys(field)) {
+                    *slot = key;
+                    count += 1;
+                }
+                let tick_hz = self.kernel.tick_hz();
+                let timing = self.config.timing;
+                self.settings
+                    .set_all(
+                        keys.get(..count).unwrap_or(&[]),
+                        text.as_str(),
+                        &mut self.storage,
+                        |m| {
+                            m.validate()?;
+                            m.validate_timing(tick_hz, timing)
+                        },
+                    )
+                    .map_err(|_| Error::ValueOutOfRange)?;
+                return self.give_kernel_settings();
             }
             GrblSetting::Stored(key) => (key, value),
             GrblSetting::Travel(axis) => {
@@ -807,15 +1054,14 @@ where
                 (key, Decimal::new(min_um.saturating_add(travel_um), 3))
             }
         };
-        // The value as written (a decimal, never through a float's formatting).
-        let mut text = Text::<32>::new();
         let _ = core::fmt::Write::write_fmt(&mut text, format_args!("{text_value}"));
         self.store_grbl(key, text.as_str())
     }
 
     /// Store `key` as frame 00 does, then give the kernel the planner settings it changed
-    /// (steps, rates, accelerations, junction deviation take effect at once, as in grbl; the
-    /// travel and the limits at the next start).
+    /// (steps, rates, accelerations, junction deviation take effect at once, as in grbl, and so
+    /// do grbl's own `$10`, `$13`, `$32` and the startup lines; the travel, the limits, the arc
+    /// tolerance and the homing settings at the next start).
     fn store_grbl(&mut self, key: Key, value: &str) -> Result<(), Error> {
         let mut name = Text::<24>::new();
         let _ = key.write_name(self.settings.machine(), &mut name);
@@ -848,13 +1094,18 @@ where
         let (mist_on, flood_on) = self.devices.coolant_state();
         let on = if flood { !flood_on } else { !mist_on };
         let _ = self.devices.set_coolant_line(flood, on);
+        // The next report carries the accessories (grbl sends `Ov:` and `A:` after a change).
+        self.link.grbl.reports_since_overrides = u8::MAX;
     }
 
     /// `$#`.
     fn report_parameters<W: Write>(&mut self, out: &mut W) {
         let coords = *self.kernel.coordinates();
         let modal = self.kernel.modal_report();
-        let um = |v: [Nm; N]| -> [Micrometres; N] { core::array::from_fn(|i| nm_to_um(v[i])) };
+        let inches = self.settings.report_inches();
+        let um = |v: [Nm; N]| -> [Micrometres; N] {
+            core::array::from_fn(|i| reported(nm_to_um(v[i]), inches))
+        };
         let slots = SYSTEM_NAMES
             .iter()
             .zip(0u8..)
@@ -880,7 +1131,7 @@ where
         );
         say(
             out,
-            &Message::ToolLengthOffset(nm_to_um(modal.tool_length_nm)),
+            &Message::ToolLengthOffset(reported(nm_to_um(modal.tool_length_nm), inches)),
         );
         let probe = self.kernel.probe_report();
         say(
@@ -897,10 +1148,11 @@ where
     pub(super) fn report_probe<W: Write>(&mut self, probe: &ProbeReport<N>, out: &mut W) {
         let position: [Micrometres; N] = core::array::from_fn(|i| nm_to_um(probe.machine_nm[i]));
         if self.speaks_grbl() {
+            let inches = self.settings.report_inches();
             say(
                 out,
                 &Message::Probe {
-                    position: &position,
+                    position: &position.map(|um| reported(um, inches)),
                     touched: probe.tripped,
                 },
             );

@@ -122,7 +122,7 @@ use host::HostReports;
 use peripherals::{Devices, HeatWait};
 pub use settings::{
     AXIS_RECORDS, AxisField, DEFAULT_KEEP_ALIVE_MS, GLOBAL_RECORDS, Key, LoadReport,
-    MAX_PASSWORD_LEN, MAX_SSID_LEN, NoStorage, SettingError, Settings,
+    MAX_PASSWORD_LEN, MAX_SSID_LEN, MAX_STARTUP_LINE_LEN, NoStorage, SettingError, Settings,
 };
 pub use store::{HEADER_RECORD, LINE_RECORDS, RecordProgramStore};
 
@@ -921,12 +921,14 @@ where
         }
     }
 
-    /// Write `start` (once: later calls write nothing). Call it when the board has started,
-    /// before the first [`Controller::poll`].
+    /// Write `start` (once: later calls write nothing), then run grbl's startup lines (`$N0`,
+    /// `$N1`, each echoed `>LINE:ok`) when some are stored and the machine is not in an alarm.
+    /// Call it when the board has started, before the first [`Controller::poll`].
     pub fn boot<W: Write>(&mut self, out: &mut W) {
         if !self.core.link.started {
             self.core.link.started = true;
             let _ = wire::reply(out, &Reply::Start);
+            self.core.power_on_startup_lines(out);
         }
     }
 
@@ -983,6 +985,7 @@ where
         core.enable_motors_if_needed();
         let mut arm = core.kernel.poll(now);
         core.supervise(link);
+        core.follow_spindle();
         core.serve_files(link);
         core.feed_job(link);
         core.store_coordinates();
@@ -998,6 +1001,8 @@ where
                 break;
             }
             let grbl = self.core.speaks_grbl();
+            // grbl answers a blank line; the RepRap dialect has nothing to answer.
+            self.decoder.set_blank_lines(grbl);
             let filled = self.input.is_empty() && self.input.fill(link, self.core.clock.ms, grbl);
             self.act_on_realtime(link);
             if self.input.is_empty() && !filled {

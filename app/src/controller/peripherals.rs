@@ -15,6 +15,12 @@
 //! alarms turn the heaters, the fans, the spindle and the coolant off. An `M300` tone goes to
 //! the beeper as its line is read, and the line is answered without waiting for it: the beeper
 //! plays its tones one after another (see `forja_hal_abstraction::device::Beeper`).
+//!
+//! The spindle runs at the speed the G-code commands (`S`, on its own line or riding on the
+//! moves of a motion line) times grbl's spindle override (`0x99`–`0x9D`, 10–200 %); grbl's
+//! spindle stop (`0x9E`) stops it during a hold until cycle start. In grbl's laser mode (`$32`)
+//! the output is a laser's: off during rapids and outside `G1`/`G2`/`G3`, `M3` at constant
+//! power, `M4` at a power that follows the speed (`motion_now().fraction` of the kernel).
 
 use core::fmt;
 
@@ -240,14 +246,46 @@ impl<const N: usize> Peripherals<N> for NoPeripherals {
     }
 }
 
+/// What the spindle follows of the motion now (the controller's poll gives it, from the
+/// kernel's `motion_now`).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub(crate) struct SpindleMotion {
+    /// The spindle speed `S` in force for the motion now (the move's; at rest, the modal one).
+    pub(crate) rpm: u32,
+    /// grbl's laser mode (`$32`).
+    pub(crate) laser: bool,
+    /// The speed as a fraction of the move's programmed speed, 0 to 1 (0 at rest): an `M4`
+    /// laser's power follows it.
+    pub(crate) fraction: f32,
+    /// The laser may be on: a feed move (`G1`, `G2`, `G3`) runs, or, at rest, the motion mode
+    /// is one of those (grbl: never in a rapid, a probing move or homing).
+    pub(crate) cutting: bool,
+    /// A feed hold (or an `M0`/`M6` pause) has come to rest: a laser goes off (grbl's
+    /// spindle stop, at the start of each such hold; `0x9E` turns it on again).
+    pub(crate) held: bool,
+    /// The machine runs (motion, a dwell, homing): a hold that ends into it was resumed, and
+    /// the spindle stopped during it runs again.
+    pub(crate) running: bool,
+}
+
 /// The board's peripherals with the controller's G-code rules and what they remember.
 pub(crate) struct Devices<X, const N: usize> {
     /// The board's description of its devices.
     pub(crate) parts: X,
-    /// The speed of the last `M3`/`M4` that ran, rpm: an `M3`/`M4` without `S` runs at it.
+    /// The speed of the last `M3`/`M4` that ran, or of the last `S`, rpm: an `M3`/`M4` without
+    /// `S` runs at it.
     rpm: u32,
-    /// The spindle as last commanded: direction and rpm, `None` when stopped.
+    /// The spindle as last commanded: direction and programmed rpm, `None` when stopped.
     spindle: Option<(Rotation, u32)>,
+    /// grbl's spindle override, percent (10–200).
+    spindle_override: u8,
+    /// grbl's spindle stop (`0x9E`, or a laser at the start of a hold): the output is off while
+    /// the spindle stays commanded.
+    spindle_stopped: bool,
+    /// What the spindle follows of the motion, as last given.
+    motion: SpindleMotion,
+    /// What the spindle's driver was last told: direction and rpm, `None` when stopped.
+    output: Option<(Rotation, u32)>,
     /// Mist coolant as last commanded.
     mist: bool,
     /// Flood coolant as last commanded.
@@ -326,12 +364,21 @@ fn rpm_or(word: Option<i64>, last: u32) -> u32 {
     word.map_or(last, |v| v.clamp(0, i64::from(u32::MAX)) as u32)
 }
 
+/// The speed of an `M3`/`M4` with the `S` word `rpm`, or `last` without one.
+fn rpm_or_last(rpm: Option<forja_protocol::gcode::Decimal>, last: u32) -> u32 {
+    rpm_or(rpm.and_then(|d| d.round_to_scale(0)), last)
+}
+
 impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
     pub(crate) fn new(parts: X) -> Self {
         Self {
             parts,
             rpm: 0,
             spindle: None,
+            spindle_override: 100,
+            spindle_stopped: false,
+            motion: SpindleMotion::default(),
+            output: None,
             mist: false,
             flood: false,
             motors_on: false,
@@ -340,10 +387,122 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
         }
     }
 
-    /// The spindle's direction and speed as last commanded, `None` when stopped (grbl's
-    /// `FS:` and `A:`).
+    /// The spindle's direction and speed as last commanded (the programmed `S`, without the
+    /// override), `None` when stopped (grbl's `$G`).
     pub(crate) fn spindle_state(&self) -> Option<(Rotation, u32)> {
         self.spindle
+    }
+
+    /// What the spindle's driver runs at now: direction and rpm (the override and a laser's
+    /// power applied), `None` when it is stopped (grbl's `FS:` and `A:`).
+    pub(crate) fn spindle_output(&self) -> Option<(Rotation, u32)> {
+        self.output
+    }
+
+    /// grbl's spindle override, percent.
+    pub(crate) fn spindle_override(&self) -> u8 {
+        self.spindle_override
+    }
+
+    /// Set grbl's spindle override (10–200 %): the running spindle changes speed at once, and
+    /// later `M3`/`M4`/`S` run at it too.
+    ///
+    /// Errors: the driver's; the override is set even then.
+    pub(crate) fn set_spindle_override(&mut self, percent: u8) -> Result<(), PeripheralError> {
+        self.spindle_override = percent.clamp(10, 200);
+        self.drive()
+    }
+
+    /// grbl's spindle stop (`0x9E`, during a hold at rest): a running spindle stops, a stopped
+    /// one starts again. Nothing when no spindle is commanded.
+    ///
+    /// Errors: the driver's.
+    pub(crate) fn toggle_spindle_stop(&mut self) -> Result<(), PeripheralError> {
+        if self.spindle.is_none() {
+            return Ok(());
+        }
+        self.spindle_stopped = !self.spindle_stopped;
+        self.drive()
+    }
+
+    /// Cycle start: a spindle stopped by grbl's spindle stop runs again.
+    ///
+    /// Errors: the driver's.
+    pub(crate) fn restore_spindle(&mut self) -> Result<(), PeripheralError> {
+        self.spindle_stopped = false;
+        self.drive()
+    }
+
+    /// Follow the motion now (the controller's poll, cheap): a running spindle takes the `S` the
+    /// motion carries when it differs from the one commanded (an `S` on a motion line), and a
+    /// laser's power follows the speed. The driver is told only what changed.
+    ///
+    /// Errors: the driver's.
+    pub(crate) fn follow(&mut self, motion: SpindleMotion) -> Result<(), PeripheralError> {
+        let hold_starts = motion.held && !self.motion.held;
+        if self.motion.held && !motion.held && motion.running {
+            // Resumed (cycle start, frame `Start`): the spindle stopped in the hold runs again.
+            self.spindle_stopped = false;
+        }
+        self.motion = motion;
+        match self.spindle {
+            None => {
+                // The speed of the next `M3`/`M4` without `S`.
+                self.rpm = motion.rpm;
+                return Ok(());
+            }
+            Some((rotation, rpm)) if rpm != motion.rpm => {
+                self.spindle = Some((rotation, motion.rpm));
+                self.rpm = motion.rpm;
+            }
+            Some(_) => {}
+        }
+        if motion.laser && hold_starts {
+            self.spindle_stopped = true;
+        }
+        self.drive()
+    }
+
+    /// What the driver should run at now: the commanded direction and speed, the override and
+    /// the spindle stop applied, and in laser mode the power the motion allows (none unless
+    /// `may_cut`).
+    fn wanted_output(&self, may_cut: bool) -> Option<(Rotation, u32)> {
+        let (rotation, rpm) = self.spindle?;
+        if self.spindle_stopped {
+            return None;
+        }
+        let rpm = (u64::from(rpm) * u64::from(self.spindle_override) / 100).min(u64::from(u32::MAX))
+            as u32;
+        let m = &self.motion;
+        let power = match rotation {
+            _ if !m.laser => rpm,
+            _ if !(may_cut && m.cutting) => 0,
+            Rotation::Clockwise => rpm,
+            Rotation::CounterClockwise => {
+                libm::roundf(rpm as f32 * m.fraction.clamp(0.0, 1.0)) as u32
+            }
+        };
+        Some((rotation, power))
+    }
+
+    /// Tell the driver [`Devices::wanted_output`] when it differs from what it was last told.
+    fn drive(&mut self) -> Result<(), PeripheralError> {
+        let want = self.wanted_output(true);
+        if want == self.output {
+            return Ok(());
+        }
+        self.command_output(want)
+    }
+
+    /// Tell the driver `want` (run or stop), and remember it once it obeyed.
+    fn command_output(&mut self, want: Option<(Rotation, u32)>) -> Result<(), PeripheralError> {
+        let spindle = self.parts.spindle().ok_or(PeripheralError::NoDevice)?;
+        match want {
+            Some((rotation, rpm)) => spindle.run(rotation, rpm)?,
+            None => spindle.stop()?,
+        }
+        self.output = want;
+        Ok(())
     }
 
     /// Mist and flood as last commanded.
@@ -434,35 +593,53 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
 
     /// Start, reverse or stop the spindle (`M3`, `M4`, `M5`); a speed of `None` is the last
     /// one that ran. `S` alone sets the speed of the running spindle (of the next start when
-    /// it is stopped, or on a machine without one).
+    /// it is stopped, or on a machine without one). The driver is told at once, at the speed
+    /// times the override (a laser: at the power the motion allows); `M5` always stops it, and
+    /// `M3`/`M4`/`M5` end grbl's spindle stop.
+    ///
+    /// Errors: [`PeripheralError::NoDevice`] (not for `S` alone), the driver's; nothing changes
+    /// then.
     pub(crate) fn set_spindle(&mut self, command: Spindle) -> Result<(), PeripheralError> {
-        if let Spindle::Speed { rpm } = command {
-            let rpm = rpm_or(rpm.round_to_scale(0), self.rpm);
-            self.rpm = rpm;
-            return match (self.spindle, self.parts.spindle()) {
-                (Some((rotation, _)), Some(spindle)) => {
-                    spindle.run(rotation, rpm)?;
-                    self.spindle = Some((rotation, rpm));
-                    Ok(())
-                }
-                _ => Ok(()),
-            };
-        }
-        let spindle = self.parts.spindle().ok_or(PeripheralError::NoDevice)?;
         let (rotation, rpm) = match command {
-            Spindle::Clockwise { rpm } => (Rotation::Clockwise, rpm),
-            Spindle::CounterClockwise { rpm } => (Rotation::CounterClockwise, rpm),
-            Spindle::Speed { .. } => return Ok(()),
+            Spindle::Speed { rpm } => {
+                let rpm = rpm_or(rpm.round_to_scale(0), self.rpm);
+                self.rpm = rpm;
+                let Some((rotation, _)) = self.spindle else {
+                    return Ok(());
+                };
+                if self.parts.spindle().is_none() {
+                    return Ok(());
+                }
+                (rotation, rpm)
+            }
+            Spindle::Clockwise { rpm } => (Rotation::Clockwise, rpm_or_last(rpm, self.rpm)),
+            Spindle::CounterClockwise { rpm } => {
+                (Rotation::CounterClockwise, rpm_or_last(rpm, self.rpm))
+            }
             Spindle::Off => {
+                let spindle = self.parts.spindle().ok_or(PeripheralError::NoDevice)?;
                 spindle.stop()?;
                 self.spindle = None;
+                self.spindle_stopped = false;
+                self.output = None;
                 return Ok(());
             }
         };
-        let rpm = rpm_or(rpm.and_then(|d| d.round_to_scale(0)), self.rpm);
-        spindle.run(rotation, rpm)?;
-        self.rpm = rpm;
+        if self.parts.spindle().is_none() {
+            return Err(PeripheralError::NoDevice);
+        }
+        let before = (self.spindle, self.spindle_stopped);
         self.spindle = Some((rotation, rpm));
+        if !matches!(command, Spindle::Speed { .. }) {
+            self.spindle_stopped = false;
+        }
+        // A laser starts off: the next poll gives it the power the motion then allows.
+        let want = self.wanted_output(false);
+        if let Err(e) = self.command_output(want) {
+            (self.spindle, self.spindle_stopped) = before;
+            return Err(e);
+        }
+        self.rpm = rpm;
         Ok(())
     }
 
@@ -595,9 +772,11 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
         let _ = self.end_program();
     }
 
-    /// Clear latched heater faults (`M999`, frame `Reset`). Heaters stay off until a new
-    /// target.
+    /// Clear latched heater faults (`M999`, frame `Reset`): heaters stay off until a new
+    /// target. The spindle and the coolant stop, as grbl's reset stops them (the reset's modal
+    /// state has no spindle running, and its `S` is 0).
     pub(crate) fn reset(&mut self) {
         self.each_zone(|zone| zone.clear_fault());
+        let _ = self.end_program();
     }
 }

@@ -15,6 +15,9 @@
 //! | `<axis>.accel` | acceleration, mm/s², `> 0` | `… + 2` |
 //! | `<axis>.min` | lowest machine position, mm | `… + 3` |
 //! | `<axis>.max` | highest machine position, mm (`> min`) | `… + 4` |
+//! | `<axis>.homing_seek` | homing: fast approach to the switch, mm/min, `> 0`, at most `max_rate` (only an axis that homes) | `… + 5` |
+//! | `<axis>.homing_locate` | homing: slow approach, mm/min, `> 0`, at most `homing_seek` | `… + 6` |
+//! | `<axis>.homing_pull_off` | homing: back-off and final pull-off, mm, `>= 0`, below the travel | `… + 7` |
 //! | `jog_feed` | feed of frame-01 jogs, mm/min | `0x0200` |
 //! | `default_feed` | feed of `G1` before any `F`, mm/min | `0x0201` |
 //! | `junction_deviation` | mm, `>= 0` | `0x0202` |
@@ -29,18 +32,26 @@
 //! | `travel_accel` | `M204 T`: of travel moves, as `print_accel` | `0x020B` |
 //! | `min_print_feed` | `M205 S`: the slowest feed of printing moves, mm/s, `>= 0` | `0x020C` |
 //! | `min_travel_feed` | `M205 T`: the slowest feed of travel moves, mm/s, `>= 0` | `0x020D` |
+//! | `status_mask` | grbl's `$10`: bit 0 reports `MPos` (else `WPos`), bit 1 the buffer state `Bf`; 0..=255, default 1 | `0x020E` |
+//! | `arc_tolerance` | grbl's `$12`: largest distance between an arc and its chords, mm, `> 0` | `0x020F` |
+//! | `report_inches` | grbl's `$13`: `1`: grbl's reports give positions and rates in inches; `0` (the default): mm | `0x0210` |
+//! | `laser_mode` | grbl's `$32`: `1`: the spindle output is a laser's (`M4` power follows the speed, off in rapids); `0` (the default): a spindle | `0x0211` |
+//! | `startup_line0`, `startup_line1` | grbl's `$N0`, `$N1`: a G-code line run at every grbl reset and at power-on, at most [`MAX_STARTUP_LINE_LEN`] bytes; empty (the default): none | `0x0212`, `0x0213` |
 //!
 //! `<axis>` is the axis letter in lower case (`x.steps_per_mm`); keys are matched without
 //! regard to case. A value is refused (and nothing changes) when it does not parse, or when the
 //! machine configuration it makes does not validate, with the configuration error's code.
 //! Values are stored with `postcard` (an `f32`, a `bool`, a `u32`, the `SoftLimits` enum or a
-//! string), one record per key.
+//! string), one record per key. The homing keys exist only for an axis that homes (frame 00
+//! names no other, and frame 50's list leaves them out).
 //!
 //! Settings take effect when the board next builds the kernel (at its next start): the kernel
-//! is built once from [`Settings::machine`] and given [`Settings::path_limits`]. `M500` stores
-//! the planner settings the kernel runs with (`M92`, `M201`, `M203`, `M204`, `M205`), `M501`
-//! gives it the stored ones, `M502` the board's defaults ([`Settings::defaults`]), `M503`
-//! reports them (`forja_app::controller`). Frame 50 answers with the stored value.
+//! is built once from [`Settings::machine`] and given [`Settings::path_limits`]. The grbl
+//! dialect's own (`status_mask`, `report_inches`, `laser_mode`, the startup lines) take effect
+//! at once. `M500` stores the planner settings the kernel runs with (`M92`, `M201`, `M203`,
+//! `M204`, `M205`), `M501` gives it the stored ones, `M502` the board's defaults
+//! ([`Settings::defaults`]), `M503` reports them (`forja_app::controller`). Frame 50 answers
+//! with the stored value.
 //! Frames carry no `*`, so a password containing `*` cannot be set over the link.
 
 use core::fmt;
@@ -56,8 +67,9 @@ use super::text::Text;
 use crate::error::StoreRefusal;
 use forja_hal_abstraction::program::StoreError;
 use forja_motion::PathLimits;
-use forja_motion::config::{MachineConfig, SoftLimits};
+use forja_motion::config::{HomingConfig, MachineConfig, SoftLimits};
 use forja_motion::error::ConfigError;
+use forja_protocol::gcode::MAX_LINE_LEN;
 
 /// The period of frame 55 when no setting says otherwise, ms.
 pub const DEFAULT_KEEP_ALIVE_MS: u32 = 1000;
@@ -67,6 +79,13 @@ pub const MAX_SSID_LEN: usize = 32;
 
 /// The longest password `link.password` takes (what one frame 00 can carry after the key).
 pub const MAX_PASSWORD_LEN: usize = 35;
+
+/// The longest startup line (`startup_line0`, `startup_line1`): what a `$N0=` line of
+/// [`MAX_LINE_LEN`] bytes carries after its `$N0=`.
+pub const MAX_STARTUP_LINE_LEN: usize = MAX_LINE_LEN - 4;
+
+/// The room for one stored value: a startup line with its `postcard` length.
+const RECORD_LEN: usize = MAX_STARTUP_LINE_LEN + 4;
 
 /// The first record key of the axis settings.
 pub const AXIS_RECORDS: u16 = 0x0100;
@@ -87,15 +106,24 @@ pub enum AxisField {
     Min,
     /// `max`, mm.
     Max,
+    /// `homing_seek`, mm/min (an axis that homes).
+    HomingSeek,
+    /// `homing_locate`, mm/min (an axis that homes).
+    HomingLocate,
+    /// `homing_pull_off`, mm (an axis that homes).
+    HomingPullOff,
 }
 
 impl AxisField {
-    const ALL: [AxisField; 5] = [
+    const ALL: [AxisField; 8] = [
         Self::StepsPerMm,
         Self::MaxRate,
         Self::Accel,
         Self::Min,
         Self::Max,
+        Self::HomingSeek,
+        Self::HomingLocate,
+        Self::HomingPullOff,
     ];
 
     fn name(self) -> &'static str {
@@ -105,7 +133,18 @@ impl AxisField {
             Self::Accel => "accel",
             Self::Min => "min",
             Self::Max => "max",
+            Self::HomingSeek => "homing_seek",
+            Self::HomingLocate => "homing_locate",
+            Self::HomingPullOff => "homing_pull_off",
         }
+    }
+
+    /// Whether the field is one of the axis's homing settings.
+    fn is_homing(self) -> bool {
+        matches!(
+            self,
+            Self::HomingSeek | Self::HomingLocate | Self::HomingPullOff
+        )
     }
 }
 
@@ -147,9 +186,19 @@ pub enum Key {
     MinPrintFeed,
     /// `min_travel_feed`.
     MinTravelFeed,
+    /// `status_mask` (grbl's `$10`).
+    StatusMask,
+    /// `arc_tolerance` (grbl's `$12`).
+    ArcTolerance,
+    /// `report_inches` (grbl's `$13`).
+    ReportInches,
+    /// `laser_mode` (grbl's `$32`).
+    LaserMode,
+    /// `startup_line0` or `startup_line1` (grbl's `$N0`, `$N1`), by index.
+    StartupLine(u8),
 }
 
-const GLOBALS: [(&str, Key); 14] = [
+const GLOBALS: [(&str, Key); 20] = [
     ("jog_feed", Key::JogFeed),
     ("default_feed", Key::DefaultFeed),
     ("junction_deviation", Key::JunctionDeviation),
@@ -164,6 +213,12 @@ const GLOBALS: [(&str, Key); 14] = [
     ("travel_accel", Key::TravelAccel),
     ("min_print_feed", Key::MinPrintFeed),
     ("min_travel_feed", Key::MinTravelFeed),
+    ("status_mask", Key::StatusMask),
+    ("arc_tolerance", Key::ArcTolerance),
+    ("report_inches", Key::ReportInches),
+    ("laser_mode", Key::LaserMode),
+    ("startup_line0", Key::StartupLine(0)),
+    ("startup_line1", Key::StartupLine(1)),
 ];
 
 impl Key {
@@ -180,10 +235,23 @@ impl Key {
         let field = AxisField::ALL
             .into_iter()
             .find(|f| f.name().eq_ignore_ascii_case(field))?;
-        Some(Key::Axis { axis, field })
+        let key = Key::Axis { axis, field };
+        key.applies_to(machine).then_some(key)
     }
 
-    /// Every key of `machine`, axes first.
+    /// Whether `machine` has this setting: the homing settings only on an axis that homes.
+    pub fn applies_to<const N: usize>(&self, machine: &MachineConfig<N>) -> bool {
+        match *self {
+            Key::Axis { axis, field } => machine
+                .axes
+                .get(axis)
+                .is_some_and(|a| !field.is_homing() || a.homing.is_some()),
+            _ => true,
+        }
+    }
+
+    /// Every key of a machine of `N` axes, axes first (the homing keys of every axis among
+    /// them: see [`Key::applies_to`]).
     pub fn all<const N: usize>() -> impl Iterator<Item = Key> {
         (0..N)
             .flat_map(|axis| {
@@ -319,6 +387,14 @@ pub struct Settings<const N: usize> {
     ssid: Text<MAX_SSID_LEN>,
     password: Text<MAX_PASSWORD_LEN>,
     power_loss_recovery: bool,
+    /// grbl's `$10`.
+    status_mask: u8,
+    /// grbl's `$13`.
+    report_inches: bool,
+    /// grbl's `$32`.
+    laser_mode: bool,
+    /// grbl's `$N0`, `$N1`.
+    startup: [Text<MAX_STARTUP_LINE_LEN>; 2],
 }
 
 /// One setting's value, decoded.
@@ -327,8 +403,22 @@ enum Value<'a> {
     Number(f32),
     Flag(bool),
     Limits(SoftLimits),
-    Millis(u32),
+    /// A whole number (`keep_alive_ms`, `status_mask`).
+    Whole(u32),
     Text(&'a str),
+}
+
+/// What [`Settings::load`] made of one key's record.
+enum Loaded {
+    /// No record.
+    Absent,
+    /// The record did not read or decode.
+    Unreadable,
+    /// Applied.
+    Applied,
+    /// It decodes, but the configuration it makes does not validate (now: another stored
+    /// value may make it valid).
+    Refused,
 }
 
 /// A setting's number as frame 50 and `M500` write it: an `f32`'s seven significant digits
@@ -358,7 +448,8 @@ fn store_error(kind: ErrorKind) -> StoreError {
 
 impl<const N: usize> Settings<N> {
     /// `machine` with the default link settings (keep-alive every
-    /// [`DEFAULT_KEEP_ALIVE_MS`], no network name or password) and power-loss recovery on.
+    /// [`DEFAULT_KEEP_ALIVE_MS`], no network name or password), power-loss recovery on, and
+    /// grbl's defaults (`$10=1`, `$13=0`, `$32=0`, no startup lines).
     pub fn new(machine: MachineConfig<N>) -> Self {
         Self {
             defaults: machine.clone(),
@@ -368,12 +459,18 @@ impl<const N: usize> Settings<N> {
             ssid: Text::new(),
             password: Text::new(),
             power_loss_recovery: true,
+            status_mask: 1,
+            report_inches: false,
+            laser_mode: false,
+            startup: [Text::new(); 2],
         }
     }
 
     /// `machine` with every value found in `storage` applied over it. A stored value that
     /// cannot be read or decoded, or that would make the configuration invalid, is ignored
-    /// (and counted).
+    /// (and counted). Values that depend on one another (a homing seek rate lowered below the
+    /// default locate rate, and the locate rate with it) are applied whatever order they are
+    /// stored in: a value refused is tried again once others were applied.
     ///
     /// Context: thread, at start-up. Blocks for the storage reads.
     pub fn load<S: RecordStorage>(
@@ -382,38 +479,66 @@ impl<const N: usize> Settings<N> {
     ) -> (Self, LoadReport) {
         let mut settings = Self::new(machine);
         let mut report = LoadReport::default();
-        for key in Key::all::<N>() {
-            let mut buf = [0u8; 64];
-            let record = key.record(&settings.machine);
-            let len = match storage.read(record, &mut buf) {
-                Ok(Some(len)) => len,
-                Ok(None) => continue,
-                Err(_) => {
-                    report.ignored += 1;
-                    continue;
-                }
-            };
-            let bytes = buf.get(..len).unwrap_or(&[]);
-            let value = match key {
-                Key::HardLimits | Key::PowerLossRecovery => decode::<bool>(bytes).map(Value::Flag),
-                Key::SoftLimits => decode::<SoftLimits>(bytes).map(Value::Limits),
-                Key::KeepAliveMs => decode::<u32>(bytes).map(Value::Millis),
-                Key::LinkSsid | Key::LinkPassword => {
-                    postcard::from_bytes::<&str>(bytes).ok().map(Value::Text)
-                }
-                _ => decode::<f32>(bytes).map(Value::Number),
-            };
-            let mut next = settings.clone();
-            let applied = value.is_some_and(|v| next.apply(key, v).is_ok())
-                && next.machine.validate().is_ok();
-            if applied {
-                settings = next;
-                report.applied += 1;
-            } else {
-                report.ignored += 1;
+        // Keys whose value decodes and was refused: bit `i` for the `i`-th of `Key::all`.
+        let mut refused: u128 = 0;
+        for (i, key) in Key::all::<N>().enumerate() {
+            match settings.load_one(key, storage) {
+                Loaded::Absent => {}
+                Loaded::Applied => report.applied += 1,
+                Loaded::Unreadable => report.ignored += 1,
+                Loaded::Refused => match 1u128.checked_shl(i as u32) {
+                    Some(bit) => refused |= bit,
+                    None => report.ignored += 1,
+                },
             }
         }
+        let mut progress = true;
+        while refused != 0 && progress {
+            progress = false;
+            for (i, key) in Key::all::<N>().enumerate() {
+                let bit = 1u128.checked_shl(i as u32).unwrap_or(0);
+                if refused & bit != 0 && matches!(settings.load_one(key, storage), Loaded::Applied)
+                {
+                    refused &= !bit;
+                    report.applied += 1;
+                    progress = true;
+                }
+            }
+        }
+        report.ignored += refused.count_ones() as u16;
         (settings, report)
+    }
+
+    /// Read the record of `key` and apply it, if the configuration it makes validates.
+    fn load_one<S: RecordStorage>(&mut self, key: Key, storage: &mut S) -> Loaded {
+        let mut buf = [0u8; RECORD_LEN];
+        let len = match storage.read(key.record(&self.machine), &mut buf) {
+            Ok(Some(len)) => len,
+            Ok(None) => return Loaded::Absent,
+            Err(_) => return Loaded::Unreadable,
+        };
+        let bytes = buf.get(..len).unwrap_or(&[]);
+        let value = match key {
+            Key::HardLimits | Key::PowerLossRecovery | Key::ReportInches | Key::LaserMode => {
+                decode::<bool>(bytes).map(Value::Flag)
+            }
+            Key::SoftLimits => decode::<SoftLimits>(bytes).map(Value::Limits),
+            Key::KeepAliveMs | Key::StatusMask => decode::<u32>(bytes).map(Value::Whole),
+            Key::LinkSsid | Key::LinkPassword | Key::StartupLine(_) => {
+                postcard::from_bytes::<&str>(bytes).ok().map(Value::Text)
+            }
+            _ => decode::<f32>(bytes).map(Value::Number),
+        };
+        let Some(value) = value else {
+            return Loaded::Unreadable;
+        };
+        let mut next = self.clone();
+        if next.apply(key, value).is_ok() && next.machine.validate().is_ok() {
+            *self = next;
+            Loaded::Applied
+        } else {
+            Loaded::Refused
+        }
     }
 
     /// The board's machine configuration, before any stored value (what `M502` goes back to).
@@ -451,6 +576,28 @@ impl<const N: usize> Settings<N> {
         self.power_loss_recovery
     }
 
+    /// grbl's status report mask (`$10`): bit 0 reports `MPos` (else `WPos`), bit 1 `Bf`.
+    pub fn status_mask(&self) -> u8 {
+        self.status_mask
+    }
+
+    /// Whether grbl's reports give positions and rates in inches (`$13`).
+    pub fn report_inches(&self) -> bool {
+        self.report_inches
+    }
+
+    /// Whether the spindle output drives a laser (grbl's laser mode, `$32`).
+    pub fn laser_mode(&self) -> bool {
+        self.laser_mode
+    }
+
+    /// grbl's startup line `index` (`$N0`, `$N1`); empty when not set or `index` is not 0 or 1.
+    pub fn startup_line(&self, index: u8) -> &str {
+        self.startup
+            .get(usize::from(index))
+            .map_or("", |t| t.as_str())
+    }
+
     fn apply(&mut self, key: Key, value: Value<'_>) -> Result<(), SettingError> {
         let m = &mut self.machine;
         match (key, value) {
@@ -462,6 +609,29 @@ impl<const N: usize> Settings<N> {
                     AxisField::Accel => a.accel_mm_s2 = v,
                     AxisField::Min => a.min_mm = v,
                     AxisField::Max => a.max_mm = v,
+                    AxisField::HomingSeek | AxisField::HomingLocate | AxisField::HomingPullOff => {
+                        let h = a.homing.as_mut().ok_or(SettingError::UnknownKey)?;
+                        match field {
+                            AxisField::HomingSeek => h.seek_mm_min = v,
+                            AxisField::HomingLocate => h.locate_mm_min = v,
+                            _ => h.pull_off_mm = v,
+                        }
+                    }
+                }
+            }
+            (Key::ArcTolerance, Value::Number(v)) => m.arc_tolerance_mm = v,
+            (Key::StatusMask, Value::Whole(v)) => {
+                self.status_mask = u8::try_from(v).map_err(|_| SettingError::BadValue)?;
+            }
+            (Key::ReportInches, Value::Flag(v)) => self.report_inches = v,
+            (Key::LaserMode, Value::Flag(v)) => self.laser_mode = v,
+            (Key::StartupLine(i), Value::Text(t)) => {
+                let slot = self
+                    .startup
+                    .get_mut(usize::from(i))
+                    .ok_or(SettingError::UnknownKey)?;
+                if !slot.set(t.as_bytes()) {
+                    return Err(SettingError::BadValue);
                 }
             }
             (Key::JogFeed, Value::Number(v)) => m.jog_feed_mm_min = v,
@@ -490,7 +660,7 @@ impl<const N: usize> Settings<N> {
                 }
             }
             (Key::SoftLimits, Value::Limits(v)) => m.soft_limits = v,
-            (Key::KeepAliveMs, Value::Millis(v)) if (100..=600_000).contains(&v) => {
+            (Key::KeepAliveMs, Value::Whole(v)) if (100..=600_000).contains(&v) => {
                 self.keep_alive_ms = v;
             }
             (Key::LinkSsid, Value::Text(t)) => {
@@ -516,30 +686,34 @@ impl<const N: usize> Settings<N> {
                 .ok_or(SettingError::BadValue)
         };
         Ok(match key {
-            Key::HardLimits | Key::PowerLossRecovery => match text {
-                "0" => Value::Flag(false),
-                "1" => Value::Flag(true),
-                _ => return Err(SettingError::BadValue),
-            },
+            Key::HardLimits | Key::PowerLossRecovery | Key::ReportInches | Key::LaserMode => {
+                match text {
+                    "0" => Value::Flag(false),
+                    "1" => Value::Flag(true),
+                    _ => return Err(SettingError::BadValue),
+                }
+            }
             Key::SoftLimits => Value::Limits(match text {
                 t if t.eq_ignore_ascii_case("off") => SoftLimits::Off,
                 t if t.eq_ignore_ascii_case("homed") => SoftLimits::WhenHomed,
                 t if t.eq_ignore_ascii_case("always") => SoftLimits::Always,
                 _ => return Err(SettingError::BadValue),
             }),
-            Key::KeepAliveMs => Value::Millis(
+            Key::KeepAliveMs | Key::StatusMask => Value::Whole(
                 Decimal::parse(text.as_bytes())
                     .and_then(Decimal::as_u32)
                     .ok_or(SettingError::BadValue)?,
             ),
-            Key::LinkSsid | Key::LinkPassword => Value::Text(text),
+            Key::LinkSsid | Key::LinkPassword | Key::StartupLine(_) => Value::Text(text),
             _ => Value::Number(number()?),
         })
     }
 
-    /// Every setting of the machine and the planner back to the board's defaults, their stored
-    /// records removed (grbl's `$RST=$`); the link's (keep-alive, network name and password,
-    /// power-loss recovery) are kept, so that a board on WiFi stays reachable.
+    /// Every setting of the machine and the planner back to the board's defaults, with grbl's
+    /// `status_mask`, `report_inches` and `laser_mode`, their stored records removed (grbl's
+    /// `$RST=$`); the link's (keep-alive, network name and password, power-loss recovery) are
+    /// kept, so that a board on WiFi stays reachable, and so are the startup lines (grbl clears
+    /// them with `$RST=*` only).
     ///
     /// Context: thread. Blocks for the storage writes. Errors: the storage's; the settings in
     /// RAM are then unchanged, and the records removed before the failure stay removed (they
@@ -551,7 +725,11 @@ impl<const N: usize> Settings<N> {
         let keep = |k: &Key| {
             matches!(
                 k,
-                Key::KeepAliveMs | Key::LinkSsid | Key::LinkPassword | Key::PowerLossRecovery
+                Key::KeepAliveMs
+                    | Key::LinkSsid
+                    | Key::LinkPassword
+                    | Key::PowerLossRecovery
+                    | Key::StartupLine(_)
             )
         };
         for key in Key::all::<N>().filter(|k| !keep(k)) {
@@ -561,6 +739,9 @@ impl<const N: usize> Settings<N> {
         }
         self.machine = self.defaults.clone();
         self.path = PathLimits::NONE;
+        self.status_mask = 1;
+        self.report_inches = false;
+        self.laser_mode = false;
         Ok(())
     }
 
@@ -577,24 +758,48 @@ impl<const N: usize> Settings<N> {
         check: impl FnOnce(&MachineConfig<N>) -> Result<(), ConfigError>,
     ) -> Result<Key, SettingError> {
         let key = Key::parse(key, &self.machine).ok_or(SettingError::UnknownKey)?;
-        let parsed = Self::parse_value(key, value)?;
-        let mut next = self.clone();
-        next.apply(key, parsed)?;
-        check(&next.machine).map_err(SettingError::Invalid)?;
-        let mut buf = [0u8; 64];
-        let bytes = match parsed {
-            Value::Number(v) => encode(&v, &mut buf),
-            Value::Flag(v) => encode(&v, &mut buf),
-            Value::Limits(v) => encode(&v, &mut buf),
-            Value::Millis(v) => encode(&v, &mut buf),
-            Value::Text(v) => encode(&v, &mut buf),
-        }
-        .ok_or(SettingError::BadValue)?;
-        storage
-            .write(key.record(&self.machine), bytes)
-            .map_err(|e| SettingError::Storage(store_error(e.kind())))?;
-        *self = next;
+        self.set_all(&[key], value, storage, check)?;
         Ok(key)
+    }
+
+    /// Set every key of `keys` to `value` (grbl's `$25`: the seek rate of every axis that
+    /// homes), check the machine configuration they make together with `check`, and store them
+    /// one after another. On an error of the values or of `check` nothing changes; on a storage
+    /// error the keys stored before it keep their new value (in RAM too).
+    ///
+    /// Context: thread. Blocks for the storage writes.
+    pub fn set_all<S: RecordStorage>(
+        &mut self,
+        keys: &[Key],
+        value: &str,
+        storage: &mut S,
+        check: impl FnOnce(&MachineConfig<N>) -> Result<(), ConfigError>,
+    ) -> Result<(), SettingError> {
+        let mut next = self.clone();
+        for &key in keys {
+            if !key.applies_to(&self.machine) {
+                return Err(SettingError::UnknownKey);
+            }
+            next.apply(key, Self::parse_value(key, value)?)?;
+        }
+        check(&next.machine).map_err(SettingError::Invalid)?;
+        for &key in keys {
+            let parsed = Self::parse_value(key, value)?;
+            let mut buf = [0u8; RECORD_LEN];
+            let bytes = match parsed {
+                Value::Number(v) => encode(&v, &mut buf),
+                Value::Flag(v) => encode(&v, &mut buf),
+                Value::Limits(v) => encode(&v, &mut buf),
+                Value::Whole(v) => encode(&v, &mut buf),
+                Value::Text(v) => encode(&v, &mut buf),
+            }
+            .ok_or(SettingError::BadValue)?;
+            storage
+                .write(key.record(&self.machine), bytes)
+                .map_err(|e| SettingError::Storage(store_error(e.kind())))?;
+            self.apply(key, parsed)?;
+        }
+        Ok(())
     }
 
     /// Write the setting `key` as frame 50 shows it, `name=value` (`x.steps_per_mm=80`).
@@ -612,12 +817,16 @@ impl<const N: usize> Settings<N> {
                 let Some(a) = m.axes.get(axis) else {
                     return Ok(());
                 };
+                let homing = |f: fn(&HomingConfig) -> f32| a.homing.as_ref().map_or(0.0, f);
                 let v = match field {
                     AxisField::StepsPerMm => a.steps_per_mm,
                     AxisField::MaxRate => a.max_rate_mm_min,
                     AxisField::Accel => a.accel_mm_s2,
                     AxisField::Min => a.min_mm,
                     AxisField::Max => a.max_mm,
+                    AxisField::HomingSeek => homing(|h| h.seek_mm_min),
+                    AxisField::HomingLocate => homing(|h| h.locate_mm_min),
+                    AxisField::HomingPullOff => homing(|h| h.pull_off_mm),
                 };
                 write_number(out, v)
             }
@@ -641,15 +850,20 @@ impl<const N: usize> Settings<N> {
             Key::TravelAccel => write_number(out, self.path.travel_accel_mm_s2.unwrap_or(0.0)),
             Key::MinPrintFeed => write_number(out, self.path.min_extruding_feed_mm_s),
             Key::MinTravelFeed => write_number(out, self.path.min_travel_feed_mm_s),
+            Key::StatusMask => write!(out, "{}", self.status_mask),
+            Key::ArcTolerance => write_number(out, m.arc_tolerance_mm),
+            Key::ReportInches => out.write_str(if self.report_inches { "1" } else { "0" }),
+            Key::LaserMode => out.write_str(if self.laser_mode { "1" } else { "0" }),
+            Key::StartupLine(i) => out.write_str(self.startup_line(i)),
         }
     }
 }
 
-/// Every setting, one `name=value` line each ([`Settings::write_line`]), in the order of
-/// [`Key::all`].
+/// Every setting of the machine, one `name=value` line each ([`Settings::write_line`]), in the
+/// order of [`Key::all`].
 impl<const N: usize> fmt::Display for Settings<N> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        for key in Key::all::<N>() {
+        for key in Key::all::<N>().filter(|k| k.applies_to(&self.machine)) {
             self.write_line(key, f)?;
             f.write_str("\n")?;
         }
@@ -812,11 +1026,161 @@ pub(crate) mod tests {
         assert_eq!(line, "y.max=250");
         let text = std::format!("{s}");
         let lines: Vec<&str> = text.lines().collect();
-        assert_eq!(lines.len(), Key::all::<2>().count());
+        // Neither axis homes: no homing keys.
+        assert_eq!(lines.len(), Key::all::<2>().count() - 2 * 3);
+        assert!(!text.contains("homing"));
         assert_eq!(lines[0], "x.steps_per_mm=80");
         assert!(lines.contains(&"y.max=250"));
         assert!(lines.contains(&"link.password=<hidden>"));
         assert!(text.ends_with('\n'));
+    }
+
+    /// `machine()` with X homing (seek 3000, locate 300, pull-off 1 mm).
+    fn homing_machine() -> MachineConfig<2> {
+        let mut m = machine();
+        m.axes[0] = m.axes[0].with_homing(HomingConfig {
+            direction: forja_motion::config::HomeDirection::Min,
+            seek_mm_min: 3000.0,
+            locate_mm_min: 300.0,
+            pull_off_mm: 1.0,
+            switch: 0,
+            order: 0,
+        });
+        m
+    }
+
+    #[test]
+    fn grbl_settings_and_homing_keys_are_stored_and_loaded_back() {
+        let mut storage = VecStorage::default();
+        let mut s = Settings::new(homing_machine());
+        let ok = |m: &MachineConfig<2>| m.validate();
+        assert_eq!(
+            (
+                s.status_mask(),
+                s.report_inches(),
+                s.laser_mode(),
+                s.startup_line(0)
+            ),
+            (1, false, false, "")
+        );
+        s.set("status_mask", "3", &mut storage, ok).unwrap();
+        s.set("arc_tolerance", "0.01", &mut storage, ok).unwrap();
+        s.set("report_inches", "1", &mut storage, ok).unwrap();
+        s.set("laser_mode", "1", &mut storage, ok).unwrap();
+        s.set("startup_line0", "G54 G21", &mut storage, ok).unwrap();
+        s.set("startup_line1", "G0 X1 (move)", &mut storage, ok)
+            .unwrap();
+        s.set("x.homing_pull_off", "2.5", &mut storage, ok).unwrap();
+        assert_eq!(read(&s, "x.homing_seek"), "3000");
+        assert_eq!(read(&s, "startup_line1"), "G0 X1 (move)");
+        // Only an axis that homes has them.
+        assert_eq!(Key::parse("y.homing_seek", s.machine()), None);
+        assert_eq!(
+            s.set("y.homing_seek", "100", &mut storage, ok),
+            Err(SettingError::UnknownKey)
+        );
+        // Refused values change nothing.
+        for (key, value) in [
+            ("status_mask", "256"),
+            ("report_inches", "2"),
+            ("x.homing_locate", "5000"),
+            ("arc_tolerance", "0"),
+        ] {
+            assert!(
+                s.set(key, value, &mut storage, ok).is_err(),
+                "{key}={value}"
+            );
+        }
+        let long = "G".repeat(MAX_STARTUP_LINE_LEN + 1);
+        assert_eq!(
+            s.set("startup_line0", &long, &mut storage, ok),
+            Err(SettingError::BadValue)
+        );
+        let longest = "G".repeat(MAX_STARTUP_LINE_LEN);
+        s.set("startup_line1", &longest, &mut storage, ok).unwrap();
+        let (back, report) = Settings::load(homing_machine(), &mut storage);
+        assert_eq!(
+            report,
+            LoadReport {
+                applied: 7,
+                ignored: 0
+            }
+        );
+        assert_eq!(back.status_mask(), 3);
+        assert!(back.report_inches() && back.laser_mode());
+        assert_eq!(back.machine().arc_tolerance_mm, 0.01);
+        assert_eq!(back.startup_line(0), "G54 G21");
+        assert_eq!(back.startup_line(1), longest);
+        assert_eq!(back.machine().axes[0].homing.unwrap().pull_off_mm, 2.5);
+        let text = std::format!("{back}");
+        assert!(
+            text.contains(
+                "x.homing_seek=3000
+"
+            ),
+            "{text}"
+        );
+        assert!(!text.contains("y.homing"), "{text}");
+        // `$RST=$` puts grbl's settings back and keeps the startup lines.
+        let mut back = back;
+        back.restore_defaults(&mut storage).unwrap();
+        assert_eq!(
+            (back.status_mask(), back.report_inches(), back.laser_mode()),
+            (1, false, false)
+        );
+        assert_eq!(back.startup_line(0), "G54 G21");
+        let (again, _) = Settings::load(homing_machine(), &mut storage);
+        assert_eq!(again.status_mask(), 1);
+        assert_eq!(again.startup_line(0), "G54 G21");
+    }
+
+    #[test]
+    fn values_that_depend_on_one_another_load_in_any_order() {
+        let mut storage = VecStorage::default();
+        let mut s = Settings::new(homing_machine());
+        let ok = |m: &MachineConfig<2>| m.validate();
+        // The locate rate first, then a seek rate below the default locate rate: stored in
+        // that order, loaded in the order of the keys (seek first).
+        s.set("x.homing_locate", "50", &mut storage, ok).unwrap();
+        s.set("x.homing_seek", "100", &mut storage, ok).unwrap();
+        let (back, report) = Settings::load(homing_machine(), &mut storage);
+        assert_eq!(
+            report,
+            LoadReport {
+                applied: 2,
+                ignored: 0
+            }
+        );
+        let h = back.machine().axes[0].homing.unwrap();
+        assert_eq!((h.seek_mm_min, h.locate_mm_min), (100.0, 50.0));
+    }
+
+    #[test]
+    fn set_all_sets_every_key_or_none() {
+        let mut storage = VecStorage::default();
+        let mut m = homing_machine();
+        m.axes[1] = m.axes[1].with_homing(m.axes[0].homing.unwrap());
+        let mut s = Settings::new(m.clone());
+        let ok = |m: &MachineConfig<2>| m.validate();
+        let seek = [0, 1].map(|axis| Key::Axis {
+            axis,
+            field: AxisField::HomingSeek,
+        });
+        s.set_all(&seek, "2000", &mut storage, ok).unwrap();
+        assert_eq!(read(&s, "x.homing_seek"), "2000");
+        assert_eq!(read(&s, "y.homing_seek"), "2000");
+        // Above Y's rate only: neither changes.
+        s.set("y.max_rate", "1500", &mut storage, ok).unwrap_err();
+        s.set("y.homing_seek", "1000", &mut storage, ok).unwrap();
+        s.set("y.max_rate", "1500", &mut storage, ok).unwrap();
+        assert_eq!(
+            s.set_all(&seek, "1800", &mut storage, ok),
+            Err(SettingError::Invalid(ConfigError::SeekRate(1)))
+        );
+        assert_eq!(read(&s, "x.homing_seek"), "2000");
+        let (back, _) = Settings::load(m, &mut storage);
+        assert_eq!(back.machine().axes[0].homing.unwrap().seek_mm_min, 2000.0);
+        assert_eq!(back.machine().axes[1].homing.unwrap().seek_mm_min, 1000.0);
     }
 
     #[test]
@@ -827,5 +1191,9 @@ pub(crate) mod tests {
             assert!(!keys[..i].contains(k));
         }
         assert_eq!(keys[0], 0x0100 + 8 * 23);
+        // The axis keys of X end before Y's begin.
+        assert_eq!(keys[7], 0x0100 + 8 * 23 + 7);
+        assert_eq!(keys[8], 0x0100 + 8 * 24);
+        assert_eq!(Key::StartupLine(1).record(&m), 0x0213);
     }
 }

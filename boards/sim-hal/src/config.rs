@@ -1,15 +1,15 @@
 //! The machine file: what the simulated machine is.
 //!
 //! A machine file is TOML. It names the axes with their scale, rates, travel, homing and
-//! switches, the simulated heaters with their thermal constants, the PWM outputs, the beeper,
-//! the virtual clock rate and the link settings. [`MachineConfig::from_toml_str`] parses and
-//! validates one; every error names the line, the section and the field
-//! ([`MachineFileError`]).
+//! switches, the touch probe, the simulated heaters with their thermal constants, the PWM
+//! outputs, the switched (on/off) outputs, the beeper, the virtual clock rate and the link
+//! settings. [`MachineConfig::from_toml_str`] parses and validates one; every error names the
+//! line, the section and the field ([`MachineFileError`]).
 //!
 //! Two machine files are bundled ([`BUNDLED`]): `default` (`machines/default.toml`, a 4-axis
-//! X/Y/Z/A CNC router, the simulator's default) and `printer` (`machines/printer.toml`, an
-//! X/Y/Z/E 3D printer with a hot end, a bed and a beeper). The bundled files are the reference
-//! of the format: every field is there with a comment.
+//! X/Y/Z/A CNC router with flood and mist coolant, the simulator's default) and `printer`
+//! (`machines/printer.toml`, an X/Y/Z/E 3D printer with a hot end, a bed and a beeper). The
+//! bundled files are the reference of the format: every field is there with a comment.
 //!
 //! # Format
 //!
@@ -41,6 +41,12 @@
 //! position_mm = 0.0
 //! polarity = "normally_closed" # optional: "normally_open" (default) or "normally_closed"
 //!
+//! [probe]                     # optional: a touch probe, closed on the stock's surface
+//! axis = "Z"                  # optional: the axis it closes along (default "Z")
+//! position_mm = 20.0          # closed while that axis is at or below this machine position
+//! polarity = "normally_open"  # optional: "normally_open" (default, a touch plate) or
+//!                             # "normally_closed"
+//!
 //! [[heater]]                  # zero or more
 //! name = "hotend"
 //! power_w = 40.0              # > 0: power at full duty
@@ -52,6 +58,11 @@
 //! [[output]]                  # PWM outputs (fans, spindles); zero or more
 //! name = "spindle"
 //! max_duty = 1000             # 1 ..= 65535
+//!
+//! [[digital_output]]          # on/off outputs (coolant valves, relays); zero or more
+//! name = "flood"              # "flood" and "mist" are the coolant lines (M8, M7); unique
+//! active = "high"             # optional: the line level that switches the device on, "high"
+//!                             # (default) or "low"
 //!
 //! [beeper]                    # optional: a buzzer or speaker for M300
 //! waiting_tones = 4           # optional: tones kept waiting behind the one sounding; 4 ..= 64
@@ -71,14 +82,19 @@
 //! ([`MachineConfig::bed_heater`]), the first other heater the hot end
 //! ([`MachineConfig::hot_end_heater`]); the output named `spindle` is the spindle
 //! ([`MachineConfig::spindle_output`]), the others are fans 0, 1, … in file order
-//! ([`MachineConfig::fan_outputs`]). An axis's homing switch is the one on the side it homes
-//! towards ([`AxisConfig::homing_switch`]); other switches (a hard limit at the far end) are
-//! modelled but are not the homing switch. Every axis's steps are scheduled for the slowest
-//! driver of the machine ([`MachineConfig::slowest_step_timing`]).
+//! ([`MachineConfig::fan_outputs`]). The digital output named `flood` is the flood coolant
+//! ([`MachineConfig::flood_output`]), the one named `mist` the mist coolant
+//! ([`MachineConfig::mist_output`]); others are general outputs. An axis's homing switch is the
+//! one on the side it homes towards ([`AxisConfig::homing_switch`]); other switches (a hard
+//! limit at the far end) are modelled but are not the homing switch. The probe
+//! ([`MachineConfig::probe`]) is a switch of its own beside them, never one of an axis's
+//! min/max switches. Every axis's steps are scheduled for the slowest driver of the machine
+//! ([`MachineConfig::slowest_step_timing`]).
 
 use core::fmt;
 use std::net::IpAddr;
 
+use embedded_hal::digital::PinState;
 use forja_hal_abstraction::stepper::{Direction, StepTiming};
 use serde::Deserialize;
 use toml::Spanned;
@@ -110,6 +126,12 @@ pub const BED: &str = "bed";
 /// The name of the output that is the spindle.
 pub const SPINDLE: &str = "spindle";
 
+/// The name of the digital output that is the flood coolant (`M8`).
+pub const FLOOD: &str = "flood";
+
+/// The name of the digital output that is the mist coolant (`M7`).
+pub const MIST: &str = "mist";
+
 /// The fewest and most tones a beeper keeps waiting behind the one it sounds
 /// ([`BeeperConfig::waiting_tones`]): at least what the beeper contract asks for
 /// ([`forja_hal_abstraction::device::MIN_WAITING_TONES`]).
@@ -132,8 +154,12 @@ pub struct MachineConfig {
     pub heaters: Vec<HeaterConfig>,
     /// PWM outputs, in file order.
     pub outputs: Vec<OutputConfig>,
+    /// Switched (on/off) outputs, in file order.
+    pub digital_outputs: Vec<DigitalOutputConfig>,
     /// The beeper, if the machine has one.
     pub beeper: Option<BeeperConfig>,
+    /// The touch probe, if the machine has one.
+    pub probe: Option<ProbeConfig>,
     /// Link settings.
     pub link: LinkConfig,
 }
@@ -201,6 +227,19 @@ pub struct SwitchConfig {
     pub polarity: SwitchPolarity,
 }
 
+/// The touch probe (machine file `[probe]`): a switch that closes when the tool touches the
+/// stock's surface, at or below a machine position of one axis, as a `min` switch does.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProbeConfig {
+    /// The index of the axis it closes along (in [`MachineConfig::axes`]).
+    pub axis: usize,
+    /// Machine position at or below which it is closed (touching), in millimetres (degrees
+    /// for a rotary axis).
+    pub position_mm: f64,
+    /// How its input pin reads when touching.
+    pub polarity: SwitchPolarity,
+}
+
 /// One axis.
 #[derive(Debug, Clone, PartialEq)]
 pub struct AxisConfig {
@@ -250,6 +289,16 @@ pub struct OutputConfig {
     pub name: String,
     /// Duty value meaning 100 %.
     pub max_duty: u16,
+}
+
+/// One switched (on/off) output (machine file `[[digital_output]]`): a coolant valve, a relay
+/// (see [`crate::digital`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DigitalOutputConfig {
+    /// Name, unique among digital outputs ([`FLOOD`], [`MIST`], or any other).
+    pub name: String,
+    /// The line level that switches the device on.
+    pub active: PinState,
 }
 
 /// The beeper: a buzzer or a speaker that plays the tones of `M300` one after another (see
@@ -350,6 +399,21 @@ impl MachineConfig {
         self.outputs.iter().position(|o| o.name == SPINDLE)
     }
 
+    /// The flood coolant: the digital output named `flood`.
+    pub fn flood_output(&self) -> Option<usize> {
+        self.digital_output_index(FLOOD)
+    }
+
+    /// The mist coolant: the digital output named `mist`.
+    pub fn mist_output(&self) -> Option<usize> {
+        self.digital_output_index(MIST)
+    }
+
+    /// The index of the digital output called `name`.
+    pub fn digital_output_index(&self, name: &str) -> Option<usize> {
+        self.digital_outputs.iter().position(|o| o.name == name)
+    }
+
     /// The fans 0, 1, …: the outputs not named `spindle`, in file order.
     pub fn fan_outputs(&self) -> impl Iterator<Item = usize> + '_ {
         self.outputs
@@ -411,7 +475,8 @@ pub enum MachineFileError {
     Invalid {
         /// 1-based line of the offending value (or of its section, for a missing one).
         line: Option<usize>,
-        /// The section: `axis Y`, `heater bed`, `output fan`, `link`, or empty at top level.
+        /// The section: `axis Y`, `heater bed`, `output fan`, `digital_output flood`, `probe`,
+        /// `link`, or empty at top level.
         section: String,
         /// The field name, as written in the file (`steps_per_mm`, `homing.direction`).
         field: String,
@@ -485,7 +550,10 @@ struct RawMachine {
     heaters: Vec<Spanned<RawHeater>>,
     #[serde(default, rename = "output")]
     outputs: Vec<Spanned<RawOutput>>,
+    #[serde(default, rename = "digital_output")]
+    digital_outputs: Vec<Spanned<RawDigitalOutput>>,
     beeper: Option<Spanned<RawBeeper>>,
+    probe: Option<Spanned<RawProbe>>,
     link: Option<Spanned<RawLink>>,
 }
 
@@ -544,8 +612,23 @@ struct RawOutput {
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
+struct RawDigitalOutput {
+    name: Spanned<String>,
+    active: Option<Spanned<String>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 struct RawBeeper {
     waiting_tones: Option<Spanned<i64>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawProbe {
+    axis: Option<Spanned<String>>,
+    position_mm: Spanned<f64>,
+    polarity: Option<Spanned<String>>,
 }
 
 #[derive(Deserialize)]
@@ -726,8 +809,25 @@ impl Validator<'_> {
                 "name",
             )?;
         }
+        let mut digital_outputs: Vec<DigitalOutputConfig> = Vec::new();
+        for o in &raw.digital_outputs {
+            let output = self.digital_output(o.get_ref())?;
+            let at = o.get_ref().name.span().start;
+            self.push_unique(
+                &mut digital_outputs,
+                output,
+                |x| x.name.clone(),
+                at,
+                "digital_output",
+                "name",
+            )?;
+        }
         let beeper = match &raw.beeper {
             Some(b) => Some(self.beeper(b.get_ref())?),
+            None => None,
+        };
+        let probe = match &raw.probe {
+            Some(p) => Some(self.probe(p, &axes)?),
             None => None,
         };
         let link = match &raw.link {
@@ -740,7 +840,9 @@ impl Validator<'_> {
             axes,
             heaters,
             outputs,
+            digital_outputs,
             beeper,
+            probe,
             link,
         })
     }
@@ -895,18 +997,7 @@ impl Validator<'_> {
                 );
             }
             let position_mm = self.finite(&r.position_mm, s, "switch.position_mm")?;
-            let polarity = match &r.polarity {
-                Some(p) => self.choice(
-                    p,
-                    s,
-                    "switch.polarity",
-                    &[
-                        ("normally_open", SwitchPolarity::NormallyOpen),
-                        ("normally_closed", SwitchPolarity::NormallyClosed),
-                    ],
-                )?,
-                None => SwitchPolarity::NormallyOpen,
-            };
+            let polarity = self.polarity(r.polarity.as_ref(), s, "switch.polarity")?;
             switches.push(SwitchConfig {
                 side,
                 position_mm,
@@ -1040,6 +1131,20 @@ impl Validator<'_> {
         Ok(OutputConfig { name, max_duty })
     }
 
+    fn digital_output(&self, o: &RawDigitalOutput) -> Res<DigitalOutputConfig> {
+        let name = self.name(&o.name, "digital_output")?;
+        let active = match &o.active {
+            Some(a) => self.choice(
+                a,
+                &format!("digital_output {name}"),
+                "active",
+                &[("high", PinState::High), ("low", PinState::Low)],
+            )?,
+            None => PinState::High,
+        };
+        Ok(DigitalOutputConfig { name, active })
+    }
+
     fn beeper(&self, b: &RawBeeper) -> Res<BeeperConfig> {
         let mut beeper = BeeperConfig::default();
         if let Some(n) = &b.waiting_tones {
@@ -1047,6 +1152,65 @@ impl Validator<'_> {
             beeper.waiting_tones = self.integer(n, "beeper", "waiting_tones", range)? as usize;
         }
         Ok(beeper)
+    }
+
+    /// A switch's polarity: normally open unless the file says otherwise.
+    fn polarity(
+        &self,
+        v: Option<&Spanned<String>>,
+        section: &str,
+        field: &str,
+    ) -> Res<SwitchPolarity> {
+        match v {
+            Some(p) => self.choice(
+                p,
+                section,
+                field,
+                &[
+                    ("normally_open", SwitchPolarity::NormallyOpen),
+                    ("normally_closed", SwitchPolarity::NormallyClosed),
+                ],
+            ),
+            None => Ok(SwitchPolarity::NormallyOpen),
+        }
+    }
+
+    fn probe(&self, spanned: &Spanned<RawProbe>, axes: &[AxisConfig]) -> Res<ProbeConfig> {
+        let p = spanned.get_ref();
+        let (letter, at) = match &p.axis {
+            Some(a) => (a.get_ref().as_str(), a.span().start),
+            None => ("Z", spanned.span().start),
+        };
+        let mut chars = letter.chars();
+        let axis = match (chars.next(), chars.next()) {
+            (Some(c), None) => axes.iter().position(|a| a.letter == c),
+            _ => None,
+        };
+        let Some(axis) = axis else {
+            let names: Vec<String> = axes.iter().map(|a| format!("\"{}\"", a.letter)).collect();
+            return self.err(
+                Some(at),
+                "probe",
+                "axis",
+                format!(
+                    "must be an axis of the machine: one of {} (is \"{letter}\")",
+                    names.join(", ")
+                ),
+            );
+        };
+        if axes[axis].kind == AxisKind::Extruder {
+            return self.err(
+                Some(at),
+                "probe",
+                "axis",
+                format!("must not be the extruder (is \"{letter}\")"),
+            );
+        }
+        Ok(ProbeConfig {
+            axis,
+            position_mm: self.finite(&p.position_mm, "probe", "position_mm")?,
+            polarity: self.polarity(p.polarity.as_ref(), "probe", "polarity")?,
+        })
     }
 
     fn link(&self, l: &RawLink) -> Res<LinkConfig> {
@@ -1143,6 +1307,82 @@ travel_max_mm = 300
         );
         let e = invalid(&format!("{MINIMAL}[beeper]\npitch_hz = 2700\n"));
         assert!(e.to_string().contains("pitch_hz"), "{e}");
+    }
+
+    #[test]
+    fn a_probe_closes_along_its_axis_normally_open_by_default() {
+        let router = MachineConfig::default_router();
+        assert_eq!(
+            router.probe,
+            Some(ProbeConfig {
+                axis: 2,
+                position_mm: 20.0,
+                polarity: SwitchPolarity::NormallyOpen
+            })
+        );
+        let printer =
+            MachineConfig::from_toml_str(MachineConfig::bundled_toml("printer").unwrap()).unwrap();
+        assert_eq!(printer.probe, None);
+        assert_eq!(MachineConfig::from_toml_str(MINIMAL).unwrap().probe, None);
+
+        let m = MachineConfig::from_toml_str(&format!(
+            "{MINIMAL}[probe]\naxis = \"X\"\nposition_mm = -2\npolarity = \"normally_closed\"\n"
+        ))
+        .unwrap();
+        assert_eq!(
+            m.probe,
+            Some(ProbeConfig {
+                axis: 0,
+                position_mm: -2.0,
+                polarity: SwitchPolarity::NormallyClosed
+            })
+        );
+    }
+
+    #[test]
+    fn probe_errors_name_the_probe_and_the_field() {
+        // No axis given: Z, which this machine does not have.
+        let e = invalid(&format!("{MINIMAL}[probe]\nposition_mm = 20\n"));
+        assert_eq!(e.field(), Some("axis"));
+        assert_eq!(e.line(), Some(9), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "machine file line 9: probe: axis must be an axis of the machine: one of \"X\" \
+             (is \"Z\")"
+        );
+        let e = invalid(&format!(
+            "{MINIMAL}[probe]\naxis = \"XY\"\nposition_mm = 20\n"
+        ));
+        assert_eq!((e.field(), e.line()), (Some("axis"), Some(10)), "{e}");
+        let e = invalid(&format!(
+            "{MINIMAL}[probe]\naxis = \"X\"\nposition_mm = nan\n"
+        ));
+        assert_eq!(
+            e.to_string(),
+            "machine file line 11: probe: position_mm must be a finite number"
+        );
+        let e = invalid(&format!(
+            "{MINIMAL}[probe]\naxis = \"X\"\nposition_mm = \"low\"\n"
+        ));
+        assert!(matches!(e, MachineFileError::Syntax { .. }), "{e}");
+        assert_eq!(e.line(), Some(11), "{e}");
+        let e = invalid(&format!("{MINIMAL}[probe]\naxis = \"X\"\n"));
+        assert!(e.to_string().contains("position_mm"), "{e}");
+        let e = invalid(&format!(
+            "{MINIMAL}[probe]\naxis = \"X\"\nposition_mm = 0\npolarity = \"open\"\n"
+        ));
+        assert_eq!((e.field(), e.line()), (Some("polarity"), Some(12)), "{e}");
+        assert!(e.to_string().contains("\"normally_closed\""), "{e}");
+        let e = invalid(&format!(
+            "{MINIMAL}[probe]\naxis = \"X\"\nposition_mm = 0\nside = \"min\"\n"
+        ));
+        assert!(e.to_string().contains("side"), "{e}");
+        let printer = MachineConfig::bundled_toml("printer").unwrap();
+        let e = invalid(&format!(
+            "{printer}\n[probe]\naxis = \"E\"\nposition_mm = 0\n"
+        ));
+        assert_eq!(e.field(), Some("axis"));
+        assert!(e.to_string().contains("extruder"), "{e}");
     }
 
     #[test]
@@ -1262,6 +1502,71 @@ travel_max_mm = 300
             "{MINIMAL}[[output]]\nname = \"fan\"\nmax_duty = 255\n[[output]]\nname = \"fan\"\nmax_duty = 1\n"
         ));
         assert_eq!(e.field(), Some("name"));
+    }
+
+    #[test]
+    fn digital_outputs_are_active_high_by_default_and_named_once() {
+        let router = MachineConfig::default_router();
+        assert_eq!(
+            router.digital_outputs,
+            [
+                DigitalOutputConfig {
+                    name: FLOOD.to_string(),
+                    active: PinState::High
+                },
+                DigitalOutputConfig {
+                    name: MIST.to_string(),
+                    active: PinState::High
+                }
+            ]
+        );
+        assert_eq!(
+            (router.flood_output(), router.mist_output()),
+            (Some(0), Some(1))
+        );
+        assert!(
+            MachineConfig::from_toml_str(MINIMAL)
+                .unwrap()
+                .digital_outputs
+                .is_empty()
+        );
+
+        let m = MachineConfig::from_toml_str(&format!(
+            "{MINIMAL}[[digital_output]]\nname = \"vacuum\"\nactive = \"low\"\n\
+             [[digital_output]]\nname = \"mist\"\n"
+        ))
+        .unwrap();
+        assert_eq!(m.digital_outputs[0].active, PinState::Low);
+        assert_eq!((m.flood_output(), m.mist_output()), (None, Some(1)));
+        assert_eq!(m.digital_output_index("vacuum"), Some(0));
+
+        let e = invalid(&format!(
+            "{MINIMAL}[[digital_output]]\nname = \"flood\"\n[[digital_output]]\nname = \"flood\"\n"
+        ));
+        assert_eq!(
+            e.to_string(),
+            "machine file line 12: digital_output flood: name is used by another digital_output"
+        );
+        let e = invalid(&format!(
+            "{MINIMAL}[[digital_output]]\nname = \"flood\"\nactive = \"on\"\n"
+        ));
+        assert_eq!(
+            e.to_string(),
+            "machine file line 11: digital_output flood: active must be one of \"high\", \
+             \"low\" (is \"on\")"
+        );
+        let e = invalid(&format!(
+            "{MINIMAL}[[digital_output]]\nname = \"flood coolant\"\n"
+        ));
+        assert_eq!((e.field(), e.line()), (Some("name"), Some(10)), "{e}");
+        // Unknown and missing fields are syntax errors at their line.
+        let e = invalid(&format!(
+            "{MINIMAL}[[digital_output]]\nname = \"flood\"\nmax_duty = 1\n"
+        ));
+        assert!(matches!(e, MachineFileError::Syntax { .. }), "{e}");
+        assert!(e.to_string().contains("max_duty"), "{e}");
+        let e = invalid(&format!("{MINIMAL}[[digital_output]]\nactive = \"low\"\n"));
+        assert!(e.to_string().contains("name"), "{e}");
     }
 
     #[test]

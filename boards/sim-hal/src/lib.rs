@@ -17,19 +17,21 @@
 //! | [`SimAlarm`] | `Alarm` | the one-shot step alarm; the simulation loop fires it |
 //! | [`SimStepper`] | `Stepper`, `StepperEnable` | a step/dir driver chip that checks its pulse timing and moves its axis |
 //! | [`SimStepDirPins`] | `embedded_hal::digital::OutputPin` ×3 | the same driver's STEP/DIR/ENABLE inputs, for the generic step/dir driver |
-//! | [`SimLimitSwitch`] | `LimitSwitch` | an end-stop that trips at a machine position |
-//! | [`SimSwitchPin`] | `embedded_hal::digital::InputPin` | the same end-stop's input line, with its polarity |
+//! | [`SimLimitSwitch`] | `LimitSwitch` | an end-stop that trips at a machine position, or the touch probe that closes on the stock's surface |
+//! | [`SimSwitchPin`] | `embedded_hal::digital::InputPin` | the same end-stop's or probe's input line, with its polarity |
 //! | [`SwitchEdges`] | — | the pin-change interrupt of the switch inputs (an EXTI line on each) |
 //! | [`SimHeater`] | `Heater`, `SetDutyCycle` | a heater of a first-order thermal model ([`thermal`]) |
 //! | [`SimTemperatureSensor`] | `TemperatureSensor` | that model's temperature, or a sensor fault |
 //! | [`SimPwm`] | `SetDutyCycle` | a fan or spindle output that records its duty |
+//! | [`SimOutputPin`] | `embedded_hal::digital::OutputPin`, `StatefulOutputPin` | the line of a switched (on/off) output, a coolant valve or a relay, that records when it switched ([`digital`]) |
 //! | [`SimBeeper`] | `Beeper` | a buzzer that plays its tones one after another and records them ([`beeper`]) |
 //!
 //! Devices are named by index in machine-file order (axis 0 is the first `[[axis]]`);
-//! [`SimMachine::axis_index`], [`SimMachine::heater_index`] and [`SimMachine::output_index`]
-//! look them up by name. The same handle answers the test's questions: positions in steps,
-//! steps lost to a disabled driver, the travel range seen, timing violations, temperatures,
-//! duty histories, the tones played, and the step trace ([`trace`]).
+//! [`SimMachine::axis_index`], [`SimMachine::heater_index`], [`SimMachine::output_index`] and
+//! [`SimMachine::digital_output_index`] look them up by name. The same handle answers the
+//! test's questions: positions in steps, steps lost to a disabled driver, the travel range
+//! seen, timing violations, temperatures, duty histories, which outputs are on
+//! ([`SimMachine::output_on`]), the tones played, and the step trace ([`trace`]).
 //!
 //! Besides the machine: [`flash::SimFlash`], a NOR flash (the drivers' in-RAM model, on the
 //! heap) whose operations can be written through to a file; the board's two flashes and the
@@ -123,6 +125,7 @@
 
 pub mod beeper;
 pub mod config;
+pub mod digital;
 pub mod files;
 pub mod flash;
 pub mod limit;
@@ -139,6 +142,7 @@ pub mod trace;
 
 pub use beeper::{SimBeeper, Tone};
 pub use config::{MachineConfig, MachineFileError};
+pub use digital::{OutputChange, SimOutputPin};
 pub use files::DirFileStore;
 pub use limit::{SimLimitSwitch, SimSwitchPin, SwitchEdges};
 pub use machine::{NoSuchDevice, SimAlarm, SimClock, SimMachine};

@@ -2,11 +2,12 @@
 //!
 //! [`SimMachine`] is a cheap, cloneable handle to one machine's state: the virtual time, the
 //! armed alarm, every axis (position in steps, driver lines, timing checks), every switch,
-//! heater and PWM output, the beeper, the step trace and the timing violations. The device
-//! handles it gives out ([`SimClock`], [`SimAlarm`], [`crate::SimStepper`],
-//! [`crate::SimLimitSwitch`], [`crate::SimHeater`], [`crate::SimBeeper`], …) implement the
-//! `forja-hal-abstraction` traits over that state; the test or the simulation loop inspects it
-//! through the same handle.
+//! heater, PWM output and digital output, the beeper, the step trace and the timing
+//! violations. The device handles it gives out ([`SimClock`], [`SimAlarm`],
+//! [`crate::SimStepper`], [`crate::SimLimitSwitch`], [`crate::SimHeater`],
+//! [`crate::SimOutputPin`], [`crate::SimBeeper`], …) implement the `forja-hal-abstraction` and
+//! `embedded-hal` traits over that state; the test or the simulation loop inspects it through
+//! the same handle.
 //!
 //! Single-threaded: the handles share the state through `Rc<RefCell<…>>`, each method borrows
 //! it for the duration of the call only, so handles can be used in any order, including from
@@ -24,6 +25,7 @@ use forja_hal_abstraction::time::{Duration, Instant};
 
 use crate::beeper::BeeperState;
 use crate::config::{MachineConfig, SwitchSide};
+use crate::digital::DigitalOutputState;
 use crate::limit::SwitchState;
 use crate::pwm::PwmState;
 use crate::stepper::{AxisState, TimingViolation};
@@ -46,6 +48,7 @@ pub(crate) struct State {
     /// The virtual time up to which the thermal models have been advanced.
     pub(crate) thermal_at: u64,
     pub(crate) outputs: Vec<PwmState>,
+    pub(crate) digital_outputs: Vec<DigitalOutputState>,
     pub(crate) beeper: Option<BeeperState>,
     pub(crate) tracing: bool,
     pub(crate) trace: StepTrace,
@@ -90,8 +93,12 @@ pub enum NoSuchDevice {
     Heater(usize),
     /// No PWM output with this index.
     Output(usize),
+    /// No digital (on/off) output with this index.
+    DigitalOutput(usize),
     /// No beeper.
     Beeper,
+    /// No touch probe (the machine file has no `[probe]`).
+    Probe,
 }
 
 impl fmt::Display for NoSuchDevice {
@@ -103,7 +110,9 @@ impl fmt::Display for NoSuchDevice {
             }
             Self::Heater(i) => write!(f, "the machine has no heater {i}"),
             Self::Output(i) => write!(f, "the machine has no output {i}"),
+            Self::DigitalOutput(i) => write!(f, "the machine has no digital output {i}"),
             Self::Beeper => f.write_str("the machine has no beeper"),
+            Self::Probe => f.write_str("the machine has no probe"),
         }
     }
 }
@@ -128,19 +137,26 @@ impl fmt::Debug for SimMachine {
 
 impl SimMachine {
     /// A machine as `config` describes it, at virtual time 0, every axis at its `start_mm`,
-    /// every driver disabled with its DIR line low (negative), every heater at `start_c` and
-    /// off, every output at duty 0, the beeper silent, no alarm armed, tracing off.
+    /// every driver disabled with its DIR line low (negative), every switch and the probe
+    /// following the positions, every heater at `start_c` and off, every PWM output at duty 0,
+    /// every digital output off, the beeper silent, no alarm armed, tracing off. A probe on an
+    /// axis `config` does not have is left out.
     pub fn new(config: &MachineConfig) -> Self {
         let axes = config
             .axes
             .iter()
             .map(|a| AxisState::new(a, config.tick_hz))
             .collect();
+        let probe = config
+            .probe
+            .as_ref()
+            .and_then(|p| Some(SwitchState::probe(config.axes.get(p.axis)?, p)));
         let switches = config
             .axes
             .iter()
             .enumerate()
             .flat_map(|(i, a)| a.switches.iter().map(move |s| SwitchState::new(i, a, s)))
+            .chain(probe)
             .collect();
         let state = State {
             tick_hz: config.tick_hz,
@@ -151,6 +167,11 @@ impl SimMachine {
             heaters: config.heaters.iter().map(ThermalModel::new).collect(),
             thermal_at: 0,
             outputs: config.outputs.iter().map(PwmState::new).collect(),
+            digital_outputs: config
+                .digital_outputs
+                .iter()
+                .map(DigitalOutputState::new)
+                .collect(),
             beeper: config.beeper.as_ref().map(BeeperState::new),
             tracing: false,
             trace: StepTrace::new(

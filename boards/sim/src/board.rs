@@ -3,9 +3,9 @@
 //!
 //! | firmware part | on the simulator |
 //! |---|---|
-//! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`SimStepDirPins`](forja_sim_hal::SimStepDirPins), and `forja_drivers::limit::LimitInput`s on the homing switches' [`SimSwitchPin`]s; the switches' pin-change interrupt ([`SwitchEdges`]) reports their edges to it |
+//! | step interrupt | [`Firmware::on_alarm`]: `StepGenerator::on_alarm` over `forja_drivers::stepper::StepDir` drivers on [`SimStepDirPins`](forja_sim_hal::SimStepDirPins), and `forja_drivers::limit::LimitInput`s on the homing switches' [`SimSwitchPin`]s, then on the touch probe's (`G38.2`–`G38.5`) when the machine file has one; the switches' pin-change interrupt ([`SwitchEdges`]) reports their edges, the probe's too, to it |
 //! | thread side | [`Firmware::poll`]: the ports' links, one controlling host across them and `Controller::poll` on its link, by [`forja_app::hosts::Arbiter`] (see [Links](#links)) |
-//! | peripherals | `forja_app::peripherals::Parts`: PID `HeaterChannel`s over the simulated heaters, `Fan`s and the `Spindle` on the PWM outputs, the simulated beeper when the machine file has one (kept in the board's static RAM beside the step queue, as a firmware board keeps its devices in statics), the drivers' enable lines, the switches read again for `M119`; no coolant (the simulated machine has no switched outputs) |
+//! | peripherals | `forja_app::peripherals::Parts`: PID `HeaterChannel`s over the simulated heaters, `Fan`s and the `Spindle` on the PWM outputs, the simulated beeper when the machine file has one (kept in the board's static RAM beside the step queue, as a firmware board keeps its devices in statics), the `Coolant` on the machine file's `flood` and `mist` digital outputs when it has them ([`SimOutputPin`](forja_sim_hal::SimOutputPin)s, kept in the static RAM too), the drivers' enable lines, the switches read again for `M119` |
 //! | storage | the board's two flashes ([`BoardFlash`]): `FlashRecordStorage` for the settings, `RecordProgramStore` for the uploaded program; kept in a state file with `BoardFlash::open`; the SD card, a directory of the host ([`BoardConfig::sd_dir`]); opened together as [`BoardStores`] |
 //! | read back | what tests and the `forja-sim` program read of the firmware, whatever its number of axes ([`SimBoard::status`], [`SimBoard::program_line`], [`SimBoard::settings`], [`SimBoard::load_report`]): the controller's own accessors (`Controller::status`, `Controller::read_program_line`, the settings' `Display`), adapted |
 //!
@@ -139,7 +139,7 @@ type SettingsStore = SettingsRecords;
 struct Wired<const N: usize, X, R> {
     firmware: SimFirmware<N, X>,
     isr: StepGenerator<'static, N, QUEUE_EVENTS>,
-    /// The STEP/DIR drivers and the homing switches, for the step interrupt.
+    /// The STEP/DIR drivers, and the homing switches then the probe, for the step interrupt.
     drivers: [StepDir<SimDriverPin, SimDriverPin>; N],
     limits: Vec<LimitInput<SimSwitchPin>>,
     /// The switch inputs' pin-change interrupt: reports edges to the step interrupt.
@@ -178,17 +178,17 @@ fn wire<const N: usize>(
         let enable = StepDir::with_enable(NoPin, NoPin, p.enable, c);
         enables.push(enable.map_err(storage_error)?);
     }
-    let switch = |s: &Option<(SimSwitchPin, _)>| s.clone().map(|(p, c)| LimitInput::new(p, c));
     let heaters = [pins.hot_end, pins.bed]
         .map(|h| h.map(|h| HeaterChannel::new(h.sensor, h.heater, h.config)));
     let fans = pins.fans.map(|f| Fan::new(f?, FanConfig::DIRECT).ok());
     let spindle = pins.spindle.and_then(|(p, c)| Spindle::new(p, c).ok());
     let stores = BoardStores::open(config.flash, config.sd_dir).map_err(BoardError::Stores)?;
-    let devices = (heaters, fans, spindle, pins.beeper);
+    let coolant = pins.coolant.into_coolant();
+    let devices = (heaters, fans, spindle, coolant, pins.beeper);
     #[allow(unsafe_code)]
     // SAFETY: the RAM is the last field of `Wired`: everything that borrows the queue and the
     // devices in it (the firmware, the step interrupt, the switch alert) drops before it.
-    let (ram, (queue, ([hot_end, bed], fans, spindle, beeper), card)) =
+    let (ram, (queue, ([hot_end, bed], fans, spindle, coolant, beeper), card)) =
         unsafe { StaticRam::new((StepQueue::new(), devices, stores.card)) };
     let (isr, firmware, _) = firmware::assemble(FirmwareParts {
         machine: parts::machine(machine.config())?,
@@ -203,10 +203,10 @@ fn wire<const N: usize>(
             bed: bed.as_mut().map(|z| z as _),
             fans: fans.each_mut().map(|f| f.as_mut().map(|f| f as _)),
             spindle: spindle.as_mut().map(|s| s as _),
-            coolant: None,
+            coolant: coolant.as_deref_mut(),
             beeper: beeper.as_mut().map(|b| b as _),
             motors: MotorEnables(array::<_, N>(enables)?),
-            endstops: pins.homing_switches.each_ref().map(switch),
+            endstops: pins.homing_switches.each_ref().map(parts::limit_input),
             files: Some(card),
         },
     })
@@ -217,7 +217,7 @@ fn wire<const N: usize>(
         switch_edges: machine.switch_edges(),
         isr,
         drivers: array(steppers)?,
-        limits: pins.homing_switches.iter().filter_map(switch).collect(),
+        limits: parts::step_switches(&pins.homing_switches, &pins.probe),
         machine: machine.clone(),
         _ram: ram,
     }))

@@ -71,7 +71,9 @@ pub fn machine_file<const N: usize>(
             .collect(),
         heaters: Vec::new(),
         outputs: Vec::new(),
+        digital_outputs: Vec::new(),
         beeper: None,
+        probe: None,
         link: LinkConfig::default(),
     }
 }

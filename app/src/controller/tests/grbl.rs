@@ -32,6 +32,27 @@ fn status(b: &mut Bench) -> String {
     report(&b.take())
 }
 
+/// The `Ov:` field of the next report that has one (grbl sends it every tenth report, between
+/// the `WCO` ones, and in the report after an override changed unless `WCO` is due).
+fn overrides(b: &mut Bench) -> String {
+    for _ in 0..12 {
+        let r = status(b);
+        if StatusText::parse(r.as_bytes())
+            .unwrap()
+            .field(b"Ov")
+            .is_some()
+        {
+            return field(&r, "Ov");
+        }
+    }
+    panic!("no Ov in twelve reports");
+}
+
+/// What the test board's spindle was last told.
+fn spindle(b: &Bench) -> Option<Turning> {
+    b.ctl.peripherals().spindle.last
+}
+
 /// A bench whose link has entered the grbl dialect with a soft reset.
 fn grbl() -> Bench {
     let mut b = Bench::new();
@@ -188,19 +209,89 @@ fn the_status_report_has_the_buffer_line_feed_and_offsets() {
 }
 
 #[test]
-fn the_feed_override_changes_the_moves_planned_after_it() {
+fn the_feed_and_rapid_overrides_are_the_kernels_realtime_ones_and_m220_is_apart() {
     let mut b = grbl();
     b.send_raw(&[0x91, 0x91, 0x93]);
     b.run_ms(2);
-    assert_eq!(b.ctl.kernel().feed_override_percent(), 121);
+    assert_eq!(b.ctl.kernel().realtime_overrides(), (121, 100));
     b.send_raw(&[0x90]);
     b.run_ms(2);
-    assert_eq!(b.ctl.kernel().feed_override_percent(), 100);
+    assert_eq!(b.ctl.kernel().realtime_overrides(), (100, 100));
     for _ in 0..30 {
         b.send_raw(&[0x92]);
     }
     b.run_ms(2);
-    assert_eq!(b.ctl.kernel().feed_override_percent(), 10);
+    assert_eq!(b.ctl.kernel().realtime_overrides(), (10, 100));
+    // At most 16 realtime bytes wait at once: send them in two reads.
+    for _ in 0..2 {
+        b.send_raw(&[0x91; 10]);
+        b.run_ms(2);
+    }
+    b.send_raw(&[0x96]);
+    b.run_ms(2);
+    assert_eq!(b.ctl.kernel().realtime_overrides(), (200, 50));
+    b.send_raw(&[0x97]);
+    b.run_ms(2);
+    assert_eq!(b.ctl.kernel().realtime_overrides(), (200, 25));
+    b.send_raw(&[0x95, 0x90]);
+    b.run_ms(2);
+    assert_eq!(b.ctl.kernel().realtime_overrides(), (100, 100));
+    // Marlin's `M220` stays the planner's own override.
+    assert_eq!(b.ctl.kernel().feed_override_percent(), 100);
+    assert_eq!(b.ask("M220 S50"), ["ok"]);
+    assert_eq!(b.ctl.kernel().feed_override_percent(), 50);
+    assert_eq!(b.ctl.kernel().realtime_overrides(), (100, 100));
+}
+
+#[test]
+fn the_feed_override_acts_on_the_move_under_way_and_fs_reports_the_speed_now() {
+    let mut b = grbl();
+    assert_eq!(b.ask("G1 X40 F600"), ["ok"]);
+    b.run_ms(300);
+    assert_eq!(field(&status(&mut b), "FS"), "600,0");
+    // +100 %: the move under way speeds up, and `FS:` reports the speed now.
+    for _ in 0..10 {
+        b.send_raw(&[0x91]);
+    }
+    b.run_ms(300);
+    let r = status(&mut b);
+    assert_eq!(field(&r, "FS"), "1200,0");
+    let start = b.position_mm()[0];
+    b.run_ms(500);
+    let mm = b.position_mm()[0] - start;
+    assert!((mm - 10.0).abs() < 0.2, "1200 mm/min for 0.5 s: {mm}");
+    b.idle();
+    assert_eq!(field(&status(&mut b), "FS"), "0,0");
+    // The rapid override slows `G0`: 6000 mm/min at 25 %.
+    b.send_raw(&[0x97]);
+    b.run_ms(2);
+    assert_eq!(b.ask("G0 X0"), ["ok"]);
+    b.run_ms(400);
+    assert_eq!(field(&status(&mut b), "FS"), "1500,0");
+    b.idle();
+    assert_eq!(b.violations(), 0);
+}
+
+#[test]
+fn ov_reports_feed_rapid_and_spindle_overrides_and_a_reset_or_program_end_clears_them() {
+    let mut b = grbl();
+    b.send_raw(&[0x91, 0x96, 0x9A, 0x9A, 0x9C]);
+    b.run_ms(2);
+    assert_eq!(overrides(&mut b), "110,50,121");
+    // Sent again in the next report once they change.
+    b.send_raw(&[0x9B]);
+    b.run_ms(2);
+    assert_eq!(field(&status(&mut b), "Ov"), "110,50,111");
+    assert_eq!(b.ask("M30"), ["[MSG:Pgm End]", "ok"]);
+    assert_eq!(field(&status(&mut b), "Ov"), "100,100,100");
+    b.send_raw(&[0x92, 0x97, 0x9B]);
+    b.run_ms(2);
+    assert_eq!(field(&status(&mut b), "Ov"), "90,25,90");
+    b.send_raw(&[0x18]);
+    b.run_ms(5);
+    b.take();
+    assert_eq!(overrides(&mut b), "100,100,100");
+    assert_eq!(b.ctl.kernel().realtime_overrides(), (100, 100));
 }
 
 #[test]
@@ -412,7 +503,7 @@ fn extended_ascii_bytes_are_dropped_and_no_busy_line_goes_out() {
     b.send_raw(b"G1 X40. F600.\n");
     b.run_ms(5);
     assert_eq!(b.take(), ["ok"]);
-    assert_eq!(b.ctl.kernel().feed_override_percent(), 110);
+    assert_eq!(b.ctl.kernel().realtime_overrides(), (110, 100));
     // A line waiting behind a full planner gets no `busy: processing`.
     for x in 0..40 {
         b.send(&format!("G1 X{} F300", x % 2));
@@ -433,7 +524,7 @@ fn program_end_and_coolant_off_answer_as_grbl() {
     assert_eq!(b.ask("M9"), ["ok"], "nothing to turn off without coolant");
     assert_eq!(b.ask("M8"), ["error:20"]);
     assert_eq!(b.ask("M30"), ["[MSG:Pgm End]", "ok"]);
-    assert_eq!(b.ctl.kernel().feed_override_percent(), 100);
+    assert_eq!(b.ctl.kernel().realtime_overrides(), (100, 100));
 }
 
 #[test]
@@ -499,4 +590,427 @@ fn drilling_cycles_run_in_the_grbl_dialect_and_the_parser_state_names_them() {
     assert_eq!(b.ask("X40"), ["error:31"]);
     b.idle();
     assert_eq!(b.position_mm(), [30.0, 20.0, 1.0]);
+}
+
+#[test]
+fn the_spindle_override_scales_the_commanded_speed_and_later_m3_keeps_it() {
+    let mut b = grbl();
+    assert_eq!(b.ask("M3 S1000"), ["ok"]);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 1000)));
+    b.send_raw(&[0x9A, 0x9A]);
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 1200)));
+    let r = status(&mut b);
+    assert_eq!(field(&r, "FS"), "0,1200", "the speed in force");
+    // `$G` reports the programmed speed.
+    assert!(b.ask("$G")[0].ends_with(" S1000]"));
+    assert_eq!(b.ask("M4 S2000"), ["ok"]);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::CounterClockwise, 2400)),
+        "a later M4 keeps the override"
+    );
+    assert_eq!(b.ask("S500"), ["ok"]);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::CounterClockwise, 600))
+    );
+    b.send_raw(&[0x99]);
+    b.run_ms(2);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::CounterClockwise, 500))
+    );
+    for _ in 0..30 {
+        b.send_raw(&[0x9B]);
+    }
+    b.run_ms(2);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::CounterClockwise, 50)),
+        "10 % at least"
+    );
+    assert_eq!(b.ask("M5"), ["ok"]);
+    assert_eq!(spindle(&b), Some(Turning::Stopped));
+    assert_eq!(field(&status(&mut b), "FS"), "0,0");
+}
+
+#[test]
+fn spindle_stop_toggles_the_spindle_only_in_a_hold_at_rest_and_cycle_start_restores_it() {
+    let mut b = grbl();
+    assert_eq!(b.ask("M3 S1000"), ["ok"]);
+    assert_eq!(b.ask("G1 X30 F600"), ["ok"]);
+    b.run_ms(200);
+    b.send_raw(&[0x9E]);
+    b.run_ms(2);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::Clockwise, 1000)),
+        "not while moving"
+    );
+    b.send_raw(b"!");
+    b.run_ms(400);
+    assert_eq!(state(&status(&mut b)), "Hold:0");
+    b.send_raw(&[0x9E]);
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::Stopped));
+    let r = overrides(&mut b);
+    assert_eq!(r, "100,100,100");
+    b.send_raw(&[0x9E]);
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 1000)));
+    b.send_raw(&[0x9E]);
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::Stopped));
+    // Cycle start: the spindle first, then the motion.
+    b.send_raw(b"~");
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 1000)));
+    b.idle();
+    assert_eq!(b.position_mm()[0], 30.0);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 1000)));
+}
+
+#[test]
+fn the_spindle_follows_s_on_motion_lines() {
+    let mut b = grbl();
+    assert_eq!(b.ask("M3 S1000"), ["ok"]);
+    assert_eq!(b.ask("G1 X10 S3000 F600"), ["ok"]);
+    b.run_ms(100);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 3000)));
+    assert_eq!(field(&status(&mut b), "FS"), "600,3000");
+    assert_eq!(b.ask("G1 X20 S500"), ["ok"]);
+    b.idle();
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 500)));
+    assert!(b.ask("$G")[0].ends_with(" S500]"));
+    // Stopped, the spindle stays stopped; the next `M3` runs at the `S` in force.
+    assert_eq!(b.ask("M5"), ["ok"]);
+    assert_eq!(b.ask("G1 X0 S8000"), ["ok"]);
+    b.idle();
+    assert_eq!(spindle(&b), Some(Turning::Stopped));
+    assert_eq!(b.ask("M3"), ["ok"]);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 8000)));
+    // The override applies to the speed the moves carry.
+    b.send_raw(&[0x9B]);
+    b.run_ms(2);
+    assert_eq!(b.ask("G1 X5 S2000"), ["ok"]);
+    b.idle();
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 1800)));
+}
+
+#[test]
+fn laser_mode_m4_power_follows_the_speed_and_rapids_never_burn() {
+    let mut b = grbl();
+    assert_eq!(b.ask("$32=1"), ["ok"]);
+    assert!(b.ask("$$").contains(&"$32=1".to_string()));
+    assert_eq!(b.ask("M4 S1000"), ["ok"]);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::CounterClockwise, 0)),
+        "off at rest"
+    );
+    // Z accelerates at 200 mm/s² to 15 mm/s: 75 ms of ramp at each end.
+    b.send("G1 Z10 F900");
+    let mut powers = Vec::new();
+    for _ in 0..1000 {
+        b.run_ms(1);
+        if let Some(Turning::At(Rotation::CounterClockwise, p)) = spindle(&b) {
+            powers.push(p);
+        }
+        if b.ctl.kernel().is_idle() && b.position_mm()[2] == 10.0 {
+            break;
+        }
+    }
+    b.run_ms(5);
+    assert!(powers.contains(&1000), "full power at speed");
+    assert!(
+        powers.iter().any(|&p| p > 100 && p < 900),
+        "part power while accelerating: {powers:?}"
+    );
+    assert!(powers.iter().all(|&p| p <= 1000));
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::CounterClockwise, 0)),
+        "off at rest again"
+    );
+    b.take();
+    // A rapid with the laser on does not burn.
+    b.send("G0 X30");
+    b.run_ms(50);
+    assert!(b.ctl.kernel().speed_mm_min() > 0.0);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::CounterClockwise, 0))
+    );
+    b.idle();
+    // The override scales the power too.
+    b.send_raw(&[0x9B, 0x9B]);
+    b.send("G1 X0 F600");
+    b.run_ms(300);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::CounterClockwise, 800))
+    );
+    b.idle();
+    b.take();
+    // Out of laser mode an `M4` runs as a spindle, at rest too.
+    b.send_raw(&[0x99]);
+    assert_eq!(b.ask("$32=0"), ["ok"]);
+    b.run_ms(2);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::CounterClockwise, 1000))
+    );
+    assert_eq!(b.violations(), 0);
+}
+
+#[test]
+fn laser_mode_m3_is_constant_power_in_a_feed_mode_and_off_in_a_hold() {
+    let mut b = grbl();
+    assert_eq!(b.ask("$32=1"), ["ok"]);
+    assert_eq!(b.ask("M3 S800"), ["ok"]);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::Clockwise, 0)),
+        "G0 is the motion mode after a reset: off"
+    );
+    // grbl's focusing: `M3` in `G1` mode is on at rest.
+    assert_eq!(b.ask("G1"), ["ok"]);
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 800)));
+    b.send("G1 Z10 F900");
+    b.run_ms(20);
+    assert_eq!(
+        spindle(&b),
+        Some(Turning::At(Rotation::Clockwise, 800)),
+        "constant while accelerating"
+    );
+    // A hold at rest turns the laser off; 0x9E turns it on again, cycle start restores it.
+    b.send_raw(b"!");
+    b.run_ms(300);
+    assert_eq!(state(&status(&mut b)), "Hold:0");
+    assert_eq!(spindle(&b), Some(Turning::Stopped));
+    b.send_raw(&[0x9E]);
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 800)));
+    b.send_raw(&[0x9E]);
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::Stopped));
+    b.send_raw(b"~");
+    b.run_ms(30);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 800)));
+    // A hold resumed otherwise (a frame client's pause and start) turns it on again too.
+    b.ctl.kernel_mut().hold();
+    b.run_ms(300);
+    assert_eq!(spindle(&b), Some(Turning::Stopped));
+    b.ctl.kernel_mut().resume();
+    b.run_ms(30);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 800)));
+    b.idle();
+    assert_eq!(b.position_mm()[2], 10.0);
+    // `M0` pauses as a hold does: the laser is off until cycle start.
+    assert_eq!(b.ask("M0"), ["ok"]);
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::Stopped));
+    b.send_raw(b"~");
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 800)));
+    assert_eq!(b.ask("G0"), ["ok"]);
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 0)));
+    // `$32` is refused while the machine moves.
+    assert_eq!(b.ask("G0 X50"), ["ok"]);
+    assert_eq!(b.ask("$32=0"), ["error:8"]);
+    b.idle();
+    assert!(b.ask("$$").contains(&"$32=1".to_string()));
+}
+
+#[test]
+fn more_settings_are_mapped_persisted_and_refused_with_grbls_numbers() {
+    let mut b = grbl();
+    let all = b.ask("$$");
+    for line in [
+        "$10=1",
+        "$11=0.010",
+        "$12=0.002",
+        "$13=0",
+        "$22=1",
+        "$24=300.000",
+        "$25=3000.000",
+        "$27=1.000",
+        "$32=0",
+    ] {
+        assert!(all.contains(&line.to_string()), "{line} in {all:?}");
+    }
+    assert_eq!(b.ask("$12=0.01"), ["ok"]);
+    assert_eq!(b.ask("$25=2000"), ["ok"]);
+    assert_eq!(b.ask("$24=150.5"), ["ok"]);
+    assert_eq!(b.ask("$27=2"), ["ok"]);
+    assert_eq!(b.ask("$10=0"), ["ok"]);
+    assert_eq!(b.ask("$32=1"), ["ok"]);
+    // Every homing axis takes it; the others have none.
+    let m = b.ctl.settings().machine();
+    for axis in 0..2 {
+        let h = m.axes[axis].homing.unwrap();
+        assert_eq!(
+            (h.seek_mm_min, h.locate_mm_min, h.pull_off_mm),
+            (2000.0, 150.5, 2.0)
+        );
+    }
+    assert!(m.axes[2].homing.is_none());
+    // Refused: beyond the rate, locate above seek, negative, not a flag's number.
+    assert_eq!(b.ask("$25=9000"), ["error:39"]);
+    assert_eq!(b.ask("$24=2500"), ["error:39"]);
+    assert_eq!(b.ask("$27=-1"), ["error:4"]);
+    assert_eq!(b.ask("$12=0"), ["error:39"]);
+    assert_eq!(b.ask("$10=300"), ["error:39"]);
+    assert_eq!(b.ask("$25=abc"), ["error:2"]);
+    // `$22` follows the machine configuration: the same value is accepted, another refused.
+    assert_eq!(b.ask("$22=1"), ["ok"]);
+    let out = b.ask("$22=0");
+    assert_eq!(out.len(), 2, "{out:?}");
+    assert!(out[0].starts_with("[MSG:$22 "), "{out:?}");
+    assert_eq!(out[1], "error:39");
+    // All stored: read back after a restart.
+    b.run_ms(20);
+    let (program, storage, physical) = b.power_off();
+    let mut again = Bench::boot(machine(), program, storage, physical);
+    again.take();
+    let all = again.ask("$$");
+    for line in [
+        "$10=0",
+        "$12=0.010",
+        "$24=150.500",
+        "$25=2000.000",
+        "$27=2.000",
+        "$32=1",
+    ] {
+        assert!(all.contains(&line.to_string()), "{line} in {all:?}");
+    }
+    assert!(
+        StatusText::parse(status(&mut again).as_bytes())
+            .unwrap()
+            .field(b"WPos")
+            .is_some(),
+        "$10=0 reports WPos"
+    );
+    // `$RST=$` brings them back.
+    assert_eq!(again.ask("$RST=$"), ["[MSG:Restoring defaults]", "ok"]);
+    let all = again.ask("$$");
+    assert!(all.contains(&"$32=0".to_string()), "{all:?}");
+    assert!(all.contains(&"$25=3000.000".to_string()), "{all:?}");
+    assert!(all.contains(&"$10=1".to_string()), "{all:?}");
+}
+
+#[test]
+fn a_machine_without_homing_reports_22_as_0_and_has_no_homing_settings() {
+    let mut config = machine();
+    for a in &mut config.axes {
+        a.homing = None;
+    }
+    let mut b = Bench::with_machine(config);
+    b.take();
+    let all = b.ask("$$");
+    assert!(all.contains(&"$22=0".to_string()), "{all:?}");
+    assert!(!all.iter().any(|l| l.starts_with("$25=")), "{all:?}");
+    assert_eq!(b.ask("$25=100"), ["error:3"]);
+    assert_eq!(b.ask("$22=0"), ["ok"]);
+}
+
+#[test]
+fn report_inches_gives_positions_and_rates_in_inches() {
+    let mut b = grbl();
+    assert_eq!(b.ask("G0 X25.4 Y12.7"), ["ok"]);
+    b.idle();
+    assert_eq!(b.ask("G10 L20 P1 X0"), ["ok"]);
+    assert_eq!(b.ask("$13=1"), ["ok"]);
+    let r = status(&mut b);
+    assert_eq!(field(&r, "MPos"), "1.000,0.500,0.000");
+    assert_eq!(field(&r, "WCO"), "1.000,0.000,0.000");
+    let out = b.ask("$#");
+    assert!(
+        out.contains(&"[G54:1.000,0.000,0.000]".to_string()),
+        "{out:?}"
+    );
+    // 1270 mm/min is 50 in/min.
+    assert_eq!(b.ask("G1 X127 F1270"), ["ok"]);
+    b.run_ms(500);
+    assert_eq!(field(&status(&mut b), "FS"), "50,0");
+    b.idle();
+    assert_eq!(b.ask("$13=0"), ["ok"]);
+    // Work X127 is machine X152.4.
+    assert_eq!(field(&status(&mut b), "MPos"), "152.400,12.700,0.000");
+}
+
+#[test]
+fn startup_lines_are_stored_listed_and_run_after_each_reset_and_at_power_on() {
+    let mut b = grbl();
+    assert_eq!(b.ask("$N"), ["$N0=", "$N1=", "ok"]);
+    assert_eq!(b.ask("$N0=G55 G91"), ["ok"]);
+    assert_eq!(b.ask("$N1=G5"), ["error:20"], "checked before it is kept");
+    assert_eq!(b.ask("$N"), ["$N0=G55 G91", "$N1=", "ok"]);
+    assert_eq!(
+        b.ask("$G")[0],
+        "[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F1000 S0]"
+    );
+    // Beyond the machine: checks (the travel is not checked ahead), fails when it runs.
+    assert_eq!(b.ask("$N1=G0 X900"), ["ok"]);
+    b.send_raw(&[0x18]);
+    b.run_ms(5);
+    let out = b.take();
+    let banner = out
+        .iter()
+        .position(|l| l == "Grbl 1.1h ['$' for help]")
+        .unwrap();
+    assert_eq!(
+        out[banner + 1..],
+        [">G55 G91:ok", ">G0 X900:error:15"],
+        "{out:?}"
+    );
+    assert!(b.ask("$G")[0].starts_with("[GC:G0 G55 G17 G21 G91"));
+    // At power-on too, after `start`.
+    b.run_ms(20);
+    let (program, storage, physical) = b.power_off();
+    let mut again = Bench::boot(machine(), program, storage, physical);
+    assert_eq!(again.take(), ["start", ">G55 G91:ok", ">G0 X900:error:15"]);
+    // The link stays in its dialect: a RepRap line gets a RepRap answer.
+    assert_eq!(again.ask("G5"), ["echo:Unknown command: \"G5\"", "ok"]);
+    // Cleared with an empty line, and all with `$RST=*`.
+    assert_eq!(again.ask("$N1="), ["ok"]);
+    assert_eq!(again.ask("$N"), ["$N0=G55 G91", "$N1=", "ok"]);
+    assert_eq!(again.ask("$RST=*"), ["[MSG:Restoring defaults]", "ok"]);
+    assert_eq!(again.ask("$N"), ["$N0=", "$N1=", "ok"]);
+}
+
+#[test]
+fn startup_lines_do_not_run_after_a_reset_that_leaves_an_alarm() {
+    let mut b = grbl();
+    assert_eq!(b.ask("$N0=G55"), ["ok"]);
+    assert_eq!(b.ask("G1 X30 F600"), ["ok"]);
+    b.run_ms(200);
+    b.send_raw(&[0x18]);
+    b.run_ms(5);
+    let out = b.take();
+    assert!(out.contains(&"ALARM:3".to_string()), "{out:?}");
+    assert!(!out.iter().any(|l| l.starts_with('>')), "{out:?}");
+}
+
+#[test]
+fn a_percent_line_is_answered_ok_and_does_nothing() {
+    let mut b = grbl();
+    assert_eq!(b.ask("%"), ["ok"]);
+    assert_eq!(b.ask(" % "), ["ok"]);
+    assert_eq!(b.ask("G0 X1"), ["ok"]);
+    assert_eq!(b.ask("%"), ["ok"]);
+    b.idle();
+    assert_eq!(b.position_mm()[0], 1.0);
+    assert_eq!(b.ask("G0 X2 %"), ["error:1"]);
+}
+
+#[test]
+fn a_blank_line_is_answered_ok_as_grbl_answers_it() {
+    let mut b = grbl();
+    assert_eq!(b.ask(""), ["ok"]);
+    assert_eq!(b.ask("   "), ["ok"]);
+    assert_eq!(b.ask("; only a comment"), ["ok"]);
 }

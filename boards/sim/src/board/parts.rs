@@ -5,22 +5,27 @@
 //! |---|---|
 //! | motor drivers | each axis's simulated driver chip ([`SimStepDirPins`]) with the timing the machine file gives it |
 //! | limit inputs | each homing axis's homing switch ([`AxisConfig::homing_switch`](forja_sim_hal::config::AxisConfig::homing_switch)), read with its polarity; other switches of the file (a hard limit at the far end) are modelled but not wired |
+//! | probe input | the machine file's `[probe]`, if any ([`SimMachine::probe_pin`]), read with its polarity like a limit input: `G38.2`–`G38.5` |
 //! | heaters | the hot end and the bed ([`MachineConfig::hot_end_heater`], [`MachineConfig::bed_heater`]): a simulated heater and its sensor, under PID control with Marlin's default gains |
 //! | PWM outputs | the spindle ([`MachineConfig::spindle_output`], [`SPINDLE_MAX_RPM`] at full duty), the fans 0, 1, … ([`MachineConfig::fan_outputs`], at most [`MAX_FANS`]) |
+//! | coolant | the machine file's digital outputs `flood` and `mist`, those it has ([`MachineConfig::flood_output`], [`MachineConfig::mist_output`]): `Output`s on their lines ([`SimOutputPin`]) with the file's active level, one `Coolant` over them ([`CoolantLines::into_coolant`]): `M7`, `M8`, `M9`, grbl's `0xA0`/`0xA1`; other digital outputs are modelled but not wired |
 //! | beeper | the machine file's `[beeper]`, if any ([`SimBeeper`]): `M300` |
-//! | machine | [`machine`]: the machine file's axes for the kernel, the homing switches numbered in axis order, `Z` homing first and the others in file order, axes without travel limits (rotary, extruder) given ±[`UNLIMITED_TRAVEL_MM`] |
+//! | machine | [`machine`]: the machine file's axes for the kernel, the homing switches numbered in axis order and the probe after them, `Z` homing first and the others in file order, axes without travel limits (rotary, extruder) given ±[`UNLIMITED_TRAVEL_MM`] |
 //! | controller | [`controller`]: a `printer` when the file has heaters, else a `cnc`; one extruder when an axis is one; the steps scheduled for the slowest driver; heaters within [`HEATER_TOLERANCE_MC`] of their target for `M109`/`M116` |
 
 use forja_app::controller::ControllerConfig;
+use forja_drivers::coolant::Coolant;
 use forja_drivers::heater::{HeaterConfig, PidGains};
-use forja_drivers::limit::LimitConfig;
+use forja_drivers::limit::{LimitConfig, LimitInput};
+use forja_drivers::output::Output;
 use forja_drivers::pwm::SpindleConfig;
 use forja_drivers::stepper::StepDirConfig;
+use forja_hal_abstraction::device::CoolantControl;
 use forja_hal_abstraction::stepper::Direction;
 use forja_motion::{AxisConfig, AxisKind as KernelAxisKind, HomeDirection, HomingConfig};
 use forja_sim_hal::config::{AxisKind, MachineConfig};
 use forja_sim_hal::{SimBeeper, SimHeater, SimMachine, SimPwm, SimStepDirPins, SimSwitchPin};
-use forja_sim_hal::{SimTemperatureSensor, machine::NoSuchDevice};
+use forja_sim_hal::{SimOutputPin, SimTemperatureSensor, machine::NoSuchDevice};
 
 use super::BoardError;
 
@@ -61,6 +66,29 @@ pub struct HeaterPins {
     pub config: HeaterConfig,
 }
 
+/// The coolant lines of a machine, each an `Output` with its active level; `None` where the
+/// machine file has no such digital output.
+#[derive(Debug)]
+pub struct CoolantLines {
+    /// The mist line (`M7`): the digital output `mist`.
+    pub mist: Option<Output<SimOutputPin>>,
+    /// The flood line (`M8`): the digital output `flood`.
+    pub flood: Option<Output<SimOutputPin>>,
+}
+
+impl CoolantLines {
+    /// The coolant over the lines the machine has, as the controller takes it (a `dyn`: the
+    /// driver's type depends on which lines there are); `None` for a machine with neither.
+    pub fn into_coolant(self) -> Option<Box<dyn CoolantControl>> {
+        match (self.mist, self.flood) {
+            (Some(mist), Some(flood)) => Some(Box::new(Coolant::mist_and_flood(mist, flood))),
+            (Some(mist), None) => Some(Box::new(Coolant::mist(mist))),
+            (None, Some(flood)) => Some(Box::new(Coolant::flood(flood))),
+            (None, None) => None,
+        }
+    }
+}
+
 /// The devices of a machine of `N` axes, as the firmware's parts use them.
 #[derive(Debug)]
 pub struct Pins<const N: usize> {
@@ -69,6 +97,8 @@ pub struct Pins<const N: usize> {
     /// Each axis's homing switch input and how it reads; `None` for an axis that does not
     /// home.
     pub homing_switches: [Option<(SimSwitchPin, LimitConfig)>; N],
+    /// The touch probe's input and how it reads, if the machine has one.
+    pub probe: Option<(SimSwitchPin, LimitConfig)>,
     /// The hot end, if the machine has one.
     pub hot_end: Option<HeaterPins>,
     /// The bed, if the machine has one.
@@ -77,6 +107,8 @@ pub struct Pins<const N: usize> {
     pub fans: [Option<SimPwm>; MAX_FANS],
     /// The spindle's output and its speed range, if the machine has one.
     pub spindle: Option<(SimPwm, SpindleConfig)>,
+    /// The coolant lines, those the machine has.
+    pub coolant: CoolantLines,
     /// The beeper, if the machine has one.
     pub beeper: Option<SimBeeper>,
 }
@@ -111,6 +143,12 @@ pub fn pins<const N: usize>(machine: &SimMachine) -> Result<Pins<N>, BoardError>
             config,
         })
     };
+    // Switched off as it is made (`Output::new`); the simulated line never refuses a write.
+    let line = |i: Option<usize>| -> Option<Output<SimOutputPin>> {
+        let i = i?;
+        let active = file.digital_outputs.get(i)?.active;
+        Output::new(machine.digital_output(i).ok()?, active).ok()
+    };
     let mut fans: [Option<SimPwm>; MAX_FANS] = Default::default();
     for (slot, i) in fans.iter_mut().zip(file.fan_outputs()) {
         *slot = machine.pwm(i).ok();
@@ -118,6 +156,12 @@ pub fn pins<const N: usize>(machine: &SimMachine) -> Result<Pins<N>, BoardError>
     Ok(Pins {
         drivers: drivers.try_into().map_err(|_| count())?,
         homing_switches,
+        probe: file.probe.and_then(|p| {
+            Some((
+                machine.probe_pin().ok()?,
+                LimitConfig::new(p.polarity.into(), 1),
+            ))
+        }),
         hot_end: heater(file.hot_end_heater(), HeaterConfig::hot_end(HOT_END_GAINS)),
         bed: heater(file.bed_heater(), HeaterConfig::bed(BED_GAINS)),
         fans,
@@ -125,13 +169,42 @@ pub fn pins<const N: usize>(machine: &SimMachine) -> Result<Pins<N>, BoardError>
             .spindle_output()
             .and_then(|i| machine.pwm(i).ok())
             .map(|pwm| (pwm, SpindleConfig::new(SPINDLE_MAX_RPM))),
+        coolant: CoolantLines {
+            mist: line(file.mist_output()),
+            flood: line(file.flood_output()),
+        },
         beeper: machine.beeper().ok(),
     })
 }
 
+/// A switch input of [`Pins`] as the firmware reads it: a `LimitInput` with its polarity.
+pub fn limit_input(
+    switch: &Option<(SimSwitchPin, LimitConfig)>,
+) -> Option<LimitInput<SimSwitchPin>> {
+    switch
+        .clone()
+        .map(|(pin, config)| LimitInput::new(pin, config))
+}
+
+/// The switches the step interrupt reads, in the order [`machine`] numbers them: the homing
+/// switches (`homing`, [`Pins::homing_switches`]) in axis order, then the probe (`probe`,
+/// [`Pins::probe`]).
+pub fn step_switches(
+    homing: &[Option<(SimSwitchPin, LimitConfig)>],
+    probe: &Option<(SimSwitchPin, LimitConfig)>,
+) -> Vec<LimitInput<SimSwitchPin>> {
+    homing
+        .iter()
+        .chain([probe])
+        .filter_map(limit_input)
+        .collect()
+}
+
 /// The kernel's machine for a machine file of `N` axes, before the stored settings are
-/// applied over it. See the [module documentation](self) for how switches, unlimited axes and
-/// the homing order are mapped.
+/// applied over it. See the [module documentation](self) for how switches, the probe,
+/// unlimited axes and the homing order are mapped: the switches are numbered as the step
+/// interrupt is given them, the homing switches of [`Pins::homing_switches`] in axis order,
+/// then [`Pins::probe`].
 ///
 /// Errors: [`BoardError::AxisCount`] unless the file has `N` axes; [`BoardError::Config`] for
 /// a machine the kernel refuses.
@@ -179,7 +252,8 @@ pub fn machine<const N: usize>(
             homing,
         }
     });
-    let config = forja_motion::MachineConfig::new(axes);
+    let mut config = forja_motion::MachineConfig::new(axes);
+    config.probe_switch = m.probe.map(|_| switch);
     config.validate().map_err(BoardError::Config)?;
     Ok(config)
 }
@@ -200,6 +274,9 @@ pub fn controller(m: &MachineConfig) -> ControllerConfig {
 
 #[cfg(test)]
 mod tests {
+    use forja_drivers::limit::Polarity;
+    use forja_hal_abstraction::device::DeviceError;
+    use forja_hal_abstraction::limit::LimitSwitch as _;
     use forja_hal_abstraction::stepper::StepTiming;
 
     use super::*;
@@ -225,8 +302,58 @@ mod tests {
             (-100_000.0, 100_000.0)
         );
         assert_eq!(k.axes[3].kind, KernelAxisKind::Rotary);
+        assert_eq!(
+            k.probe_switch,
+            Some(3),
+            "the probe after the three homing switches"
+        );
         assert_eq!(machine::<3>(&file), Err(BoardError::AxisCount(4)));
         assert_eq!(file.slowest_step_timing(), StepTiming::CONSERVATIVE);
+    }
+
+    #[test]
+    fn the_routers_coolant_drives_its_flood_and_mist_lines() {
+        let m = SimMachine::new(&MachineConfig::default_router());
+        let lines = pins::<4>(&m).unwrap().coolant;
+        assert!(lines.mist.is_some() && lines.flood.is_some());
+        let mut coolant = lines.into_coolant().unwrap();
+        coolant.set_flood(true).unwrap();
+        assert_eq!(
+            (m.output_on("flood"), m.output_on("mist")),
+            (Some(true), Some(false))
+        );
+        coolant.set_mist(true).unwrap();
+        coolant.set_flood(false).unwrap();
+        assert_eq!(
+            (m.output_on("flood"), m.output_on("mist")),
+            (Some(false), Some(true))
+        );
+
+        // One line only: the other cannot be turned on.
+        let text = MachineConfig::bundled_toml("default")
+            .unwrap()
+            .replace("name = \"mist\"", "name = \"vacuum\"");
+        let m = SimMachine::new(&MachineConfig::from_toml_str(&text).unwrap());
+        let mut coolant = pins::<4>(&m).unwrap().coolant.into_coolant().unwrap();
+        assert_eq!(coolant.set_mist(true), Err(DeviceError::OutOfRange));
+        coolant.set_flood(true).unwrap();
+        assert_eq!(
+            (m.output_on("flood"), m.output_on("vacuum")),
+            (Some(true), Some(false))
+        );
+
+        let printer =
+            MachineConfig::from_toml_str(MachineConfig::bundled_toml("printer").unwrap()).unwrap();
+        let lines = pins::<4>(&SimMachine::new(&printer)).unwrap().coolant;
+        assert!(lines.into_coolant().is_none());
+    }
+
+    #[test]
+    fn a_machine_without_a_probe_has_no_probe_switch() {
+        let file =
+            MachineConfig::from_toml_str(MachineConfig::bundled_toml("printer").unwrap()).unwrap();
+        assert_eq!(machine::<4>(&file).unwrap().probe_switch, None);
+        assert!(pins::<4>(&SimMachine::new(&file)).unwrap().probe.is_none());
     }
 
     #[test]
@@ -235,6 +362,18 @@ mod tests {
         let p = pins::<4>(&m).unwrap();
         assert_eq!(p.homing_switches.iter().flatten().count(), 3);
         assert!(p.homing_switches[3].is_none());
+        // The probe: normally open, open at Z 50 mm, touching at Z 20 mm (400 steps/mm).
+        assert_eq!(
+            p.probe.as_ref().map(|(_, c)| *c),
+            Some(LimitConfig::new(Polarity::NormallyOpen, 1))
+        );
+        // Numbered as the kernel's machine numbers them: the probe is switch 3.
+        let mut switches = step_switches(&p.homing_switches, &p.probe);
+        assert_eq!(switches.len(), 4);
+        assert_eq!(switches[3].is_triggered(), Ok(false));
+        m.set_position_steps(2, 20 * 400).unwrap();
+        assert_eq!(switches[3].is_triggered(), Ok(true));
+        assert_eq!(switches[2].is_triggered(), Ok(false), "Z's homing switch");
         assert!(p.spindle.is_some() && p.hot_end.is_none() && p.bed.is_none());
         assert!(p.beeper.is_none());
         assert!(p.fans.iter().all(Option::is_none));
