@@ -10,10 +10,12 @@ use anyhow::{Context, Result, anyhow, bail};
 use clap::{Args, Parser, Subcommand};
 use forja_host::client::{self, Observer};
 use forja_host::frames::{self, FrameClient, UploadOptions};
-use forja_host::link::{Connection, LinkSpec};
+use forja_host::grbl_sender::{self, GrblSender};
+use forja_host::link::{Connection, Incoming, LinkSpec};
 use forja_host::program::Program;
 use forja_host::streamer::{self, Window};
 use forja_protocol::frame::{Action, Decimal};
+use forja_protocol::grbl::Realtime;
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Forja's client: stream G-code to a controller, store and run programs, jog and watch the
@@ -51,7 +53,8 @@ struct LinkArgs {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Stream a G-code file: numbered, checksummed lines, resent when damaged, several in
-    /// flight at once; a progress bar, and a summary at the end.
+    /// flight at once; a progress bar, and a summary at the end. With --grbl, in the grbl 1.1
+    /// dialect with character counting, as CNC senders stream.
     Send(SendArgs),
     /// Store a G-code file in the controller (frame protocol) to run it later with `run`.
     Upload {
@@ -108,17 +111,40 @@ struct SendArgs {
     file: PathBuf,
     /// Most bytes in flight (the controller's receive buffer) [default: 256 on a serial
     /// port, 2048 over TCP].
-    #[arg(long, value_name = "BYTES")]
+    #[arg(long, value_name = "BYTES", conflicts_with = "grbl")]
     window: Option<usize>,
     /// Most lines in flight [default: 32 on a serial port, 128 over TCP].
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", conflicts_with = "grbl")]
     window_lines: Option<usize>,
     /// Seconds without an answer before lines are sent again.
-    #[arg(long, value_name = "S", default_value_t = 10.0)]
+    #[arg(
+        long,
+        value_name = "S",
+        default_value_t = 10.0,
+        conflicts_with = "grbl"
+    )]
     reply_timeout: f64,
     /// No progress bar (the summary is still printed).
     #[arg(long)]
     quiet: bool,
+    /// Speak grbl 1.1, as CNC senders do: a soft reset (ctrl-x) and the banner first, then
+    /// lines without numbers, comments and blanks stripped, each answered `ok` or `error:N`,
+    /// as many in flight as the controller's receive buffer holds (character counting), and a
+    /// `?` status poll four times a second. Ends when the machine is idle again.
+    #[arg(long)]
+    grbl: bool,
+    /// With --grbl: the receive buffer to count against, bytes [default: the free bytes of the
+    /// `Bf:` a `?` reports once connected (see --report-buffer), else 128, grbl's].
+    #[arg(long, value_name = "BYTES", requires = "grbl")]
+    rx_buffer: Option<usize>,
+    /// With --grbl: send `$10=3` first so that status reports carry `Bf:` (a Forja link's own
+    /// setting; grbl itself stores it).
+    #[arg(long, requires = "grbl")]
+    report_buffer: bool,
+    /// With --grbl: at a hold that asks for a cycle start (an `M6` tool change), send `~` at
+    /// once instead of waiting for Enter.
+    #[arg(long, requires = "grbl")]
+    auto_cycle_start: bool,
 }
 
 /// `println!` that does not fail when standard output is closed (`forja … | head`).
@@ -172,6 +198,7 @@ impl LinkArgs {
 
 fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
+        Command::Send(args) if args.grbl => send_grbl(&cli.link, &args),
         Command::Send(args) => send(&cli.link, &args),
         Command::Upload { file, batch } => upload(&cli.link, &file, batch),
         Command::Run => action(&cli.link, Action::Start, "running the stored program"),
@@ -232,18 +259,7 @@ fn send(link: &LinkArgs, args: &SendArgs) -> Result<ExitCode> {
         reply_timeout: Duration::from_secs_f64(args.reply_timeout),
         ..streamer::Config::default()
     };
-    let bar = if args.quiet || !io::stderr().is_terminal() {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(program.lines.len() as u64)
-    };
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} [{bar:40}] {pos}/{len} lines {percent:>3}% {elapsed_precise} ETA {eta}",
-        )
-        .map_err(|e| anyhow!("{e}"))?
-        .progress_chars("=> "),
-    );
+    let bar = progress_bar(args.quiet, program.lines.len())?;
     client::drain(&mut conn, Duration::from_millis(500))
         .with_context(|| format!("reading from {spec}"))?;
     let mut observer = Progress { bar: bar.clone() };
@@ -285,6 +301,159 @@ fn send(link: &LinkArgs, args: &SendArgs) -> Result<ExitCode> {
         eprintln!(
             "forja: the job ran, but {} line(s) of it were refused and had no effect",
             report.refused.len()
+        );
+        Ok(ExitCode::FAILURE)
+    }
+}
+
+/// Show `text` above the progress bar, or on standard error when there is no bar.
+fn tell(bar: &ProgressBar, text: impl AsRef<str>) {
+    if bar.is_hidden() {
+        eprintln!("{}", text.as_ref());
+    } else {
+        bar.println(text);
+    }
+}
+
+/// `send --grbl`: stream `args.file` with the grbl sender until every line is answered and
+/// the machine is idle.
+fn send_grbl(link: &LinkArgs, args: &SendArgs) -> Result<ExitCode> {
+    let name = args.file.display();
+    let text =
+        std::fs::read_to_string(&args.file).with_context(|| format!("cannot read {name}"))?;
+    let config = grbl_sender::Config {
+        rx_buffer_bytes: args.rx_buffer.unwrap_or(grbl_sender::GRBL_RX_BUFFER),
+        report_buffer: args.report_buffer,
+        size_from_report: args.rx_buffer.is_none(),
+        ..grbl_sender::Config::default()
+    };
+    let mut sender = GrblSender::new(config);
+    // The source line of each line sent, for messages.
+    let mut source = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        if sender
+            .push(line)
+            .with_context(|| format!("{name}, line {}", i + 1))?
+            .is_some()
+        {
+            source.push(i + 1);
+        }
+    }
+    sender.finish();
+    let (spec, mut conn) = link.connect()?;
+    let bar = progress_bar(args.quiet, source.len())?;
+    client::drain(&mut conn, Duration::from_millis(500))
+        .with_context(|| format!("reading from {spec}"))?;
+    // Enter at the terminal is the operator's cycle start.
+    let enter = (!args.auto_cycle_start && io::stdin().is_terminal()).then(|| {
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in io::stdin().lock().lines() {
+                if line.is_err() || tx.send(()).is_err() {
+                    break;
+                }
+            }
+        });
+        rx
+    });
+    let started = Instant::now();
+    let mut out = Vec::new();
+    // The status reports counted when the last line was answered: the machine is done at the
+    // first `Idle` reported after it.
+    let mut reports_at_done = None;
+    loop {
+        out.clear();
+        sender.transmit(Instant::now(), &mut out);
+        conn.send(&out)?;
+        while let Some(event) = sender.next_event() {
+            let line = |number: u32| source.get(number as usize - 1).copied().unwrap_or(0);
+            match event {
+                grbl_sender::Event::Ready { rx_buffer_bytes } => {
+                    tell(
+                        &bar,
+                        format!("connected: counting against {rx_buffer_bytes} bytes"),
+                    );
+                }
+                grbl_sender::Event::Refused { number, code, text } => {
+                    tell(
+                        &bar,
+                        format!("{name}, line {}: error:{code}: {text}", line(number)),
+                    );
+                }
+                grbl_sender::Event::Alarm { code } => {
+                    bar.finish_and_clear();
+                    bail!(
+                        "ALARM:{code}: the machine stopped; {} of {} lines were sent",
+                        sender.sent(),
+                        source.len()
+                    );
+                }
+                grbl_sender::Event::Message(text) => tell(&bar, format!("controller: {text}")),
+                grbl_sender::Event::AwaitingCycleStart(text) => {
+                    tell(&bar, format!("controller: {text}"));
+                    if args.auto_cycle_start {
+                        sender.realtime(Realtime::CycleStart);
+                        tell(&bar, "cycle start sent (~)");
+                    } else if let Some(enter) = &enter {
+                        while enter.try_recv().is_ok() {}
+                        tell(&bar, "press Enter for cycle start (~)");
+                    } else {
+                        tell(&bar, "waiting for cycle start on the machine");
+                    }
+                }
+                grbl_sender::Event::Restarted => {
+                    bar.finish_and_clear();
+                    bail!("the controller restarted during the job (a banner came unasked)");
+                }
+                grbl_sender::Event::NoBanner => {
+                    bar.finish_and_clear();
+                    bail!("no grbl banner from {spec} after ctrl-x: is it a grbl controller?");
+                }
+                _ => {}
+            }
+        }
+        if enter.as_ref().is_some_and(|e| e.try_recv().is_ok()) {
+            sender.realtime(Realtime::CycleStart);
+            tell(&bar, "cycle start sent (~)");
+        }
+        let answered = sender.answers().iter().filter(|a| a.is_some()).count();
+        bar.set_position(answered as u64);
+        let stats = sender.stats();
+        if sender.phase() == grbl_sender::Phase::Done {
+            let since = *reports_at_done.get_or_insert(stats.status_reports);
+            let idle = sender.last_status().is_some_and(|s| s.starts_with("Idle"));
+            if stats.status_reports > since && idle {
+                break;
+            }
+        }
+        let wait = sender
+            .poll_at()
+            .map_or(Duration::from_millis(100), |t| {
+                t.saturating_duration_since(Instant::now())
+            })
+            .min(Duration::from_millis(100));
+        if let Some(Incoming::Line(line)) = conn.receive(wait)? {
+            sender.receive(Instant::now(), &line);
+        }
+    }
+    bar.finish_and_clear();
+    let s = sender.stats();
+    say!(
+        "sent {name}: {} lines in {:.1} s, {} refused (error:N); counted against {} bytes, \
+         largest in flight {} bytes ({} lines)",
+        source.len(),
+        started.elapsed().as_secs_f64(),
+        s.errors,
+        sender.rx_buffer_bytes(),
+        s.max_in_flight_bytes,
+        s.max_in_flight_lines
+    );
+    if s.errors == 0 {
+        Ok(ExitCode::SUCCESS)
+    } else {
+        eprintln!(
+            "forja: the job ran, but {} line(s) of it were refused and had no effect",
+            s.errors
         );
         Ok(ExitCode::FAILURE)
     }
@@ -457,4 +626,22 @@ fn console(link: &LinkArgs, verbose: bool) -> Result<ExitCode> {
     }
     result?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// The progress bar of a stream of `lines` lines on the terminal (hidden when `quiet` or when
+/// standard error is not a terminal).
+fn progress_bar(quiet: bool, lines: usize) -> Result<ProgressBar> {
+    let bar = if quiet || !io::stderr().is_terminal() {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(lines as u64)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{bar:40}] {pos}/{len} lines {percent:>3}% {elapsed_precise} ETA {eta}",
+        )
+        .map_err(|e| anyhow!("{e}"))?
+        .progress_chars("=> "),
+    );
+    Ok(bar)
 }

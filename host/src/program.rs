@@ -77,6 +77,21 @@ impl fmt::Display for ProgramError {
 
 impl std::error::Error for ProgramError {}
 
+/// `raw` up to its `;` comment: the first `;` outside a `(…)` comment (a CAM post writes
+/// `(tool: 3.175 mm; stock top at Z0)`).
+fn before_semicolon_comment(raw: &[u8]) -> &[u8] {
+    let mut in_paren = false;
+    for (i, &b) in raw.iter().enumerate() {
+        match b {
+            b'(' => in_paren = true,
+            b')' => in_paren = false,
+            b';' if !in_paren => return raw.get(..i).unwrap_or(raw),
+            _ => {}
+        }
+    }
+    raw
+}
+
 /// What a [`LineError`] means, for people.
 pub fn describe_line_error(error: &LineError) -> String {
     match *error {
@@ -148,7 +163,7 @@ impl Program {
             };
             // A `;` comment is the file's, never sent: a slicer's long settings comments
             // must not count against the length of a line.
-            let code = raw.split(|&b| b == b';').next().unwrap_or(raw);
+            let code = before_semicolon_comment(raw);
             let line = Line::parse(code).map_err(|e| err(describe_line_error(&e)))?;
             if line.is_empty() {
                 continue;
@@ -272,6 +287,13 @@ pub fn shortest_decimal(value: Decimal) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_semicolon_inside_a_parenthesised_comment_does_not_start_a_comment() {
+        let p = Program::parse(b"(tool: 3.175 mm; stock top at Z0)\nG1 X1 (a;b) Y2 ; c\n").unwrap();
+        let texts: Vec<_> = p.texts().collect();
+        assert_eq!(texts, ["G1X1Y2"]);
+    }
 
     #[test]
     fn compact_drops_comments_and_spaces_and_keeps_numbers() {

@@ -1,12 +1,13 @@
 //! `forja-sim`: the simulator board as a program.
 //!
 //! Runs a job through the firmware (the controller and the motion kernel on the simulated
-//! hardware) and prints the result; with `--listen`, serves hosts on TCP and a
-//! pseudo-terminal instead; with `--check`, only describes the machine file and the job (and,
-//! with `--state`, what the state file keeps); with `--plot`, draws the job's toolpath (a
-//! printer's extrusion and travel, by layer) and the steps the machine made. The work is in the
-//! library (`forja_simulator::run`, `forja_simulator::state`, `forja_simulator::plot`); the clap
-//! doc comments below are the `--help`.
+//! hardware), streamed in the RepRap dialect or, with `--grbl`, in grbl's, and prints the
+//! result; with `--listen`, serves hosts on TCP and a pseudo-terminal instead; with `--check`,
+//! only describes the machine file and the job (and, with `--state`, what the state file
+//! keeps); with `--plot`, draws the job's toolpath (a printer's extrusion and travel, by layer)
+//! and the steps the machine made. The work is in the library (`forja_simulator::run`,
+//! `forja_simulator::state`, `forja_simulator::plot`); the clap doc comments below are the
+//! `--help`.
 
 use std::io::Write as _;
 use std::net::{IpAddr, SocketAddr};
@@ -20,7 +21,7 @@ use forja_sim_hal::config::{AxisKind, SwitchPolarity, SwitchSide};
 use forja_sim_hal::link::FaultConfig;
 use forja_sim_hal::{MachineConfig, Pacing};
 use forja_simulator::Job;
-use forja_simulator::plot::{self, Executed, ImageFormat, LayerRange, PlotOptions, Toolpath};
+use forja_simulator::plot::{self, Executed, ImageFormat, LayerRange, Lead, PlotOptions, Toolpath};
 use forja_simulator::run::{JobOptions, ListenOptions};
 
 /// Exit code of a job that did not run cleanly (a refused line, lost or badly timed steps, a
@@ -50,10 +51,25 @@ struct Cli {
     #[arg(long)]
     check: bool,
 
-    /// Do not home (G28) before the job: its coordinates are then relative to where the
-    /// machine starts.
+    /// Do not home (G28, or $H with --grbl) before the job: its coordinates are then relative
+    /// to where the machine starts.
     #[arg(long)]
     no_home: bool,
+
+    /// Stream the job in the grbl 1.1 dialect, as a CNC sender (CNCjs, UGS) does, instead of
+    /// the RepRap one: 0x18 and the banner, $10=3, then character counting against the free
+    /// bytes of the receive buffer a `?` reports (Bf:), $H first, a `?` every 200 ms of virtual
+    /// time, and `~` (an operator's cycle start, logged) at a tool change's hold. The summary
+    /// adds the largest number of bytes in flight, the buffer counted against and the longest
+    /// time a `?` waited for its report.
+    #[arg(long, conflicts_with = "listen")]
+    grbl: bool,
+
+    /// A line to send after homing and before the job, e.g. a work offset: --before "G10 L2 P1
+    /// X50 Y50 Z20". Repeat it for several lines; they are sent in order, in either dialect,
+    /// and --plot's toolpath follows them too.
+    #[arg(long, value_name = "LINE", conflicts_with = "listen")]
+    before: Vec<String>,
 
     /// Wait for hosts on TCP and on a pseudo-terminal instead of running the job, and print
     /// where they are. Paced to the wall clock (see --time-scale). Ends at --time-limit or on
@@ -116,11 +132,22 @@ struct Cli {
     /// left to an overview beside it. On other machines feeds are solid, rapids dashed, and the
     /// view frames the whole path. A line the kernel refuses is drawn as the machine runs the
     /// job, without it, listed and marked.
+    ///
+    /// The steps are held to the toolpath: every position the machine passes through (after
+    /// each step, in X/Y/Z; a rotary axis and an extruder left out) must be within one step
+    /// (the largest mm per step of X, Y and Z) of the moves, whose ends the kernel rounds to
+    /// whole steps. The farthest is printed (`trace: farthest from the toolpath 0.0088 mm (one
+    /// step: 0.0125 mm)`); steps that stray farther fail the command, the plot drawn with the
+    /// place marked, naming how far, where and the line. Homing cycles are not measured: after
+    /// a G28 the steps are measured from the last time the machine comes to where homing
+    /// leaves it (the start of the program's next move), and before one up to where they
+    /// leave the end of the last move.
     #[arg(long, value_name = "OUT", conflicts_with = "listen")]
     plot: Option<PathBuf>,
 
     /// With --check --plot: a step trace recorded earlier (`--listen --trace FILE`, the job sent
-    /// by a host) to draw over the toolpath.
+    /// by a host) to draw over the toolpath and hold to it as --plot says: a trace of another
+    /// job, or of this one shifted, fails.
     #[arg(long, value_name = "FILE", requires = "plot", requires = "check")]
     plot_trace: Option<PathBuf>,
 
@@ -229,7 +256,12 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
             }
         }
         if let Some(out) = &cli.plot {
-            let path = toolpath(&machine, &job, false, &plot_options)?;
+            let lead = Lead {
+                home_first: false,
+                grbl: cli.grbl,
+                before: &cli.before,
+            };
+            let path = toolpath(&machine, &job, &lead, &plot_options)?;
             let executed = match &cli.plot_trace {
                 Some(trace) => Some(read_trace(trace, &machine)?),
                 None => None,
@@ -276,7 +308,12 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
     let plotted = match &cli.plot {
         Some(out) => {
             ImageFormat::of(out).map_err(|e| e.to_string())?;
-            Some(toolpath(&machine, &job, !cli.no_home, &plot_options)?)
+            let lead = Lead {
+                home_first: !cli.no_home,
+                grbl: cli.grbl,
+                before: &cli.before,
+            };
+            Some(toolpath(&machine, &job, &lead, &plot_options)?)
         }
         None => None,
     };
@@ -288,6 +325,8 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
     });
     let options = JobOptions {
         home_first: !cli.no_home,
+        grbl: cli.grbl,
+        before: cli.before.clone(),
         faults,
         time_limit_ticks,
         pacing: if cli.realtime {
@@ -336,10 +375,10 @@ fn read_trace(path: &Path, machine: &MachineConfig) -> Result<Executed, String> 
 fn toolpath(
     machine: &MachineConfig,
     job: &Job,
-    home_first: bool,
+    lead: &Lead<'_>,
     options: &PlotOptions,
 ) -> Result<Toolpath, String> {
-    let path = Toolpath::from_job(machine, job, home_first).map_err(|e| e.to_string())?;
+    let path = Toolpath::from_job(machine, job, lead).map_err(|e| e.to_string())?;
     if let Some(range) = options.layers {
         path.select_layers(range)
             .map_err(|e| format!("--plot-layers {range}: {e}"))?;

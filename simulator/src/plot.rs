@@ -40,6 +40,7 @@ use std::str::FromStr;
 
 use forja_hal_abstraction::stepper::Direction;
 use forja_host::codes::explain;
+use forja_host::grbl_sender::clean_line;
 use forja_host::program::{Program, ProgramError, describe_line_error};
 use forja_motion::{AxisKind, NM_PER_MM, Piece, Preview, Travel};
 use forja_protocol::gcode::Line;
@@ -127,6 +128,28 @@ pub struct Toolpath {
     pub bed: Option<[f64; 4]>,
     /// Where the job ends, XYZ mm (0 on an axis the machine does not have).
     pub end: [f64; 3],
+    /// Every straight move of the tool in X, Y and Z, in program order (an arc as the kernel's
+    /// chords), from end to end on the step grid as the kernel steps it: the geometry
+    /// [`Executed::check`] holds a step trace to. Moves of other axes alone (an extruder's, a
+    /// rotary axis's), and moves shorter than a step on every axis, are left out.
+    pub moves: Vec<Move>,
+    /// Where homing lines come among [`Toolpath::moves`]: the index of the move each comes
+    /// before (the number of moves for one after the last), in order, once each. The homing
+    /// cycle's own moves are not the program's: [`Executed::check`] leaves them out.
+    pub homings: Vec<usize>,
+}
+
+/// A straight move of the program, as the kernel queues it: a `G0` or `G1`, or a chord of an
+/// arc. Its ends are on the step grid: each axis's target rounded to a whole step, as the
+/// kernel steps to it (within half a step an axis of the program's exact position).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Move {
+    /// Where it starts, physical XYZ mm.
+    pub from: [f64; 3],
+    /// Where it ends, physical XYZ mm.
+    pub to: [f64; 3],
+    /// The number of the job's line it comes from; `None` only for a line sent before the job.
+    pub line: Option<usize>,
 }
 
 /// A plot that cannot be made.
@@ -217,12 +240,24 @@ pub struct PlotOptions {
     pub hide_travel: bool,
 }
 
+/// What a run sends before its job ([`crate::run::JobOptions`]), for [`Toolpath::from_job`].
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Lead<'a> {
+    /// A homing cycle first.
+    pub home_first: bool,
+    /// The job goes in the grbl dialect (`G28`/`G30` to the stored positions).
+    pub grbl: bool,
+    /// Lines after homing and before the job (work offsets).
+    pub before: &'a [String],
+}
+
 /// Heights closer than this are one, mm.
 const Z_TOLERANCE_MM: f64 = 0.001;
 
 impl Toolpath {
-    /// Follow `job` on a machine of `machine` standing at its start position; `home_first`:
-    /// a `G28` comes before the job, as [`crate::run::run_job`] sends it.
+    /// Follow `job` on a machine of `machine` standing at its start position, after the lines
+    /// [`crate::run::run_job`] sends before it (`lead`: homing and the `--before` lines), in
+    /// the dialect it streams the job in.
     ///
     /// Errors: a machine the kernel cannot take, a job line that does not parse (with the
     /// job's name and the line's number). A line the kernel refuses is not an error: it is
@@ -230,17 +265,17 @@ impl Toolpath {
     pub fn from_job(
         machine: &MachineConfig,
         job: &Job,
-        home_first: bool,
+        lead: &Lead<'_>,
     ) -> Result<Self, PlotError> {
         match machine.axes.len() {
-            1 => follow::<1>(machine, job, home_first),
-            2 => follow::<2>(machine, job, home_first),
-            3 => follow::<3>(machine, job, home_first),
-            4 => follow::<4>(machine, job, home_first),
-            5 => follow::<5>(machine, job, home_first),
-            6 => follow::<6>(machine, job, home_first),
-            7 => follow::<7>(machine, job, home_first),
-            8 => follow::<8>(machine, job, home_first),
+            1 => follow::<1>(machine, job, lead),
+            2 => follow::<2>(machine, job, lead),
+            3 => follow::<3>(machine, job, lead),
+            4 => follow::<4>(machine, job, lead),
+            5 => follow::<5>(machine, job, lead),
+            6 => follow::<6>(machine, job, lead),
+            7 => follow::<7>(machine, job, lead),
+            8 => follow::<8>(machine, job, lead),
             n => Err(PlotError(BoardError::AxisCount(n).to_string())),
         }
     }
@@ -314,19 +349,47 @@ impl Stroke {
     }
 }
 
+/// The lines of `job` as a grbl sender sends them and the grbl dialect reads them: comments
+/// and blanks dropped ([`clean_line`]), a leading `N` number (the dialect's line number, not
+/// checked) and `%` lines (a program's start and end markers) left out. With their numbers in
+/// the file.
+fn grbl_lines(job: &Job) -> Vec<(usize, String)> {
+    job.lines()
+        .enumerate()
+        .filter_map(|(i, raw)| {
+            let text = clean_line(raw);
+            let text = text.trim();
+            let unnumbered = match text.strip_prefix(['N', 'n']) {
+                Some(rest) => rest.trim_start_matches(|c: char| c.is_ascii_digit()).trim(),
+                None => text,
+            };
+            (!unnumbered.is_empty() && unnumbered != "%").then(|| (i + 1, unnumbered.to_string()))
+        })
+        .collect()
+}
+
 /// [`Toolpath::from_job`] on a machine of `N` axes.
 fn follow<const N: usize>(
     machine: &MachineConfig,
     job: &Job,
-    home_first: bool,
+    lead: &Lead<'_>,
 ) -> Result<Toolpath, PlotError> {
     let config = parts::machine::<N>(machine).map_err(|e| PlotError(e.to_string()))?;
-    let program = Program::parse(job.text().as_bytes()).map_err(|e| match e {
-        ProgramError::Line { line, reason, .. } => {
-            PlotError(format!("{}, line {line}: {reason}", job.name()))
-        }
-        e => PlotError(format!("{}: {e}", job.name())),
-    })?;
+    let program: Vec<(usize, String)> = if lead.grbl {
+        grbl_lines(job)
+    } else {
+        Program::parse(job.text().as_bytes())
+            .map_err(|e| match e {
+                ProgramError::Line { line, reason, .. } => {
+                    PlotError(format!("{}, line {line}: {reason}", job.name()))
+                }
+                e => PlotError(format!("{}: {e}", job.name())),
+            })?
+            .lines
+            .into_iter()
+            .map(|l| (l.source_line, l.text))
+            .collect()
+    };
     let xyz = [b'X', b'Y', b'Z'].map(|l| config.axis_index(l));
     let printer = config.axes.iter().any(|a| a.kind == AxisKind::Extruder);
     // Physical position = the kernel's count + the shift: the start position until homed.
@@ -338,6 +401,15 @@ fn follow<const N: usize>(
     });
     let at = |nm: [i64; N], shift: &[i64; N]| {
         xyz.map(|i| i.map_or(0.0, |i| (nm[i] + shift[i]) as f64 / NM_PER_MM))
+    };
+    // The same on the step grid: the kernel steps to each target rounded to whole steps.
+    let stepped = |nm: [i64; N], shift: &[i64; N]| {
+        xyz.map(|i| {
+            i.map_or(0.0, |i| {
+                let per_mm = f64::from(config.axes[i].steps_per_mm);
+                (nm[i] as f64 * per_mm / NM_PER_MM).round() / per_mm + shift[i] as f64 / NM_PER_MM
+            })
+        })
     };
     let travel_of = |letter: char| {
         machine
@@ -357,17 +429,20 @@ fn follow<const N: usize>(
     let mut preview = Preview::new(&config, [0; N]);
     let mut strokes: Vec<Stroke> = Vec::new();
     let mut after_homing = false;
-    let lines = home_first.then_some((None, "G28")).into_iter().chain(
-        program
-            .lines
-            .iter()
-            .map(|l| (Some(l.source_line), l.text.as_str())),
-    );
-    for (number, text) in lines {
+    let homing = lead.home_first.then_some((None, "G28"));
+    let lines = homing
+        .into_iter()
+        .chain(lead.before.iter().map(|l| (None, l.as_str())))
+        .chain(program.iter().map(|(n, text)| (Some(*n), text.as_str())));
+    for (k, (number, text)) in lines.enumerate() {
+        // The homing line is RepRap's `G28` (grbl's `$H`); the rest in the job's dialect.
+        if k == usize::from(homing.is_some()) {
+            preview.set_grbl_dialect(lead.grbl);
+        }
         let line = Line::parse(text.as_bytes()).map_err(|e| {
             let place = match number {
                 Some(n) => format!("{}, line {n}", job.name()),
-                None => "G28 (before the job)".to_string(),
+                None => format!("{text} (before the job)"),
             };
             PlotError(format!("{place}: {}", describe_line_error(&e)))
         })?;
@@ -392,6 +467,14 @@ fn follow<const N: usize>(
                 (false, Travel::Rapid) => PathKind::Rapid,
                 (false, Travel::Feed) => PathKind::Feed,
             };
+            let (from_steps, to_steps) = (stepped(piece.from, &shift), stepped(piece.to, &shift));
+            if from_steps != to_steps {
+                path.moves.push(Move {
+                    from: from_steps,
+                    to: to_steps,
+                    line: number,
+                });
+            }
             strokes.push(Stroke {
                 kind,
                 from,
@@ -408,6 +491,9 @@ fn follow<const N: usize>(
                     }
                 }
                 after_homing = true;
+                if path.homings.last() != Some(&path.moves.len()) {
+                    path.homings.push(path.moves.len());
+                }
             }
             Err(e) => {
                 let here = at(preview.position(), &shift);
@@ -511,6 +597,9 @@ pub struct Executed {
     pub end: [f64; 2],
     /// Time of the last event, s.
     pub duration_s: f64,
+    /// Every step of X, Y and Z, for [`Executed::check`]; `None` for a path not replayed from
+    /// a trace.
+    replay: Option<Replay>,
 }
 
 /// Points of the executed path closer than this to the previous one are merged.
@@ -557,6 +646,12 @@ impl Executed {
         let mut last = place(steps);
         out.points.push(last);
         let mut last_ticks = 0u64;
+        let mut replay = Replay {
+            axes: xyz.map(|a| a.map(|(_, per_mm, start)| (per_mm, start))),
+            steps: Vec::new(),
+        };
+        // The time of the last step of X, Y or Z.
+        let mut last_step_ticks = None;
         for event in trace.events() {
             last_ticks = event.time_ticks;
             let TraceEventKind::Step(direction) = event.kind else {
@@ -571,6 +666,18 @@ impl Executed {
             } else {
                 -1
             };
+            if last_step_ticks == Some(event.time_ticks)
+                && let Some(before) = replay.steps.last_mut()
+            {
+                *before |= SAME_INSTANT;
+            }
+            last_step_ticks = Some(event.time_ticks);
+            let negative = if direction == Direction::Negative {
+                NEGATIVE
+            } else {
+                0
+            };
+            replay.steps.push(k as u8 | negative);
             let p = place(steps);
             if distance(p, last) >= MERGE_MM {
                 out.length_mm += xy_distance(p, last);
@@ -585,6 +692,7 @@ impl Executed {
         }
         out.end = [end[0], end[1]];
         out.duration_s = last_ticks as f64 / f64::from(trace.tick_hz());
+        out.replay = Some(replay);
         Ok(out)
     }
 
@@ -612,6 +720,608 @@ const EXECUTED_Z_TOLERANCE_MM: f64 = 0.01;
 
 fn xy_distance(a: [f64; 3], b: [f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
+}
+
+/// How a trace's steps follow a toolpath, as [`Executed::check`] finds it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TraceCheck {
+    /// One step, mm: the largest of the millimetres per step of X, Y and Z (those the trace
+    /// has), `1 / min(steps_per_mm)`.
+    pub step_mm: f64,
+    /// The measured position farthest from the toolpath; `None` when none was measured.
+    pub farthest: Option<Deviation>,
+    /// How many positions were measured.
+    pub measured: u64,
+    /// The first move after a homing line, when the steps never come to its start (the
+    /// trace is not this job's, or ends during the homing cycle); measuring stopped there.
+    pub missed: Option<Move>,
+}
+
+/// A position of the trace and the toolpath near it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Deviation {
+    /// How far the position is from the nearest move of the toolpath, mm (XYZ).
+    pub distance_mm: f64,
+    /// The position, physical XYZ mm.
+    pub at: [f64; 3],
+    /// The job's line of the nearest move; `None` for a line sent before the job.
+    pub line: Option<usize>,
+}
+
+impl TraceCheck {
+    /// Whether the steps stray farther than one step from the toolpath, or never come to a
+    /// stretch of it.
+    pub fn fails(&self) -> bool {
+        self.missed.is_some() || self.farthest.is_some_and(|f| f.distance_mm > self.step_mm)
+    }
+
+    /// The error a failed check is: the steps strayed more than a step from the toolpath
+    /// (how far, where, near which line), or never came to where the program goes on after a
+    /// homing line. `None` for a check that passes.
+    pub fn error(&self) -> Option<PlotError> {
+        if let Some(m) = self.missed {
+            return Some(PlotError(format!(
+                "the steps never come to {}, where the program goes on after homing{}: the \
+                 step trace is not this job's, or ends before",
+                position(m.from),
+                m.line.map_or_else(String::new, |n| format!(" (line {n})"))
+            )));
+        }
+        let f = self.farthest.filter(|f| f.distance_mm > self.step_mm)?;
+        Some(PlotError(format!(
+            "the steps strayed {:.4} mm from the toolpath at {}{}, more than one step ({:.4} mm)",
+            f.distance_mm,
+            position(f.at),
+            f.line.map_or_else(String::new, |n| format!(" (line {n})")),
+            self.step_mm
+        )))
+    }
+}
+
+impl fmt::Display for TraceCheck {
+    /// The line of the plot's summary: `trace: farthest from the toolpath 0.0089 mm (one step:
+    /// 0.0125 mm), at 612000 positions in X/Y/Z`.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.farthest {
+            Some(d) => write!(
+                f,
+                "trace: farthest from the toolpath {:.4} mm (one step: {:.4} mm), at {} \
+                 positions in X/Y/Z",
+                d.distance_mm, self.step_mm, self.measured
+            ),
+            None => write!(
+                f,
+                "trace: no position measured against the toolpath (one step: {:.4} mm)",
+                self.step_mm
+            ),
+        }
+    }
+}
+
+/// `X10.000 Y20.000 Z5.000`.
+fn position(p: [f64; 3]) -> String {
+    format!("X{:.3} Y{:.3} Z{:.3}", p[0], p[1], p[2])
+}
+
+/// A step of [`Replay::steps`] in the negative direction.
+const NEGATIVE: u8 = 4;
+/// A step of [`Replay::steps`] made at the same tick as the next one.
+const SAME_INSTANT: u8 = 8;
+
+/// The steps of X, Y and Z of a trace, one byte each: what [`Executed::check`] walks.
+#[derive(Clone, Default, PartialEq)]
+struct Replay {
+    /// The steps per mm and start position (mm) of X, Y and Z; `None` for an axis the trace
+    /// does not have.
+    axes: [Option<(f64, f64)>; 3],
+    /// Each step of X, Y or Z in time order: the axis (0, 1, 2), with [`NEGATIVE`] for a step
+    /// in the negative direction and [`SAME_INSTANT`] when the next step comes at the same
+    /// tick.
+    steps: Vec<u8>,
+}
+
+impl fmt::Debug for Replay {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Replay")
+            .field("axes", &self.axes)
+            .field("steps", &self.steps.len())
+            .finish()
+    }
+}
+
+/// A place in a [`Replay`]: how many of its steps are made, and the step counts they add up
+/// to.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct At {
+    made: usize,
+    steps: [i64; 3],
+}
+
+impl Replay {
+    /// One step, mm: the largest mm per step of the axes; `None` without X, Y or Z.
+    fn step_mm(&self) -> Option<f64> {
+        self.axes
+            .iter()
+            .flatten()
+            .map(|&(per_mm, _)| 1.0 / per_mm)
+            .max_by(f64::total_cmp)
+    }
+
+    /// The physical position of `at`, XYZ mm.
+    fn position(&self, at: At) -> [f64; 3] {
+        core::array::from_fn(|k| {
+            self.axes[k].map_or(0.0, |(per_mm, start)| start + at.steps[k] as f64 / per_mm)
+        })
+    }
+
+    /// Move `at` on to the next instant of the trace (its next step and any other at the same
+    /// tick) and give the position there; `None` at the trace's end.
+    fn next(&self, at: &mut At) -> Option<[f64; 3]> {
+        if at.made >= self.steps.len() {
+            return None;
+        }
+        while let Some(&code) = self.steps.get(at.made) {
+            at.made += 1;
+            let k = usize::from(code & 3);
+            at.steps[k] += if code & NEGATIVE != 0 { -1 } else { 1 };
+            if code & SAME_INSTANT == 0 {
+                break;
+            }
+        }
+        Some(self.position(*at))
+    }
+}
+
+/// How many moves after the cursor's the trace is looked for on when it leaves the cursor's
+/// move: more than an instant can pass (chords of an arc shorter than a step), or the cursor
+/// can lag behind (on a line run back and forth over itself, it stays on the first move).
+const AHEAD: usize = 64;
+/// Moves before the cursor the trace may still be on (at a corner).
+const BEHIND: usize = 2;
+/// Moves before and after the cursor looked at once the trace strayed (a failure's report):
+/// off the toolpath the trace may be nearest to a later move that crosses its way, and the
+/// move it is really beside must stay in sight; fewer than [`AHEAD`], so that a trace far off
+/// all along costs little.
+const ASTRAY_REACH: usize = 16;
+
+/// Moves of a toolpath between homing lines.
+struct Stretch<'a> {
+    moves: &'a [Move],
+    /// A homing line comes before it: the trace comes to its start by the homing cycle.
+    after_homing: bool,
+    /// A homing line comes after it: the trace leaves its end for the homing cycle.
+    homing_after: bool,
+}
+
+/// What the positions measured on a stretch came to.
+#[derive(Clone, Copy, Debug, Default)]
+struct Tally {
+    farthest: Option<Deviation>,
+    measured: u64,
+}
+
+impl Tally {
+    fn farthest_mm(&self) -> f64 {
+        self.farthest.map_or(-1.0, |f| f.distance_mm)
+    }
+
+    fn raise(&mut self, d: Deviation) {
+        if d.distance_mm > self.farthest_mm() {
+            self.farthest = Some(d);
+        }
+    }
+
+    fn add(&mut self, other: Tally) {
+        if let Some(f) = other.farthest {
+            self.raise(f);
+        }
+        self.measured += other.measured;
+    }
+}
+
+/// How following a stretch from a place of the trace ends.
+enum Followed {
+    /// Followed to the stretch's end: the trace ends, or leaves the end for the homing cycle
+    /// after it at `at`.
+    Done(At),
+    /// More than a step from every move near the cursor, at `at`; `settled`: after the trace
+    /// left the line through the stretch's start along a single axis (see [`Checker::follow`]).
+    Strayed {
+        at: At,
+        cursor: usize,
+        settled: bool,
+    },
+    /// The trace ends before the stretch does, not settled.
+    Unfinished,
+}
+
+/// Whether the trace came to the end of a stretch's moves: within a step of the last move's
+/// start with the last move in sight of the cursor, then of its end; and whether it leaves
+/// the end again.
+struct EndWatch {
+    last: usize,
+    last_from: [f64; 3],
+    end: [f64; 3],
+    /// 0: not yet; 1: at the last move's start; 2: then at its end.
+    phase: u8,
+    /// In phase 2: the nearest the trace came to the end, mm.
+    nearest_mm: f64,
+}
+
+impl EndWatch {
+    fn new(moves: &[Move]) -> Self {
+        let last = moves.len() - 1;
+        Self {
+            last,
+            last_from: moves[last].from,
+            end: moves[last].to,
+            phase: 0,
+            nearest_mm: f64::INFINITY,
+        }
+    }
+
+    /// Whether the trace, at `p`, came to the end and now goes away from it: on the last move
+    /// each instant takes it nearer the end, so a step away is the next move's (a homing
+    /// cycle's).
+    fn leaving(&mut self, p: [f64; 3]) -> bool {
+        if self.phase < 2 {
+            return false;
+        }
+        let d = distance(p, self.end);
+        if d > self.nearest_mm {
+            return true;
+        }
+        self.nearest_mm = d;
+        false
+    }
+
+    /// The trace at `p`, with the moves up to `sight` in view of the cursor; it comes to a
+    /// point within `reach_mm` of it.
+    fn see(&mut self, p: [f64; 3], sight: usize, reach_mm: f64) {
+        if sight < self.last {
+            return;
+        }
+        if self.phase == 0 && distance(p, self.last_from) <= reach_mm {
+            self.phase = 1;
+        }
+        if self.phase == 1 && distance(p, self.end) <= reach_mm {
+            self.phase = 2;
+            self.nearest_mm = distance(p, self.end);
+        }
+    }
+
+    fn reached(&self) -> bool {
+        self.phase == 2
+    }
+}
+
+/// A check of a trace against a toolpath, stretch by stretch.
+struct Checker<'a> {
+    replay: &'a Replay,
+    /// One step, mm: how far the trace may be from the moves.
+    step_mm: f64,
+}
+
+/// The distance from `p` to the segment `m`, mm.
+fn segment_distance(p: [f64; 3], m: &Move) -> f64 {
+    let d: [f64; 3] = core::array::from_fn(|k| m.to[k] - m.from[k]);
+    let w: [f64; 3] = core::array::from_fn(|k| p[k] - m.from[k]);
+    let dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    let t = if dd > 0.0 {
+        ((w[0] * d[0] + w[1] * d[1] + w[2] * d[2]) / dd).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    distance(p, core::array::from_fn(|k| m.from[k] + t * d[k]))
+}
+
+impl Checker<'_> {
+    /// The nearest to `p` of the moves from `behind` before `cursor` to `ahead` after it: its
+    /// distance and index.
+    fn nearest(
+        &self,
+        moves: &[Move],
+        cursor: usize,
+        behind: usize,
+        ahead: usize,
+        p: [f64; 3],
+    ) -> (f64, usize) {
+        let last = (cursor + ahead).min(moves.len() - 1);
+        (cursor.saturating_sub(behind)..=last)
+            .map(|k| (segment_distance(p, &moves[k]), k))
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .unwrap_or((f64::INFINITY, cursor))
+    }
+
+    /// Whether `p` is within a step of the move at `cursor`, else of the first of the
+    /// `ahead` after it that is (the cursor moved on to it), else of one just before it; the
+    /// distance to it.
+    fn on(&self, moves: &[Move], cursor: &mut usize, ahead: usize, p: [f64; 3]) -> Option<f64> {
+        let d = segment_distance(p, &moves[*cursor]);
+        if d <= self.step_mm {
+            return Some(d);
+        }
+        let last = (*cursor + ahead).min(moves.len() - 1);
+        let first = *cursor + 1;
+        let next = moves[first..=last]
+            .iter()
+            .map(|m| segment_distance(p, m))
+            .enumerate()
+            .find(|&(_, d)| d <= self.step_mm);
+        if let Some((k, d)) = next {
+            *cursor = first + k;
+            return Some(d);
+        }
+        (cursor.saturating_sub(BEHIND)..*cursor)
+            .map(|k| segment_distance(p, &moves[k]))
+            .find(|&d| d <= self.step_mm)
+    }
+
+    /// Follow `stretch` from `at`, where the trace stands at its start. The trace may be on
+    /// the stretch's start by chance during a homing cycle, which moves one axis at a time:
+    /// unless `settled`, the following is settled only once the trace stands off the start in
+    /// two axes, or comes to the stretch's end; until then a stray means the lock was wrong.
+    fn follow(&self, stretch: &Stretch<'_>, mut at: At, mut settled: bool) -> (Followed, Tally) {
+        let moves = stretch.moves;
+        let start = moves[0].from;
+        let mut cursor = 0;
+        let mut end = EndWatch::new(moves);
+        let mut tally = Tally::default();
+        let mut p = self.replay.position(at);
+        loop {
+            if stretch.homing_after && end.leaving(p) {
+                return (Followed::Done(at), tally);
+            }
+            let Some(d) = self.on(moves, &mut cursor, AHEAD, p) else {
+                if stretch.homing_after && end.reached() {
+                    return (Followed::Done(at), tally);
+                }
+                return (
+                    Followed::Strayed {
+                        at,
+                        cursor,
+                        settled,
+                    },
+                    tally,
+                );
+            };
+            tally.measured += 1;
+            if d > tally.farthest_mm() {
+                let (d, k) = self.nearest(moves, cursor, BEHIND, AHEAD, p);
+                tally.raise(Deviation {
+                    distance_mm: d,
+                    at: p,
+                    line: moves[k].line,
+                });
+            }
+            end.see(p, cursor + AHEAD, self.step_mm);
+            if !settled {
+                let off = (0..3)
+                    .filter(|&k| (p[k] - start[k]).abs() > self.step_mm)
+                    .count();
+                settled = off >= 2 || end.reached();
+            }
+            match self.replay.next(&mut at) {
+                Some(q) => p = q,
+                None if settled => return (Followed::Done(at), tally),
+                None => return (Followed::Unfinished, tally),
+            }
+        }
+    }
+
+    /// The farthest point from `stretch` of the trace from `at`, where it strays at `cursor`,
+    /// to the stretch's end (where the trace leaves it for a homing cycle, the end within as
+    /// far as the trace strayed; or the trace's end): the distance to the nearest of the
+    /// moves up to [`ASTRAY_REACH`] before or after the cursor, which goes on to that move.
+    fn astray(&self, stretch: &Stretch<'_>, mut at: At, mut cursor: usize) -> (Deviation, u64) {
+        let moves = stretch.moves;
+        let mut end = EndWatch::new(moves);
+        let mut p = self.replay.position(at);
+        let mut worst: Option<Deviation> = None;
+        let mut measured = 0;
+        loop {
+            if stretch.homing_after && end.leaving(p) {
+                break;
+            }
+            let (d, k) = self.nearest(moves, cursor, ASTRAY_REACH, ASTRAY_REACH, p);
+            if d > self.step_mm && stretch.homing_after && end.reached() {
+                break;
+            }
+            measured += 1;
+            if worst.is_none_or(|w| d > w.distance_mm) {
+                worst = Some(Deviation {
+                    distance_mm: d,
+                    at: p,
+                    line: moves[k].line,
+                });
+            }
+            cursor = cursor.max(k);
+            // Off by as much as the trace strayed.
+            let reach = worst.map_or(self.step_mm, |w| w.distance_mm.max(self.step_mm));
+            end.see(p, cursor + ASTRAY_REACH, reach);
+            match self.replay.next(&mut at) {
+                Some(q) => p = q,
+                None => break,
+            }
+        }
+        let worst = worst.unwrap_or(Deviation {
+            distance_mm: f64::INFINITY,
+            at: p,
+            line: moves[cursor].line,
+        });
+        (worst, measured)
+    }
+
+    /// Check the trace from `at` against `stretch`: where the trace goes on from (its end, or
+    /// where it leaves the stretch's end for a homing cycle) and what was measured, or the
+    /// failure.
+    fn stretch(&self, stretch: &Stretch<'_>, at: At) -> Result<(At, Tally), Failure> {
+        if !stretch.after_homing {
+            return match self.follow(stretch, at, true) {
+                (Followed::Done(at), tally) => Ok((at, tally)),
+                (Followed::Strayed { at, cursor, .. }, tally) => Err(Failure {
+                    stray: Some(self.astray(stretch, at, cursor)),
+                    tally,
+                }),
+                // Not when settled from the start: the trace's end is the stretch's.
+                (Followed::Unfinished, tally) => Ok((at, tally)),
+            };
+        }
+        // The trace comes to the stretch's start at the end of the homing cycle, and may pass
+        // it before: each arrival there is tried, the first the trace follows to the end (or
+        // settles on) is taken. When none is, the one followed longest is the failure.
+        let start = stretch.moves[0].from;
+        let mut at = at;
+        let mut p = self.replay.position(at);
+        let mut there = false;
+        let mut best: Option<(usize, At, usize, Tally)> = None;
+        loop {
+            let arrived = distance(p, start) <= self.step_mm;
+            if arrived && !there {
+                // The lock starts where the trace comes nearest the start.
+                let mut next = at;
+                while let Some(q) = self.replay.next(&mut next)
+                    && distance(q, start) < distance(p, start)
+                {
+                    (at, p) = (next, q);
+                }
+                match self.follow(stretch, at, false) {
+                    (Followed::Done(next), tally) => return Ok((next, tally)),
+                    (
+                        Followed::Strayed {
+                            at: off,
+                            cursor,
+                            settled: true,
+                        },
+                        tally,
+                    ) => {
+                        return Err(Failure {
+                            stray: Some(self.astray(stretch, off, cursor)),
+                            tally,
+                        });
+                    }
+                    (
+                        Followed::Strayed {
+                            at: off, cursor, ..
+                        },
+                        tally,
+                    ) => {
+                        let lasted = off.made - at.made;
+                        if best.is_none_or(|(l, ..)| lasted >= l) {
+                            best = Some((lasted, off, cursor, tally));
+                        }
+                    }
+                    (Followed::Unfinished, _) => {}
+                }
+            }
+            there = arrived;
+            match self.replay.next(&mut at) {
+                Some(q) => p = q,
+                None => break,
+            }
+        }
+        Err(match best {
+            Some((_, off, cursor, tally)) => Failure {
+                stray: Some(self.astray(stretch, off, cursor)),
+                tally,
+            },
+            None => Failure {
+                stray: None,
+                tally: Tally::default(),
+            },
+        })
+    }
+}
+
+/// A stretch the trace does not follow: where it strays the farthest and how many positions
+/// were measured from where it strayed ([`Checker::astray`]), or `None` when it never comes to
+/// the stretch's start; what was measured before.
+struct Failure {
+    stray: Option<(Deviation, u64)>,
+    tally: Tally,
+}
+
+impl Executed {
+    /// Hold the steps to `path`'s geometry: the largest distance from any position the trace
+    /// passes through (after each step, all axes at that instant) to the nearest point of
+    /// `path`'s [moves](Toolpath::moves), in X, Y and Z (a rotary axis and an extruder left
+    /// out). A correct run stays within one step ([`TraceCheck::step_mm`]): the kernel follows
+    /// its straight moves and arc chords without cutting corners, from end to end on the step
+    /// grid (the moves' ends are rounded to whole steps as the kernel rounds its targets), and
+    /// each axis steps where its ideal position crosses a half step, so it is within half a
+    /// step an axis of the line between them.
+    ///
+    /// The trace and the moves are walked together, in order: a cursor on the move the trace
+    /// follows goes on to the next one within a step when the trace leaves it (up to 64 moves
+    /// on), so a trace of millions of steps costs a few distances a step. The homing cycle's
+    /// moves are not the program's and are not measured: at a homing line the trace leaves
+    /// the program's path where it goes away from the end of the moves before it, and comes
+    /// back where it comes to the start of the moves after it and follows them. The cycle
+    /// may pass that point before, but moving one axis only: an arrival counts once the
+    /// trace, following the moves, stands off it in two axes (or comes to their end), and one
+    /// that strays before is dropped for the next.
+    ///
+    /// From the first position farther than a step from the moves near the cursor on, the
+    /// cursor goes on to the nearest of the moves 16 around it, to the end of the stretch of
+    /// moves between homing lines, and measuring stops there: [`TraceCheck::farthest`] is the
+    /// farthest point of that stretch from the moves around where the program was.
+    ///
+    /// `None` for a path not replayed from a trace, or from a trace without X, Y or Z.
+    pub fn check(&self, path: &Toolpath) -> Option<TraceCheck> {
+        let replay = self.replay.as_ref()?;
+        let step_mm = replay.step_mm()?;
+        let checker = Checker { replay, step_mm };
+        let mut check = TraceCheck {
+            step_mm,
+            farthest: None,
+            measured: 0,
+            missed: None,
+        };
+        let mut tally = Tally::default();
+        let mut at = At::default();
+        for (i, stretch) in stretches(path).iter().enumerate() {
+            if i > 0 && at.made >= replay.steps.len() {
+                // The trace ends before the homing line: nothing more to hold it to.
+                break;
+            }
+            match checker.stretch(stretch, at) {
+                Ok((next, t)) => {
+                    tally.add(t);
+                    at = next;
+                }
+                Err(failure) => {
+                    tally.add(failure.tally);
+                    match failure.stray {
+                        Some((stray, measured)) => {
+                            tally.raise(stray);
+                            tally.measured += measured;
+                        }
+                        None => check.missed = Some(stretch.moves[0]),
+                    }
+                    break;
+                }
+            }
+        }
+        check.farthest = tally.farthest;
+        check.measured = tally.measured;
+        Some(check)
+    }
+}
+
+/// The stretches of `path`'s moves between its homing lines, those with moves.
+fn stretches(path: &Toolpath) -> Vec<Stretch<'_>> {
+    let mut bounds = vec![0];
+    bounds.extend(path.homings.iter().copied());
+    bounds.push(path.moves.len());
+    bounds
+        .windows(2)
+        .filter(|w| w[0] < w[1])
+        .map(|w| Stretch {
+            moves: &path.moves[w[0]..w[1]],
+            after_homing: path.homings.contains(&w[0]),
+            homing_after: path.homings.contains(&w[1]),
+        })
+        .collect()
 }
 
 const FEED: RGBColor = RGBColor(120, 170, 235);
@@ -673,8 +1383,13 @@ impl ImageFormat {
 /// Draw `path` (and `executed`, if given) to `out`, a `.png` or `.svg` file, as `options`
 /// say, under a title that starts with `name` and says which layers are drawn.
 ///
+/// A trace's steps are held to the toolpath ([`Executed::check`]) and the result printed on
+/// stdout, a line of the plot's summary (`trace: farthest from the toolpath 0.0089 mm (one
+/// step: 0.0125 mm), …`); where they strayed farther than a step is marked on the plot.
+///
 /// Errors: another extension, layers the job does not have ([`Toolpath::select_layers`]),
-/// nothing to draw, or the file cannot be written.
+/// nothing to draw, or the file cannot be written; after the plot is drawn, steps that stray
+/// farther than one step from the toolpath or never come to it ([`TraceCheck::error`]).
 pub fn render(
     out: &Path,
     name: &str,
@@ -683,7 +1398,20 @@ pub fn render(
     options: &PlotOptions,
 ) -> Result<(), PlotError> {
     let format = ImageFormat::of(out)?;
-    let scene = Scene::new(name, path, executed, options)?;
+    let check = executed.and_then(|ex| ex.check(path));
+    let mut scene = Scene::new(name, path, executed, options)?;
+    if let Some(check) = &check {
+        let mark = match (check.missed, check.farthest) {
+            (Some(m), _) => Some((m.from, "the steps never come here".to_string())),
+            (None, Some(f)) if check.fails() => {
+                Some((f.at, format!("the steps strayed {:.3} mm", f.distance_mm)))
+            }
+            _ => None,
+        };
+        if let Some((at, label)) = mark {
+            scene.strays.push(([at[0], at[1]], label));
+        }
+    }
     let size = (WIDTH, scene.layout.height);
     let result = match format {
         ImageFormat::Png => {
@@ -695,7 +1423,17 @@ pub fn render(
             draw(&root, &scene).and_then(|()| root.present().map_err(|e| e.to_string()))
         }
     };
-    result.map_err(|e| PlotError(format!("cannot write {}: {e}", out.display())))
+    result.map_err(|e| PlotError(format!("cannot write {}: {e}", out.display())))?;
+    if let Some(check) = &check {
+        println!("{check}");
+        if let Some(e) = check.error() {
+            return Err(PlotError(format!(
+                "{e} (the plot, drawn to {}, marks where)",
+                out.display()
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// How a polyline is drawn.
@@ -733,6 +1471,8 @@ struct Scene {
     bed: Option<[f64; 4]>,
     /// The refused lines: where the tool stood, and which line it is.
     refused: Vec<([f64; 2], String)>,
+    /// Where the steps strayed from the toolpath, and how far.
+    strays: Vec<([f64; 2], String)>,
     layout: Layout,
 }
 
@@ -872,6 +1612,7 @@ impl Scene {
                 .map(|p| (p.points.clone(), colour_of(p.layer)))
                 .collect(),
             bed: path.bed,
+            strays: Vec::new(),
             refused: path
                 .refused
                 .iter()
@@ -1296,13 +2037,15 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, scene: &Scene) -> Dra
             draw_polyline(root, pixels(layout, &run), *pen).map_err(e)?;
         }
     }
-    for (at, name) in &scene.refused {
+    let marks = scene.refused.iter().map(|(at, name)| (at, name, REFUSED));
+    let strays = scene.strays.iter().map(|(at, name)| (at, name, EXECUTED));
+    for (at, name, colour) in marks.chain(strays) {
         if !(x0..=x1).contains(&at[0]) || !(y0..=y1).contains(&at[1]) {
             continue;
         }
         let (x, y) = layout.px(*at);
-        draw_cross(root, x, y, REFUSED).map_err(e)?;
-        draw_text(root, x + 10, y + 6, name, REFUSED).map_err(e)?;
+        draw_cross(root, x, y, colour).map_err(e)?;
+        draw_text(root, x + 10, y + 6, name, colour).map_err(e)?;
     }
 
     if let Some(whole) = layout.overview {
@@ -1516,7 +2259,11 @@ mod tests {
     }
 
     fn follow_on(machine: &MachineConfig, text: &str, home_first: bool) -> Toolpath {
-        Toolpath::from_job(machine, &Job::from_text("job.gcode", text), home_first).unwrap()
+        let lead = Lead {
+            home_first,
+            ..Lead::default()
+        };
+        Toolpath::from_job(machine, &Job::from_text("job.gcode", text), &lead).unwrap()
     }
 
     fn path(text: &str) -> Toolpath {
@@ -1589,7 +2336,7 @@ mod tests {
         assert_eq!(p.polylines[0].points, [[0.0, 0.0], [1.0, 0.0], [3.0, 0.0]]);
         // A line that does not parse is not the kernel's to refuse: the job cannot be sent.
         let job = Job::from_text("job.gcode", "G0 X1\nG1 X(\n");
-        let e = Toolpath::from_job(&plain(), &job, false).unwrap_err();
+        let e = Toolpath::from_job(&plain(), &job, &Lead::default()).unwrap_err();
         assert!(e.to_string().starts_with("job.gcode, line 2: "), "{e}");
     }
 
@@ -1651,6 +2398,224 @@ mod tests {
         )
         .unwrap_err();
         assert_eq!(e.to_string(), "step trace line 4: unknown axis \"Q\"");
+    }
+
+    /// A step trace of a machine of X, Y and Z (`per_mm` steps per mm, standing at `start`)
+    /// going straight from point to point (mm): at each instant every axis at its position
+    /// rounded to the nearest step, as the kernel steps, the steps of an instant at one tick.
+    fn trace_through(per_mm: [f64; 3], start: [f64; 3], points: &[[f64; 3]]) -> String {
+        let mut text = format!(
+            "# forja step trace 1\n# tick_hz 1000000\n# axes X Y Z\n\
+             # steps_per_mm X={} Y={} Z={}\n# start_mm X={} Y={} Z={}\ntime_ticks,axis,event\n",
+            per_mm[0], per_mm[1], per_mm[2], start[0], start[1], start[2]
+        );
+        let mut steps = [0i64; 3];
+        let mut tick = 0u64;
+        for pair in points.windows(2) {
+            let (a, b) = (pair[0], pair[1]);
+            let span = (0..3)
+                .map(|k| ((b[k] - a[k]) * per_mm[k]).abs())
+                .fold(0.0, f64::max);
+            // A quarter of a step at most per instant: one step an axis at most.
+            let n = (span * 4.0).ceil().max(1.0) as usize;
+            for i in 1..=n {
+                let t = i as f64 / n as f64;
+                tick += 1;
+                for k in 0..3 {
+                    let want = ((a[k] + t * (b[k] - a[k]) - start[k]) * per_mm[k]).round() as i64;
+                    while steps[k] != want {
+                        let sign = if want > steps[k] { 1 } else { -1 };
+                        steps[k] += sign;
+                        let event = if sign > 0 { "step+" } else { "step-" };
+                        text += &format!("{tick},{},{event}\n", ['X', 'Y', 'Z'][k]);
+                    }
+                }
+            }
+        }
+        text
+    }
+
+    /// The start of `path`'s moves and the end of each.
+    fn corners(path: &[Move]) -> Vec<[f64; 3]> {
+        let mut points = vec![path[0].from];
+        points.extend(path.iter().map(|m| m.to));
+        points
+    }
+
+    /// Half a step on each axis of [`PLAIN`] and the router, mm: how far a correct trace is
+    /// from the moves at most.
+    fn half_steps() -> f64 {
+        (2.0 * 0.00625f64.powi(2) + 0.00125f64.powi(2)).sqrt()
+    }
+
+    #[test]
+    fn moves_end_on_the_step_grid_and_homings_are_placed_among_them() {
+        let p = path("G1 X10.004 Y0.003 F600\nG1 X10.006\nG1 Z1\n");
+        // 800.32 steps: 800; 0.24: 0; 800.48 steps: 800 again, no move on the grid.
+        assert_eq!(
+            p.moves,
+            [
+                Move {
+                    from: [0.0; 3],
+                    to: [10.0, 0.0, 0.0],
+                    line: Some(1)
+                },
+                Move {
+                    from: [10.0, 0.0, 0.0],
+                    to: [10.0, 0.0, 1.0],
+                    line: Some(3)
+                },
+            ]
+        );
+        assert!(p.homings.is_empty());
+        // On the router, the G28 before the job, the job's own right after it (one homing),
+        // one in the middle and one at the end.
+        let router = MachineConfig::default_router();
+        let p = follow_on(&router, "G28\nG0 X10 Y10\nG28 Z0\nG0 Z50\nG28\n", true);
+        assert_eq!(p.homings, [0, 1, 2]);
+        assert_eq!(p.moves[0].from, [2.0, 2.0, 99.0]);
+        assert_eq!(p.moves[1].from, [10.0, 10.0, 99.0]);
+        let stretches = stretches(&p);
+        let flags: Vec<(usize, bool, bool)> = stretches
+            .iter()
+            .map(|s| (s.moves.len(), s.after_homing, s.homing_after))
+            .collect();
+        assert_eq!(flags, [(1, true, true), (1, true, true)]);
+    }
+
+    #[test]
+    fn a_trace_that_follows_the_moves_passes_and_one_that_strays_is_named() {
+        let p = path("G1 X10 F600\nG2 X20 Y10 I0 J10\nG1 Z-2\nG1 X0 Y0 Z0\n");
+        let points = corners(&p.moves);
+        let check = |points: &[[f64; 3]]| {
+            let trace = trace_through([80.0, 80.0, 400.0], [0.0; 3], points);
+            let ex = Executed::from_trace(&trace, Some(&plain())).unwrap();
+            ex.check(&p).unwrap()
+        };
+        let ok = check(&points);
+        assert_eq!(ok.step_mm, 0.0125);
+        let f = ok.farthest.unwrap();
+        assert!(
+            f.distance_mm > 0.0 && f.distance_mm <= half_steps() + 1e-9,
+            "{f:?}"
+        );
+        assert!(!ok.fails() && ok.error().is_none() && ok.missed.is_none());
+        assert!(ok.measured > 4000, "{}", ok.measured);
+        assert!(
+            ok.to_string()
+                .starts_with("trace: farthest from the toolpath 0.00"),
+            "{ok}"
+        );
+        assert!(ok.to_string().contains(" mm (one step: 0.0125 mm), at "));
+        // A detour 0.1 mm off the first line, at X5.
+        let mut off = points.clone();
+        off.insert(1, [5.0, 0.1, 0.0]);
+        let bad = check(&off);
+        assert!(bad.fails());
+        let f = bad.farthest.unwrap();
+        assert!((f.distance_mm - 0.1).abs() < 1e-9, "{f:?}");
+        // Where the trace first comes 0.1 mm off, Y a round 8 steps.
+        assert_eq!((f.at, f.line), ([4.6875, 0.1, 0.0], Some(1)));
+        assert_eq!(
+            bad.error().unwrap().to_string(),
+            "the steps strayed 0.1000 mm from the toolpath at X4.688 Y0.100 Z0.000 (line 1), \
+             more than one step (0.0125 mm)"
+        );
+        // A path not replayed from a trace is not checked.
+        assert_eq!(Executed::default().check(&p), None);
+    }
+
+    #[test]
+    fn the_positions_measured_are_those_after_each_instant() {
+        let p = path("G1 X0.0125 Y0.0125 F600\n");
+        let check = |events: &str| {
+            let trace = format!("# tick_hz 1000\n# axes X Y Z\ntime_ticks,axis,event\n{events}");
+            let ex = Executed::from_trace(&trace, Some(&plain())).unwrap();
+            ex.check(&p).unwrap()
+        };
+        // X and Y at the same tick: the machine goes from one corner to the other.
+        let together = check("1,X,step+\n1,Y,step+\n");
+        assert_eq!(together.measured, 2);
+        assert_eq!(together.farthest.unwrap().distance_mm, 0.0);
+        // One tick apart: it stands at (0.0125, 0) in between, half a diagonal step off.
+        let apart = check("1,X,step+\n2,Y,step+\n");
+        assert_eq!(apart.measured, 3);
+        let f = apart.farthest.unwrap();
+        assert!(
+            (f.distance_mm - 0.0125 / 2f64.sqrt()).abs() < 1e-12,
+            "{f:?}"
+        );
+        assert_eq!(f.at, [0.0125, 0.0, 0.0]);
+    }
+
+    /// The waypoints of the router's homing cycle from `from` (Z up, then X, then Y, each to
+    /// its switch, backed off, to the switch again and pulled off), ending at X2 Y2 Z99: the
+    /// cycle passes that point on its way to Y's switch and again when it backs off.
+    fn router_homing(from: [f64; 3]) -> Vec<[f64; 3]> {
+        let [x, y, _] = from;
+        vec![
+            [x, y, 100.0],
+            [x, y, 98.0],
+            [x, y, 100.0],
+            [x, y, 99.0],
+            [0.0, y, 99.0],
+            [2.0, y, 99.0],
+            [0.0, y, 99.0],
+            [2.0, y, 99.0],
+            [2.0, 0.0, 99.0],
+            [2.0, 2.0, 99.0],
+            [2.0, 0.0, 99.0],
+            [2.0, 2.0, 99.0],
+        ]
+    }
+
+    #[test]
+    fn the_homing_cycles_are_left_out_and_a_trace_of_another_job_fails() {
+        let router = MachineConfig::default_router();
+        let job = "G0 X10 Y10 Z20\nG1 X40 F3000\nG2 X30 Y20 I-10 J0\nG28\nG0 X5 Y5 Z90\nG1 Y20\n";
+        let p = follow_on(&router, job, true);
+        let stretches = stretches(&p);
+        let [first, second] = stretches.as_slice() else {
+            panic!("{}", stretches.len())
+        };
+        // Homing from where the router starts, the first stretch, homing from its end, the
+        // second stretch.
+        let mut points = vec![[150.0, 150.0, 50.0]];
+        points.extend(router_homing(points[0]));
+        points.extend(corners(first.moves));
+        points.extend(router_homing(*points.last().unwrap()));
+        points.extend(corners(second.moves));
+        let trace = trace_through([80.0, 80.0, 400.0], [150.0, 150.0, 50.0], &points);
+        let ex = Executed::from_trace(&trace, Some(&router)).unwrap();
+        let check = ex.check(&p).unwrap();
+        assert!(!check.fails(), "{check:?}");
+        let f = check.farthest.unwrap();
+        assert!(f.distance_mm <= half_steps() + 1e-9, "{f:?}");
+        // The same trace over the job 1 mm to the right: the steps stray on line 1.
+        let shifted = "G0 X11 Y10 Z20\nG1 X41 F3000\nG2 X31 Y20 I-10 J0\nG28\nG0 X6 Y5 Z90\n\
+                       G1 Y20\n";
+        let check = ex.check(&follow_on(&router, shifted, true)).unwrap();
+        assert!(check.fails());
+        let f = check.farthest.unwrap();
+        assert!((0.9..1.02).contains(&f.distance_mm), "{f:?}");
+        let e = check.error().unwrap().to_string();
+        assert!(e.starts_with("the steps strayed 1.0"), "{e}");
+        assert!(e.ends_with("more than one step (0.0125 mm)"), "{e}");
+        // A trace that never homes never comes to where the job goes on after homing.
+        let trace = trace_through(
+            [80.0, 80.0, 400.0],
+            [150.0, 150.0, 50.0],
+            &[[150.0, 150.0, 50.0], [10.0, 10.0, 20.0]],
+        );
+        let ex = Executed::from_trace(&trace, Some(&router)).unwrap();
+        let check = ex.check(&p).unwrap();
+        assert_eq!(check.missed, Some(p.moves[0]));
+        assert_eq!(check.farthest, None);
+        assert_eq!(
+            check.error().unwrap().to_string(),
+            "the steps never come to X2.000 Y2.000 Z99.000, where the program goes on after \
+             homing (line 1): the step trace is not this job's, or ends before"
+        );
     }
 
     #[test]

@@ -1,5 +1,6 @@
 //! The simulator's two ways of running: a job streamed through the controller over an
-//! in-memory link ([`run_job`]), and serving hosts on TCP and a pseudo-terminal ([`listen`]).
+//! in-memory link ([`run_job`]), in the RepRap dialect or in grbl's, and serving hosts on TCP
+//! and a pseudo-terminal ([`listen`]).
 
 use core::fmt;
 use std::io::Write as _;
@@ -13,6 +14,7 @@ use embedded_io::{Read, ReadReady, Write, WriteReady};
 use forja_app::controller::Stats as ControllerStats;
 use forja_drivers::port_link::Admission;
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
+use forja_host::grbl_sender::{self, GrblSender};
 use forja_host::program::Program;
 use forja_host::streamer::{Config, Stats};
 
@@ -21,16 +23,22 @@ use forja_sim_hal::{
     Flow, MachineConfig, Pacing, SimClock, SimMachine, Simulation, SimulationConfig, StopReason,
 };
 
-use crate::host::StreamHost;
+use crate::host::{GrblHost, StreamHost};
 use crate::job::Job;
 use forja_sim::board::{PortId, SimBoard};
 
 /// How [`run_job`] runs.
 #[derive(Debug, Clone, PartialEq)]
 pub struct JobOptions {
-    /// Send `G28` before the job when the machine has axes that home (the job's coordinates
-    /// are machine coordinates, which the controller knows only once homed).
+    /// Home before the job when the machine has axes that home (`G28`, or `$H` in the grbl
+    /// dialect): the job's coordinates are machine coordinates, or work coordinates set by
+    /// [`JobOptions::before`], which the controller knows only once homed.
     pub home_first: bool,
+    /// Stream in the grbl dialect, as a CNC sender does ([`GRBL_SENDER`]), instead of the
+    /// RepRap one.
+    pub grbl: bool,
+    /// Lines sent after homing and before the job (a work offset: `G10 L2 P1 X50 Y50 Z20`).
+    pub before: Vec<String>,
     /// Faults on the bytes from the host.
     pub faults: FaultConfig,
     /// Give up after this much virtual time.
@@ -49,6 +57,8 @@ impl Default for JobOptions {
     fn default() -> Self {
         Self {
             home_first: true,
+            grbl: false,
+            before: Vec::new(),
             faults: FaultConfig {
                 corrupt_rate: 0.0,
                 drop_rate: 0.0,
@@ -71,6 +81,33 @@ impl Default for JobOptions {
 /// only be refused as out of order.
 pub const JOB_REPLY_TIMEOUT: Duration = Duration::from_secs(600);
 
+/// How [`run_job`] streams in the grbl dialect, as CNC senders connect: `0x18` and the banner,
+/// `$10=3`, then the buffer counted against read from a `?`'s `Bf:` (768 bytes on Forja), and
+/// a `?` every 200 ms of virtual time.
+pub const GRBL_SENDER: grbl_sender::Config = grbl_sender::Config {
+    rx_buffer_bytes: grbl_sender::GRBL_RX_BUFFER,
+    report_buffer: true,
+    size_from_report: true,
+    status_interval: Some(Duration::from_millis(200)),
+    status_timeout: Duration::from_secs(1),
+    banner_timeout: Duration::from_millis(2500),
+    reset_attempts: 3,
+};
+
+/// What a grbl run ([`JobOptions::grbl`]) measured.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GrblFigures {
+    /// The receive buffer counted against, bytes (from `Bf:`).
+    pub rx_buffer_bytes: usize,
+    /// The sender's counters: the most bytes and lines in flight, the status reports and the
+    /// longest time from a `?` to its report.
+    pub sender: grbl_sender::Stats,
+    /// Lines sent and never answered (dropped by a reset, or in flight at the end).
+    pub unanswered: usize,
+    /// Status reports whose `Ln:` was smaller than the report's before (0: lines ran in order).
+    pub line_number_regressions: u32,
+}
+
 /// What [`run_job`] did.
 #[derive(Debug, Clone)]
 pub struct JobRun {
@@ -78,19 +115,26 @@ pub struct JobRun {
     pub machine: String,
     /// The job's name.
     pub job: String,
-    /// Whether `G28` was sent first.
+    /// Whether the machine was homed first (`G28`, or `$H` in the grbl dialect).
     pub homed_first: bool,
+    /// The lines sent after homing and before the job ([`JobOptions::before`]).
+    pub before: usize,
     /// Whether the controller took every line and the machine came to rest.
     pub finished: bool,
-    /// Lines of the job streamed (`G28` included when homed first; blank and comment lines,
-    /// the handshake's `M110` and the closing line not counted).
+    /// Lines of the job streamed (the homing and [`JobOptions::before`] lines included; blank
+    /// and comment lines, the handshake's `M110`, the closing line and `$10=3` not counted).
     pub lines: usize,
-    /// How many of them the controller took.
+    /// How many of them the controller took (answered `ok`).
     pub accepted: usize,
-    /// The streamer's counters.
+    /// The RepRap streamer's counters (all zero in the grbl dialect).
     pub sender: Stats,
-    /// The refusals (`echo:E…`, `echo:Unknown command`) and faults (`Error:`) received, in order.
+    /// In the grbl dialect, what the character-counting sender measured.
+    pub grbl: Option<GrblFigures>,
+    /// The refusals (`echo:E…`, `echo:Unknown command`; `error:N` in the grbl dialect) and
+    /// faults (`Error:`; `ALARM:N`) received, in order.
     pub faults: Vec<String>,
+    /// The operator's log of a grbl run: each `[MSG:…]` and the cycle starts sent.
+    pub log: Vec<String>,
     /// The controller's view.
     pub controller: ControllerStats,
     /// Virtual time the run took, seconds.
@@ -114,15 +158,34 @@ impl JobRun {
     }
 }
 
+impl JobRun {
+    /// What came before the job, for the summary: `G28`, `$H`, the `--before` lines.
+    fn preamble(&self) -> Option<String> {
+        let home = if self.grbl.is_some() { "$H" } else { "G28" };
+        let before = match self.before {
+            0 => None,
+            1 => Some("1 --before line".to_string()),
+            n => Some(format!("{n} --before lines")),
+        };
+        match (self.homed_first, before) {
+            (true, Some(b)) => Some(format!("{home} and {b}")),
+            (true, None) => Some(home.to_string()),
+            (false, b) => b,
+        }
+    }
+}
+
 impl fmt::Display for JobRun {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let preamble = self.preamble();
         writeln!(f, "machine: {}", self.machine)?;
-        writeln!(
-            f,
-            "job: {}{}",
-            self.job,
-            if self.homed_first { " (after G28)" } else { "" }
-        )?;
+        write!(f, "job: {}", self.job)?;
+        match (&self.grbl, &preamble) {
+            (Some(_), Some(p)) => writeln!(f, " (grbl dialect, after {p})")?,
+            (Some(_), None) => writeln!(f, " (grbl dialect)")?,
+            (None, Some(p)) => writeln!(f, " (after {p})")?,
+            (None, None) => writeln!(f)?,
+        }
         writeln!(
             f,
             "result: {}",
@@ -132,23 +195,51 @@ impl fmt::Display for JobRun {
                 "did not finish"
             }
         )?;
-        writeln!(
-            f,
-            "lines run: {} of {}{}; executed {} (with M110 and the closing line), refused {}, \
-             resends {}",
-            self.accepted,
-            self.lines,
-            if self.homed_first {
-                " (G28 included)"
-            } else {
-                ""
-            },
-            self.controller.executed,
-            self.controller.refused,
-            self.controller.resends
-        )?;
+        let included = preamble.map_or_else(String::new, |p| format!(" ({p} included)"));
+        match &self.grbl {
+            None => writeln!(
+                f,
+                "lines run: {} of {}{included}; executed {} (with M110 and the closing line), \
+                 refused {}, resends {}",
+                self.accepted,
+                self.lines,
+                self.controller.executed,
+                self.controller.refused,
+                self.controller.resends
+            )?,
+            Some(g) => {
+                writeln!(
+                    f,
+                    "lines run: {} of {}{included}; refused {} (error:N), unanswered {}, stray \
+                     answers {}; executed {}",
+                    self.accepted,
+                    self.lines,
+                    g.sender.errors,
+                    g.unanswered,
+                    g.sender.stray_answers,
+                    self.controller.executed
+                )?;
+                writeln!(
+                    f,
+                    "character counting: largest in flight {} of {} bytes ({} lines); status \
+                     reports: {}, largest ? latency {:.3} ms; with the buffer full: {}, largest \
+                     ? latency {:.3} ms; Ln went back {} times",
+                    g.sender.max_in_flight_bytes,
+                    g.rx_buffer_bytes,
+                    g.sender.max_in_flight_lines,
+                    g.sender.status_reports,
+                    g.sender.max_status_latency.as_secs_f64() * 1000.0,
+                    g.sender.full_status_reports,
+                    g.sender.max_full_status_latency.as_secs_f64() * 1000.0,
+                    g.line_number_regressions
+                )?;
+            }
+        }
         for fault in &self.faults {
             writeln!(f, "  {fault}")?;
+        }
+        for entry in &self.log {
+            writeln!(f, "{entry}")?;
         }
         writeln!(
             f,
@@ -173,16 +264,87 @@ impl fmt::Display for JobRun {
     }
 }
 
+/// The sender of a run, in either dialect.
+enum Sender {
+    RepRap(StreamHost),
+    Grbl(GrblHost),
+}
+
+impl Sender {
+    /// Hand the sender what the controller sent at `now_us`; what to write back.
+    fn exchange(&mut self, received: &[u8], now_us: u64) -> Vec<u8> {
+        match self {
+            Self::RepRap(h) => h.exchange(received, now_us / 1000),
+            Self::Grbl(h) => h.exchange(received, now_us),
+        }
+    }
+
+    fn is_over(&self) -> bool {
+        match self {
+            Self::RepRap(h) => h.is_over(),
+            Self::Grbl(h) => h.is_over(),
+        }
+    }
+}
+
 /// Stream `job` to the firmware on a new machine as `config` describes it, over an in-memory
-/// link, as `forja send` does (its program check, then its streamer with the window of a serial
-/// link and [`JOB_REPLY_TIMEOUT`]), as fast as the computer runs, until the controller has taken every
-/// line and the machine is at rest, or the streamer stops (an alarm).
+/// link, as fast as the computer runs, until the controller has taken every line and the
+/// machine is at rest, or the sender stops (an alarm).
+///
+/// In the RepRap dialect it streams as `forja send` does: its program check, then its streamer
+/// with the window of a serial link and [`JOB_REPLY_TIMEOUT`], after `G28`. With
+/// [`JobOptions::grbl`] it streams as `forja send --grbl` and CNC senders do: `0x18`, the
+/// banner, `$10=3`, character counting against the `Bf:` of a `?` ([`GRBL_SENDER`]), `$H`
+/// first, a `?` every 200 ms, and `~` at a hold that asks for a cycle start (an operator at an
+/// `M6` tool change, in [`JobRun::log`]).
 ///
 /// Errors: a job line that does not parse or cannot be sent, a board that cannot be built, a
 /// simulation error.
 pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Result<JobRun, String> {
-    let program =
-        Program::parse(job.text().as_bytes()).map_err(|e| format!("{}: {e}", job.name()))?;
+    let home = options.home_first && config.axes.iter().any(|a| a.homing.is_some());
+    let before = options.before.iter().map(String::as_str);
+    // Where the `place`-th line sent in the grbl dialect comes from (1-based: `$H`, the
+    // `--before` lines, then each line of the job).
+    let preamble = usize::from(home && options.grbl) + options.before.len();
+    let grbl_place = |place: usize| match place.checked_sub(preamble + 1) {
+        Some(k) => format!("{}, line {}", job.name(), k + 1),
+        None if home && place == 1 => "$H".to_string(),
+        None => format!("--before line {}", place - usize::from(home)),
+    };
+    let mut sender = if options.grbl {
+        let lines = home
+            .then_some("$H")
+            .into_iter()
+            .chain(before)
+            .chain(job.lines());
+        let host = GrblHost::new(GRBL_SENDER, lines)
+            .map_err(|(place, e)| format!("{}: {e}", grbl_place(place)))?;
+        Sender::Grbl(host)
+    } else {
+        let program =
+            Program::parse(job.text().as_bytes()).map_err(|e| format!("{}: {e}", job.name()))?;
+        let lines = home
+            .then_some("G28")
+            .into_iter()
+            .chain(before)
+            .chain(program.texts());
+        let streamer = Config {
+            reply_timeout: JOB_REPLY_TIMEOUT,
+            ..Config::default()
+        };
+        let host = StreamHost::new(streamer, lines).map_err(|(i, e)| {
+            let preamble = usize::from(home) + options.before.len();
+            match i.checked_sub(preamble + 1) {
+                Some(k) => {
+                    let at = program.lines.get(k).map_or(0, |l| l.source_line);
+                    format!("{}, line {at}: {e}", job.name())
+                }
+                None if home && i == 1 => format!("G28: {e}"),
+                None => format!("--before line {}: {e}", i - usize::from(home)),
+            }
+        })?;
+        Sender::RepRap(host)
+    };
     let machine = SimMachine::new(config);
     machine.set_tracing(options.trace.is_some());
     let mut board_config = crate::state::board_config(options.state.as_deref())?;
@@ -191,21 +353,6 @@ pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Resul
     let (link, host) = MemoryLink::pair();
     let link = FaultInjector::new(link, options.faults).map_err(|e| e.to_string())?;
     board.add_port(link, false);
-    let home = options.home_first && config.axes.iter().any(|a| a.homing.is_some());
-    let lines = home.then_some("G28").into_iter().chain(program.texts());
-    let streamer = Config {
-        reply_timeout: JOB_REPLY_TIMEOUT,
-        ..Config::default()
-    };
-    let mut sender = StreamHost::new(streamer, lines).map_err(|(i, e)| {
-        let source = (i - 1)
-            .checked_sub(usize::from(home))
-            .and_then(|k| program.lines.get(k));
-        match source {
-            Some(l) => format!("{}, line {}: {e}", job.name(), l.source_line),
-            None => format!("G28: {e}"),
-        }
-    })?;
     let mut sim_config = SimulationConfig::new(config.tick_hz);
     sim_config.time_limit_ticks = options.time_limit_ticks;
     sim_config.pacing = options.pacing;
@@ -213,8 +360,8 @@ pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Resul
     let tick_hz = u64::from(config.tick_hz);
     let report = board
         .run(&mut sim, |board, _| {
-            let now_ms = board.machine().now_ticks() * 1000 / tick_hz;
-            let out = sender.exchange(&host.take_received(), now_ms);
+            let now_us = board.machine().now_ticks() * 1_000_000 / tick_hz;
+            let out = sender.exchange(&host.take_received(), now_us);
             if !out.is_empty() {
                 host.send(&out);
             }
@@ -245,21 +392,69 @@ pub fn run_job(config: &MachineConfig, job: &Job, options: &JobOptions) -> Resul
             .save(path)
             .map_err(|e| format!("{}: {e}", path.display()))?;
     }
-    Ok(JobRun {
+    let stopped = report.stop == StopReason::Firmware;
+    let mut run = JobRun {
         machine: config.name.clone(),
         job: job.name().to_string(),
         homed_first: home,
-        finished: report.stop == StopReason::Firmware && sender.is_done(),
-        lines: sender.streamer().pushed() as usize,
-        accepted: sender.streamer().accepted() as usize,
-        sender: sender.stats(),
-        faults: sender.faults().map(str::to_string).collect(),
+        before: options.before.len(),
+        finished: false,
+        lines: 0,
+        accepted: 0,
+        sender: Stats::default(),
+        grbl: None,
+        faults: Vec::new(),
+        log: Vec::new(),
         controller: board.status().controller.stats,
         virtual_s: report.virtual_ticks() as f64 / config.tick_hz as f64,
         wall: report.wall,
         axes,
         violations: machine.violation_count(),
-    })
+    };
+    match &sender {
+        Sender::RepRap(h) => {
+            run.finished = stopped && h.is_done();
+            run.lines = h.streamer().pushed() as usize;
+            run.accepted = h.streamer().accepted() as usize;
+            run.sender = h.stats();
+            run.faults = h.faults().map(str::to_string).collect();
+        }
+        Sender::Grbl(h) => {
+            let s: &GrblSender = h.sender();
+            run.finished = stopped && h.is_done();
+            run.lines = s.pushed();
+            run.accepted = s
+                .answers()
+                .iter()
+                .filter(|a| **a == Some(grbl_sender::Answer::Ok))
+                .count();
+            run.grbl = Some(GrblFigures {
+                rx_buffer_bytes: s.rx_buffer_bytes(),
+                sender: s.stats(),
+                unanswered: s.sent()
+                    - s.answers()
+                        .iter()
+                        .filter(|a| {
+                            matches!(
+                                a,
+                                Some(grbl_sender::Answer::Ok | grbl_sender::Answer::Error(_))
+                            )
+                        })
+                        .count(),
+                line_number_regressions: h.line_number_regressions(),
+            });
+            run.faults = h
+                .faults()
+                .iter()
+                .map(|f| match &f.line {
+                    Some((place, text)) => format!("{} ({}: {text})", f.what, grbl_place(*place)),
+                    None => f.what.clone(),
+                })
+                .collect();
+            run.log = h.log().to_vec();
+        }
+    }
+    Ok(run)
 }
 
 /// A served link that counts what it received and reports its host coming and going.

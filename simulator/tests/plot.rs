@@ -1,5 +1,5 @@
 //! `forja-sim --plot` on printer jobs: the slicer corpus, layers chosen with `--plot-layers`,
-//! and the errors of a bad choice.
+//! and the errors of a bad choice; the steps of a trace held to the toolpath.
 
 mod common;
 
@@ -226,4 +226,121 @@ fn a_refused_line_is_listed_marked_and_makes_the_check_fail() {
     assert!(std::fs::metadata(&image).unwrap().len() > 1000);
     std::fs::remove_file(&job).unwrap();
     std::fs::remove_file(&image).unwrap();
+}
+
+/// `trace: farthest from the toolpath D mm (one step: S mm)` in `text`: D and S.
+fn farthest(text: &str) -> (f64, f64) {
+    let line = text
+        .lines()
+        .find_map(|l| l.strip_prefix("trace: farthest from the toolpath "))
+        .unwrap_or_else(|| panic!("no trace line: {text}"));
+    let number = |s: &str| -> f64 { s.parse().unwrap_or_else(|_| panic!("{line}")) };
+    let (d, rest) = line.split_once(" mm (one step: ").expect(line);
+    let (s, _) = rest.split_once(" mm)").expect(line);
+    (number(d), number(s))
+}
+
+#[test]
+fn the_sample_jobs_steps_stay_within_one_step_of_its_toolpath() {
+    let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("jobs/sample.gcode");
+    let image = temp_path("sample.svg");
+    let out = sim()
+        .arg("--job")
+        .arg(&job)
+        .arg("--plot")
+        .arg(&image)
+        .output()
+        .unwrap();
+    let text = stdout(&out);
+    assert!(out.status.success(), "{text}{}", stderr(&out));
+    // Every position the machine passed through from the G28 on (the homing cycle left out),
+    // X/Y/Z: the router's X and Y make 80 steps a mm, Z 400.
+    let (distance, step) = farthest(&text);
+    assert_eq!(step, 0.0125, "{text}");
+    assert!(distance > 0.0 && distance <= step, "{text}");
+    assert!(std::fs::metadata(&image).unwrap().len() > 1000);
+    std::fs::remove_file(&image).unwrap();
+}
+
+/// A short router job with its own homing: a line, an arc, a lift.
+const HOMED: &str = "G21 G90\nG28\nG0 X10 Y10 Z20\nG1 X40 F3000\nG1 Y30\nG2 X30 Y40 I-10 J0\n\
+    G0 Z30\n";
+
+#[test]
+fn a_trace_drawn_over_another_job_fails_the_plot_naming_where_the_steps_strayed() {
+    let job = temp_path("homed.gcode");
+    std::fs::write(&job, HOMED).unwrap();
+    let trace = temp_path("homed.trace");
+    let out = sim()
+        .args(["--no-home", "--job"])
+        .arg(&job)
+        .arg("--trace")
+        .arg(&trace)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}{}", stdout(&out), stderr(&out));
+    let image = temp_path("homed.svg");
+    let check = |job: &Path| {
+        sim()
+            .args(["--check", "--job"])
+            .arg(job)
+            .arg("--plot")
+            .arg(&image)
+            .arg("--plot-trace")
+            .arg(&trace)
+            .output()
+            .unwrap()
+    };
+    // Its own job: the homing cycle is left out, the rest within a step.
+    let out = check(&job);
+    let text = stdout(&out);
+    assert!(out.status.success(), "{text}{}", stderr(&out));
+    let (distance, step) = farthest(&text);
+    assert!(distance <= step, "{text}");
+    // The same job 1 mm to the right from line 3 on: the plot is drawn, and fails.
+    let shifted = temp_path("shifted.gcode");
+    std::fs::write(
+        &shifted,
+        HOMED
+            .replace("X10 ", "X11 ")
+            .replace("X40 ", "X41 ")
+            .replace("X30 ", "X31 "),
+    )
+    .unwrap();
+    let out = check(&shifted);
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    let err = stderr(&out);
+    assert!(err.starts_with("forja-sim: the steps strayed 1.0"), "{err}");
+    assert!(
+        err.contains(" mm from the toolpath at X")
+            && err.contains(", more than one step (0.0125 mm)"),
+        "{err}"
+    );
+    assert!(err.contains(" (line "), "{err}");
+    let (distance, _) = farthest(&stdout(&out));
+    assert!((1.0..1.02).contains(&distance), "{}", stdout(&out));
+    assert!(std::fs::metadata(&image).unwrap().len() > 1000);
+    // A trace of the job without its G28 never comes to where the job goes on after it.
+    std::fs::write(&shifted, HOMED.replace("G28\n", "")).unwrap();
+    let out = sim()
+        .args(["--no-home", "--job"])
+        .arg(&shifted)
+        .arg("--trace")
+        .arg(&trace)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    let out = check(&job);
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    assert!(
+        stderr(&out).starts_with(
+            "forja-sim: the steps never come to X2.000 Y2.000 Z99.000, where the program goes \
+             on after homing (line 3)"
+        ),
+        "{}",
+        stderr(&out)
+    );
+    for file in [&job, &shifted, &trace, &image] {
+        std::fs::remove_file(file).unwrap();
+    }
 }
