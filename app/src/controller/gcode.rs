@@ -384,9 +384,13 @@ where
     }
 
     fn process_line<W: Write>(&mut self, bytes: &[u8], out: &mut W) {
-        // No RepRap line starts with `$`: a grbl system command, in either dialect.
+        // No RepRap line starts with `$`: a grbl system command, in either dialect (no single
+        // damaged bit makes a line's first letter a `$`).
         if bytes.first() == Some(&b'$') {
             return self.grbl_command(bytes, out);
+        }
+        if !self.speaks_grbl() {
+            self.link.reprap_lines = true;
         }
         let (bytes, number) = if self.speaks_grbl() {
             grbl::strip_line_number(bytes)

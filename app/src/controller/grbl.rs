@@ -12,6 +12,8 @@
 //!   banner polls with `?`);
 //! - a line that starts with `$` (`$$`, `$X`, `$I`): no RepRap line does.
 //!
+//! `0x18` and `?` enter it only before the link's first RepRap line: once a printer host
+//! streams, a bit flip that makes a `8` a ctrl-x is a damaged byte of its line, not a reset.
 //! It stays there until the link is reset (a new session, another host).
 //!
 //! # In the dialect
@@ -73,11 +75,24 @@ pub(super) struct GrblLink {
     reports_since_offset: u8,
     /// Status reports sent since `Ov` was last sent.
     reports_since_overrides: u8,
+    /// The safety door (`0x84`) was opened: the machine holds until cycle start.
+    door: Option<Door>,
+}
+
+/// A safety door opening (grbl's `0x84`): the motion holds; once at rest the spindle and the
+/// coolant stop, and cycle start brings them back before the motion goes on.
+#[derive(Debug, Clone, Copy)]
+struct Door {
+    /// The machine has come to rest and the spindle and the coolant are stopped.
+    stopped: bool,
+    /// The coolant lines that were on (mist, flood), to turn on again.
+    coolant: (bool, bool),
 }
 
 impl GrblLink {
     pub(super) const fn new() -> Self {
         Self {
+            door: None,
             jogging: false,
             reports_since_offset: u8::MAX,
             reports_since_overrides: u8::MAX,
@@ -389,6 +404,7 @@ where
     /// and in laser mode (`$32`) a laser's power, off in rapids, homing and jogs, and at rest
     /// outside `G1`/`G2`/`G3`.
     pub(super) fn follow_spindle(&mut self) {
+        self.door_stop();
         let laser = self.settings.laser_mode();
         let now = self.kernel.motion_now();
         let state = self.kernel.state();
@@ -411,6 +427,27 @@ where
             running: matches!(state, MachineState::Running | MachineState::Homing),
         };
         let _ = self.devices.follow(motion);
+    }
+
+    /// Once the motion a safety door held is at rest: stop the spindle and the coolant, as
+    /// grbl does (cycle start brings them back).
+    fn door_stop(&mut self) {
+        let Some(door) = self.link.grbl.door.as_mut() else {
+            return;
+        };
+        if door.stopped || self.kernel.state() != (MachineState::Hold { stopped: true }) {
+            return;
+        }
+        door.stopped = true;
+        door.coolant = self.devices.coolant_state();
+        let (mist, flood) = door.coolant;
+        if mist {
+            let _ = self.devices.set_coolant_line(false, false);
+        }
+        if flood {
+            let _ = self.devices.set_coolant_line(true, false);
+        }
+        let _ = self.devices.stop_spindle_in_hold();
     }
 
     /// `M6`: tell the operator which tool to put in and how to go on: `[MSG:…]` in the grbl
@@ -448,11 +485,29 @@ where
             Realtime::StatusReport => self.grbl_status(out),
             Realtime::FeedHold => self.kernel.hold(),
             Realtime::CycleStart => {
-                // A spindle stopped during the hold (`0x9E`, a laser's) runs again first.
+                // The coolant a door stopped, then the spindle stopped during the hold (the
+                // door's, `0x9E`, a laser's), run again first.
+                if let Some(door) = self.link.grbl.door.take() {
+                    let (mist, flood) = door.coolant;
+                    if mist {
+                        let _ = self.devices.set_coolant_line(false, true);
+                    }
+                    if flood {
+                        let _ = self.devices.set_coolant_line(true, true);
+                    }
+                }
                 let _ = self.devices.restore_spindle();
                 self.kernel.resume();
             }
-            Realtime::SafetyDoor => self.kernel.hold(),
+            Realtime::SafetyDoor => {
+                self.kernel.hold();
+                if self.link.grbl.door.is_none() {
+                    self.link.grbl.door = Some(Door {
+                        stopped: false,
+                        coolant: (false, false),
+                    });
+                }
+            }
             Realtime::JogCancel => {
                 if self.link.grbl.jogging {
                     self.kernel.stop();
@@ -513,6 +568,7 @@ where
         self.link.held = None;
         self.link.queue.clear();
         self.link.grbl.jogging = false;
+        self.link.grbl.door = None;
         self.check = None;
         let _ = out.write_all(b"\r\n");
         say(out, &Message::Welcome);
@@ -574,6 +630,11 @@ where
             MachineState::Idle => State::Idle,
             MachineState::Running if self.link.grbl.jogging => State::Jog,
             MachineState::Running => State::Run,
+            // Opened by `0x84` (there is no door switch, so it reads closed again at once):
+            // `Door:1` while the motion stops, `Door:0` at rest, ready for cycle start.
+            MachineState::Hold { stopped } if self.link.grbl.door.is_some() => {
+                State::Door(u8::from(!stopped))
+            }
             MachineState::Hold { stopped } => State::Hold(u8::from(!stopped)),
             MachineState::Paused | MachineState::Halted => State::Hold(0),
             MachineState::Homing => State::Home,

@@ -445,7 +445,13 @@ impl Input {
     /// Read what the link has, without blocking, and take its realtime bytes out (all of
     /// grbl's in the grbl dialect; `0x18` and a `?` between records in any). Returns whether
     /// bytes came.
-    fn fill<L: Read + ReadReady>(&mut self, link: &mut L, now_ms: u32, grbl: bool) -> bool {
+    fn fill<L: Read + ReadReady>(
+        &mut self,
+        link: &mut L,
+        now_ms: u32,
+        grbl: bool,
+        may_enter: bool,
+    ) -> bool {
         if !self.is_empty() || !matches!(link.read_ready(), Ok(true)) {
             return false;
         }
@@ -453,7 +459,7 @@ impl Input {
             Ok(n) if n > 0 => {
                 self.quiet_since_ms = now_ms;
                 self.start = 0;
-                self.end = self.take_realtime(n.min(RX_LEN), grbl);
+                self.end = self.take_realtime(n.min(RX_LEN), grbl, may_enter);
                 true
             }
             _ => false,
@@ -463,14 +469,17 @@ impl Input {
     /// Move the realtime bytes of the first `n` bytes read to the realtime queue and the others
     /// to the front of the buffer; how many others. A soft reset drops the bytes before it; in
     /// the grbl dialect, other bytes above `0x7F` are dropped, as grbl drops them.
-    fn take_realtime(&mut self, n: usize, grbl: bool) -> usize {
+    fn take_realtime(&mut self, n: usize, grbl: bool, may_enter: bool) -> usize {
         let mut kept = 0;
         for i in 0..n {
             let Some(&b) = self.buf.get(i) else {
                 break;
             };
             let grbl = grbl || self.reset_seen;
-            match grbl::realtime_byte(b, grbl, self.line_open) {
+            // In a RepRap session only the grbl dialect's own bytes are realtime.
+            let realtime =
+                grbl::realtime_byte(b, grbl, self.line_open).filter(|_| grbl || may_enter);
+            match realtime {
                 Some(r) => {
                     if r == forja_protocol::grbl::Realtime::SoftReset {
                         kept = 0;
@@ -737,6 +746,10 @@ struct Link {
     /// the current numbering (an `M110` clears it).
     asked_again: Option<u32>,
     gcode_seen: bool,
+    /// A line ran in the RepRap dialect: only a `$` line takes the link into the grbl dialect
+    /// now (a damaged byte that reads `0x18` or `?` does not take a printer host's link there:
+    /// a bit flip makes a `8` a ctrl-x).
+    reprap_lines: bool,
     frames_seen: bool,
     session: bool,
     started: bool,
@@ -757,6 +770,7 @@ impl Link {
             queue: LineQueue::new(),
             asked_again: None,
             gcode_seen: false,
+            reprap_lines: false,
             frames_seen: false,
             session: false,
             started: false,
@@ -1003,7 +1017,9 @@ where
             let grbl = self.core.speaks_grbl();
             // grbl answers a blank line; the RepRap dialect has nothing to answer.
             self.decoder.set_blank_lines(grbl);
-            let filled = self.input.is_empty() && self.input.fill(link, self.core.clock.ms, grbl);
+            let may_enter = !self.core.link.reprap_lines;
+            let filled =
+                self.input.is_empty() && self.input.fill(link, self.core.clock.ms, grbl, may_enter);
             self.act_on_realtime(link);
             if self.input.is_empty() && !filled {
                 break;

@@ -425,6 +425,18 @@ impl<X: Peripherals<N>, const N: usize> Devices<X, N> {
         self.drive()
     }
 
+    /// A safety door opened in a hold: the spindle stops, to run again at cycle start
+    /// ([`Devices::restore_spindle`]).
+    ///
+    /// Errors: the driver's.
+    pub(crate) fn stop_spindle_in_hold(&mut self) -> Result<(), PeripheralError> {
+        if self.spindle.is_none() || self.spindle_stopped {
+            return Ok(());
+        }
+        self.spindle_stopped = true;
+        self.drive()
+    }
+
     /// Cycle start: a spindle stopped by grbl's spindle stop runs again.
     ///
     /// Errors: the driver's.

@@ -1014,3 +1014,57 @@ fn a_blank_line_is_answered_ok_as_grbl_answers_it() {
     assert_eq!(b.ask("   "), ["ok"]);
     assert_eq!(b.ask("; only a comment"), ["ok"]);
 }
+
+#[test]
+fn the_safety_door_holds_stops_spindle_and_coolant_and_cycle_start_brings_them_back() {
+    let mut b = grbl();
+    assert_eq!(b.ask("M3 S1000"), ["ok"]);
+    assert_eq!(b.ask("M8"), ["ok"]);
+    assert_eq!(b.ask("G1 X30 F600"), ["ok"]);
+    b.run_ms(300);
+    b.send_raw(&[0x84]);
+    b.run_ms(2);
+    assert_eq!(state(&status(&mut b)), "Door:1", "stopping");
+    b.run_ms(400);
+    assert_eq!(state(&status(&mut b)), "Door:0", "at rest, ready to resume");
+    let x = b.position_mm()[0];
+    assert!(x < 30.0);
+    assert_eq!(spindle(&b), Some(Turning::Stopped));
+    assert_eq!(super::coolant(&b), (false, false));
+    b.run_ms(300);
+    assert_eq!(
+        b.position_mm()[0],
+        x,
+        "nothing moves while the door is open"
+    );
+    b.send_raw(b"~");
+    b.run_ms(2);
+    assert_eq!(spindle(&b), Some(Turning::At(Rotation::Clockwise, 1000)));
+    assert_eq!(super::coolant(&b), (false, true));
+    b.idle();
+    assert_eq!(b.position_mm()[0], 30.0, "the move goes on to its end");
+    assert_eq!(state(&status(&mut b)), "Idle");
+}
+
+#[test]
+fn a_link_that_runs_reprap_lines_stays_in_that_dialect_whatever_a_damaged_byte_reads() {
+    let mut b = Bench::new();
+    b.take();
+    assert_eq!(b.ask("G0 X1"), ["ok"]);
+    // A bit flip that makes `8` (0x38) a ctrl-x (0x18), inside a line and between lines.
+    b.send_raw(b"G0 X\x18\n");
+    b.run_ms(5);
+    let out = b.take();
+    assert!(!out.iter().any(|l| l.starts_with("Grbl")), "{out:?}");
+    assert!(!out.iter().any(|l| l.starts_with("ALARM")), "{out:?}");
+    b.send_raw(&[0x18]);
+    b.send_raw(b"?");
+    b.run_ms(5);
+    let out = b.take();
+    assert!(
+        !out.iter()
+            .any(|l| l.starts_with("Grbl") || l.starts_with('<')),
+        "{out:?}"
+    );
+    assert_eq!(b.ask("M114").last().map(String::as_str), Some("ok"));
+}
