@@ -322,24 +322,63 @@ pub(crate) struct Interpreter<const N: usize> {
     flow_percent: [u16; N],
 }
 
-/// A number in nm from a decimal in the current unit.
+/// Powers of ten that fit an `i64`.
+const POW10: [i64; 19] = {
+    let mut p = [1i64; 19];
+    let mut i = 1;
+    while i < 19 {
+        p[i] = p[i - 1] * 10;
+        i += 1;
+    }
+    p
+};
+
+/// A number in nm from a decimal in the current unit, rounded to the nearest nm (halves away
+/// from zero). Integer arithmetic in `i64` alone: a multiplication when the decimal has at
+/// most six digits after the point (five in inches), else one division.
 fn to_nm(v: Decimal, inches: bool, letter: u8) -> Result<Nm, CommandError> {
+    let bad = CommandError::BadValue { letter };
+    // nm per unit = factor × 10^exponent: 10^6 for a mm, 254 × 10^5 for an inch.
+    let (factor, exponent) = if inches { (254, 5) } else { (1, 6) };
+    let scale = i32::from(v.scale());
+    let q = match v.mantissa().checked_mul(factor) {
+        Some(m) if scale <= exponent => {
+            let up = POW10.get((exponent - scale) as usize).copied().ok_or(bad)?;
+            m.checked_mul(up).ok_or(bad)?
+        }
+        Some(m) => {
+            let den = POW10.get((scale - exponent) as usize).copied().ok_or(bad)?;
+            let half = den / 2;
+            match if m >= 0 {
+                m.checked_add(half)
+            } else {
+                m.checked_sub(half)
+            } {
+                Some(r) => r / den,
+                None => wide_to_nm(v, inches).ok_or(bad)?,
+            }
+        }
+        // Eighteen digits in inches: the product leaves `i64`.
+        None => wide_to_nm(v, inches).ok_or(bad)?,
+    };
+    if q.abs() > MAX_NM {
+        return Err(bad);
+    }
+    Ok(q)
+}
+
+/// [`to_nm`] in `i128`, for the decimals whose product leaves `i64`.
+fn wide_to_nm(v: Decimal, inches: bool) -> Option<Nm> {
     let per_unit: i128 = if inches { 25_400_000 } else { 1_000_000 };
     let num = i128::from(v.mantissa()) * per_unit;
-    let den = 10i128
-        .checked_pow(u32::from(v.scale()))
-        .ok_or(CommandError::BadValue { letter })?;
+    let den = 10i128.checked_pow(u32::from(v.scale()))?;
     let half = den / 2;
     let q = if num >= 0 {
         (num + half) / den
     } else {
         (num - half) / den
     };
-    let q = i64::try_from(q).map_err(|_| CommandError::BadValue { letter })?;
-    if q.abs() > MAX_NM {
-        return Err(CommandError::BadValue { letter });
-    }
-    Ok(q)
+    i64::try_from(q).ok()
 }
 
 /// Steps for a machine position in nm.
@@ -1079,9 +1118,11 @@ impl<const N: usize> Interpreter<N> {
             },
             Motion::Linear => Action::Move {
                 target,
-                feed_mm_min: Some(
-                    inverse(distance_mm(&self.pos, &target)).unwrap_or(self.feed_mm_min),
-                ),
+                // The length only in inverse time: its square root is the line's dearest step.
+                feed_mm_min: Some(match per_minute {
+                    Some(_) => inverse(distance_mm(&self.pos, &target)).unwrap_or(self.feed_mm_min),
+                    None => self.feed_mm_min,
+                }),
                 ramp,
             },
             Motion::Cw | Motion::Ccw => {
@@ -1117,7 +1158,10 @@ impl<const N: usize> Interpreter<N> {
                     self.motion == Motion::Cw,
                     f64::from(config.arc_tolerance_mm),
                 )?;
-                let feed_mm_min = inverse(cutter.length_mm()).unwrap_or(self.feed_mm_min);
+                let feed_mm_min = match per_minute {
+                    Some(_) => inverse(cutter.length_mm()).unwrap_or(self.feed_mm_min),
+                    None => self.feed_mm_min,
+                };
                 Action::Arc {
                     cutter,
                     feed_mm_min,
@@ -2430,6 +2474,31 @@ mod tests {
         assert_eq!(run(&mut it, b"M221"), Ok(Action::None));
         assert_eq!(run(&mut it, b"M221 T0"), Ok(Action::None));
         assert_eq!(it, before);
+    }
+
+    #[test]
+    fn nanometres_in_i64_agree_with_the_wide_conversion() {
+        for text in [
+            "0",
+            "1",
+            "-1",
+            "0.5",
+            "1.0000005",
+            "-1.0000005",
+            "0.0000004",
+            "123.456789",
+            "99999.9999",
+            "-0.000000000000000001",
+            "0.123456789012345678",
+            "12345678901234.5678",
+            "1.23456789012345678",
+        ] {
+            let v = Decimal::parse(text.as_bytes()).unwrap();
+            for inches in [false, true] {
+                let wide = wide_to_nm(v, inches).filter(|q| q.abs() <= MAX_NM);
+                assert_eq!(to_nm(v, inches, b'X').ok(), wide, "{text} inches {inches}");
+            }
+        }
     }
 
     #[test]

@@ -29,8 +29,11 @@ use crate::write::{Cursor, Sink, Xor};
 /// [`LineError::TooLong`], never truncated.
 pub const MAX_LINE_LEN: usize = 256;
 
-/// The most words one line may hold (the `N` line number not counted).
-pub const MAX_WORDS: usize = 32;
+/// The most words one line may hold (the `N` line number not counted): more than any
+/// command takes (a move naming nine axes with its feed and spindle speed is 12; Marlin's
+/// widest, `M906 X Y Z I J K U V W E T`, 11). Every parsed line is copied whole on its way to
+/// the kernel, so its size is paid on every line.
+pub const MAX_WORDS: usize = 20;
 
 /// The M-codes whose argument is free text rather than words: `M23`, `M28`, `M29`, `M30`,
 /// `M32` (file names), `M117` (a message) and `M118` (a line for the host). See
