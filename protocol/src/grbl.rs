@@ -213,7 +213,9 @@ impl<'a> Command<'a> {
         if let Some(text) = strip_prefix_ci(rest, b"J=") {
             return Ok(Self::Jog(text));
         }
-        let mut compact = [0u8; 16];
+        // Room for the longest setting `$$` writes: a 5-digit number, `=`, and an `i64`
+        // mantissa with its sign, point and leading `0.` (`$42412=0.424241291` is 17).
+        let mut compact = [0u8; 32];
         let mut len = 0;
         for &b in rest.iter().filter(|b| **b != b' ') {
             if b == b'=' && matches!(compact.first(), Some(b'N' | b'n')) {
@@ -875,6 +877,20 @@ mod tests {
     use std::string::String;
 
     use super::*;
+
+    #[test]
+    fn a_setting_as_dollar_dollar_writes_it_parses_back_even_when_longer_than_typed() {
+        // Found by the `grbl` fuzz target: `.424241291` is written `0.424241291`.
+        let typed = Command::parse(b"$42412=.424241291").unwrap();
+        let Command::Set { number, value } = typed else {
+            panic!("{typed:?}");
+        };
+        let mut out = [0u8; 64];
+        let n = Message::Setting { number, value }.encode(&mut out).unwrap();
+        assert_eq!(Command::parse(&out[..n - 1]), Ok(typed));
+        let widest = Command::parse(b"$65535=-0.000000000000000001").unwrap();
+        assert!(matches!(widest, Command::Set { number: 65535, .. }));
+    }
 
     fn text(encoded: Result<usize, EncodeError>, buf: &[u8]) -> String {
         let n = encoded.expect("encodes");
