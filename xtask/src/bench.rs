@@ -1,17 +1,19 @@
-//! `cargo xtask bench`, on the target: instruction counts of the motion kernel as Cortex-M4
-//! and Cortex-M0+ machine code.
+//! `cargo xtask bench`, on the target: instruction counts of the motion kernel as Cortex-M4,
+//! Cortex-M0+ and RISC-V (the ESP32-C3's core) machine code.
 //!
-//! The STM32F4 crate's `kernel_bench` example (`boards/stm32f4/examples/kernel_bench.rs`) is
-//! built for `thumbv7em-none-eabihf` with the firmware's release profile, for the board's
-//! hardware variant; the RP2040 crate builds the same program for `thumbv6m-none-eabi`
-//! (`boards/rp2040/examples/kernel_bench.rs`). `xtask/scripts/count_insns.py` runs each in
-//! the Unicorn emulator (a Cortex-M4 with FPU; a Cortex-M0, whose ARMv6-M instruction set is
-//! the M0+'s) and counts the instructions executed inside the image's marker functions;
-//! Unicorn is installed with pip into a virtual environment in `target/bench-venv` (Python 3
-//! with `venv` is needed). The count depends only on the image, never on the machine's load:
-//! two runs give the same figures. The Cortex-M4 figures are checked against the kernel's
-//! budgets (`docs/performance.md`); the Cortex-M0+ figures are reported beside the same
-//! budgets, which they are not held to.
+//! One bench program (`boards/stm32f4/examples/kernel_bench/program.rs`) is built into three
+//! images: the STM32F4 crate's `kernel_bench` example for `thumbv7em-none-eabihf` with the
+//! firmware's release profile, for the board's hardware variant; the RP2040 crate's for
+//! `thumbv6m-none-eabi` (`boards/rp2040/examples/kernel_bench.rs`); and `bench/riscv32`, a
+//! crate of its own with no chip HAL, for `riscv32imc-unknown-none-elf` with the ESP32
+//! firmware's release profile. `xtask/scripts/count_insns.py` runs each in the Unicorn
+//! emulator (a Cortex-M4 with FPU; a Cortex-M0, whose ARMv6-M instruction set is the M0+'s; a
+//! 32-bit RISC-V core) and counts the instructions executed inside the image's marker
+//! functions; Unicorn is installed with pip into a virtual environment in `target/bench-venv`
+//! (Python 3 with `venv` is needed). The count depends only on the image, never on the
+//! machine's load: two runs give the same figures. The Cortex-M4 figures are checked against
+//! the kernel's budgets (`docs/performance.md`); the Cortex-M0+ and RISC-V figures are reported
+//! beside the same budgets, which they are not held to.
 //!
 //! The emulator has neither the RP2040's boot ROM nor its SIO, so the M0+ image is built with
 //! `rp2040-hal`'s `disable-intrinsics`: floating point and integer division run as the
@@ -19,6 +21,13 @@
 //! the SIO's hardware divider. The step interrupt is integer-only and calls neither; the
 //! planning and segment preparation figures count the compiler's routines where the firmware
 //! runs the ROM's and the divider.
+//!
+//! No emulator of the ESP32-C3 is at hand (Unicorn has a RISC-V core but none of the chip's
+//! peripherals, ROM or boot chain), so the RISC-V image is the program alone: a start-up of a
+//! few instructions and one RAM region (`bench/riscv32/link.x`), no `esp-hal`. RV32IMC has no
+//! floating-point unit: single and double precision run as the compiler's software routines
+//! (in the ESP32-C3 firmware too); integer multiplication and division are the M extension's
+//! instructions.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -30,19 +39,39 @@ use crate::{Step, root};
 /// The Unicorn release from PyPI (a manylinux wheel: nothing is compiled).
 const UNICORN_VERSION: &str = "2.1.1";
 
-/// The bench image, an example of each firmware crate that runs it.
+/// The bench image: an example of each firmware crate that runs it, the binary of a bench crate.
 const EXAMPLE: &str = "kernel_bench";
+
+/// Where a core's bench image is built.
+enum Image {
+    /// The [`EXAMPLE`] of a firmware board's crate, for its first hardware variant.
+    Board {
+        /// The firmware board.
+        board: &'static str,
+        /// Features added to the variant's for the bench build.
+        features: &'static [&'static str],
+    },
+    /// The [`EXAMPLE`] binary of a bench crate with no chip HAL, excluded from the root
+    /// workspace.
+    Crate {
+        /// The crate's directory, from the workspace root; its target directory is
+        /// `target/firmware/<name>`.
+        dir: &'static str,
+        /// The name of its target directory, and in the report.
+        name: &'static str,
+        /// The target it is built for.
+        target: &'static str,
+    },
+}
 
 /// A core the bench image is counted on.
 struct Core {
     /// The core's name, for the report.
     name: &'static str,
-    /// The firmware board whose crate builds the image (its first hardware variant).
-    board: &'static str,
+    /// Where its image is built.
+    image: Image,
     /// The counter's `--core`.
     counter: &'static str,
-    /// Features added to the variant's for the bench build.
-    features: &'static [&'static str],
     /// The core's clock on that board, for the "steps per second" column.
     clock_hz: f64,
     /// Whether the budgets hold here (a figure over one fails the bench).
@@ -63,18 +92,22 @@ impl Core {
 const CORES: &[Core] = &[
     Core {
         name: "Cortex-M4",
-        board: "stm32f4",
+        image: Image::Board {
+            board: "stm32f4",
+            features: &[],
+        },
         counter: "m4",
-        features: &[],
         clock_hz: 168e6,
         budgets: true,
         note: "",
     },
     Core {
         name: "Cortex-M0+",
-        board: "rp2040",
+        image: Image::Board {
+            board: "rp2040",
+            features: &["rp2040-hal/disable-intrinsics"],
+        },
         counter: "m0plus",
-        features: &["rp2040-hal/disable-intrinsics"],
         clock_hz: 125e6,
         budgets: false,
         note: "The budgets are the Cortex-M4's, shown for comparison. The image is built with \
@@ -82,6 +115,22 @@ const CORES: &[Core] = &[
                floating point and division are the\ncompiler's software routines, where the \
                firmware calls the ROM's float routines and the SIO's\ndivider; the step \
                interrupt calls neither.",
+    },
+    Core {
+        name: "RISC-V",
+        image: Image::Crate {
+            dir: "bench/riscv32",
+            name: "bench-riscv32",
+            target: "riscv32imc-unknown-none-elf",
+        },
+        counter: "riscv32",
+        clock_hz: 160e6,
+        budgets: false,
+        note: "The budgets are the Cortex-M4's, shown for comparison; the rate is at the \
+               ESP32-C3's 160 MHz. The image\nhas no chip HAL (no ESP32-C3 emulator): the \
+               program alone, in one RAM region, with the ESP32\nfirmware's release profile. \
+               RV32IMC has no FPU: floating point is the compiler's software routines\n(the \
+               firmware's too); division is the M extension's instruction.",
     },
 ];
 
@@ -139,31 +188,14 @@ pub fn on_target() -> Result<(), String> {
 /// Build the image for `core`, count it and print its tables; the figures over their budget
 /// where the budgets hold.
 fn on_core(core: &Core) -> Result<Vec<String>, String> {
-    let board = firmware::board(core.board)?;
-    let variant = board.variant(None, |v| v.flasher.is_some())?;
-    let mut features = vec![variant.feature];
-    features.extend(core.features);
-    let features = features.join(",");
-    let target_dir = root().join("target").join("firmware").join(board.name);
-    let image = target_dir
-        .join(variant.target)
-        .join("release")
-        .join("examples")
-        .join(EXAMPLE);
-    let mut build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
-    build
-        .args(["build", "--release", "--example", EXAMPLE])
-        .args(["--target", variant.target])
-        .args(["--no-default-features", "--features", &features])
-        .current_dir(root().join(board.dir))
-        .env("CARGO_TARGET_DIR", &target_dir);
+    let (build, command) = build(&core.image)?;
     crate::run_all(vec![
         Step::command(
             format!(
                 "{} bench image ({EXAMPLE}, {}, release profile)",
-                board.name, variant.feature
+                build.name, build.features
             ),
-            build,
+            command,
         ),
         Step::call(
             format!("Unicorn {UNICORN_VERSION} in target/bench-venv"),
@@ -172,10 +204,62 @@ fn on_core(core: &Core) -> Result<Vec<String>, String> {
     ])?;
     eprintln!(
         "\n==> instruction count of {} (about a minute)",
-        image.display()
+        build.image.display()
     );
-    let counts = count(&venv_python(), &image, core.counter)?;
-    report(&counts, core, variant.target, &features)
+    let counts = count(&venv_python(), &build.image, core.counter)?;
+    report(&counts, core, &build)
+}
+
+/// How a bench image is built, and where it lands.
+struct Build {
+    /// The board or bench crate, for the report.
+    name: &'static str,
+    /// The features of the build, or what stands for them, for the report.
+    features: String,
+    target: &'static str,
+    image: PathBuf,
+}
+
+/// The build of `image`, with the release profile, in `target/firmware/<name>`, and the
+/// command that makes it.
+fn build(image: &Image) -> Result<(Build, Command), String> {
+    let mut command = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
+    command.args(["build", "--release"]);
+    let (name, dir, target, features) = match *image {
+        Image::Board { board, features } => {
+            let board = firmware::board(board)?;
+            let variant = board.variant(None, |v| v.flasher.is_some())?;
+            let mut all = vec![variant.feature];
+            all.extend(features);
+            let all = all.join(",");
+            command.args(["--example", EXAMPLE]).args([
+                "--no-default-features",
+                "--features",
+                &all,
+            ]);
+            (board.name, board.dir, variant.target, all)
+        }
+        Image::Crate { dir, name, target } => {
+            command.args(["--bin", EXAMPLE]);
+            (name, dir, target, "no chip HAL".to_string())
+        }
+    };
+    let target_dir = root().join("target").join("firmware").join(name);
+    let mut path = target_dir.join(target).join("release");
+    if matches!(image, Image::Board { .. }) {
+        path.push("examples");
+    }
+    command
+        .args(["--target", target])
+        .current_dir(root().join(dir))
+        .env("CARGO_TARGET_DIR", &target_dir);
+    let build = Build {
+        name,
+        features,
+        target,
+        image: path.join(EXAMPLE),
+    };
+    Ok((build, command))
 }
 
 /// The virtual environment's Python.
@@ -364,12 +448,7 @@ fn format_per_unit(x: f64) -> String {
     }
 }
 
-fn report(
-    counts: &Counts,
-    core: &Core,
-    target: &str,
-    features: &str,
-) -> Result<Vec<String>, String> {
+fn report(counts: &Counts, core: &Core, build: &Build) -> Result<Vec<String>, String> {
     let marker = |phase: u32, name: &str| -> Result<&Marker, String> {
         counts
             .markers
@@ -386,10 +465,12 @@ fn report(
             .ok_or_else(|| format!("phase {phase} reported no step events or no lines"))
     };
     println!(
-        "\nMotion kernel as {} machine code: {target}, release profile, {} build ({features}),\n\
+        "\nMotion kernel as {} machine code: {}, release profile, {} build ({}),\n\
          {} instructions emulated in all.",
         core.name,
-        core.board,
+        build.target,
+        build.name,
+        build.features,
         thousands(counts.total)
     );
     let mut isr = Vec::new();
@@ -478,10 +559,17 @@ mod tests {
     }
 
     #[test]
-    fn every_core_is_built_by_a_board_that_runs_on_hardware() {
+    fn every_image_is_built_by_a_board_that_runs_on_hardware_or_a_bench_crate() {
         for core in CORES {
-            let board = firmware::board(core.board).expect("a firmware board");
-            assert!(board.variant(None, |v| v.flasher.is_some()).is_ok());
+            match core.image {
+                Image::Board { board, .. } => {
+                    let board = firmware::board(board).expect("a firmware board");
+                    assert!(board.variant(None, |v| v.flasher.is_some()).is_ok());
+                }
+                Image::Crate { dir, .. } => {
+                    assert!(root().join(dir).join("Cargo.toml").is_file(), "{dir}");
+                }
+            }
         }
         assert!(
             CORES[0].budgets,

@@ -1,18 +1,17 @@
 //! # Kernel bench image, Cortex-M0+
 //!
-//! The STM32F4 crate's bench program (`boards/stm32f4/examples/kernel_bench.rs`), unchanged,
-//! built for the RP2040's core (`thumbv6m-none-eabi`) with this crate's release profile:
-//! `cargo xtask bench` counts its instructions in the Unicorn emulator as it does the
+//! The STM32F4 crate's bench program (`boards/stm32f4/examples/kernel_bench/program.rs`),
+//! unchanged, built for the RP2040's core (`thumbv6m-none-eabi`) with this crate's release
+//! profile: `cargo xtask bench` counts its instructions in the Unicorn emulator as it does the
 //! Cortex-M4 image, so that the two cores' figures come from the same program. It runs no
 //! peripheral and needs no boot loader under the emulator; the boot loader is linked all the
 //! same, so that the image would also start on the board.
-//!
-//! The program names its chip's HAL as `stm32f4xx_hal` (to link the chip's interrupt
-//! vectors); here that name is this chip's HAL.
 #![no_std]
 #![no_main]
 
-extern crate rp2040_hal as stm32f4xx_hal;
+use cortex_m_rt::entry;
+// The vector table of the chip (the PAC's interrupt vectors).
+use rp2040_hal as _;
 
 /// The second-stage boot loader (see the firmware's `main.rs`).
 #[unsafe(link_section = ".boot2")]
@@ -21,6 +20,12 @@ extern crate rp2040_hal as stm32f4xx_hal;
 pub static BOOT2_FIRMWARE: [u8; 256] = rp2040_boot2::BOOT_LOADER_W25Q080;
 
 /// The bench program.
-#[allow(unused_attributes, unused_imports)]
-#[path = "../../stm32f4/examples/kernel_bench.rs"]
-mod bench;
+#[path = "../../stm32f4/examples/kernel_bench/program.rs"]
+mod program;
+
+#[entry]
+fn main() -> ! {
+    // `#[entry]` hands the function's `static mut`s over as `&'static mut`.
+    static mut QUEUE_MEM: program::Queue = program::Queue::new();
+    program::run(QUEUE_MEM)
+}
