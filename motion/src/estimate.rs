@@ -59,19 +59,19 @@ impl<const N: usize, const B: usize> Estimate<N, B> {
         if self.ended {
             return false;
         }
-        // A spindle or coolant command beside motion acts first, as the kernel takes it.
+        // A spindle or coolant command beside motion acts first, as the kernel takes it: the
+        // whole line, or (refused) nothing of it.
         if let Some((first, then)) = crate::kernel::split_spindle_and_motion(line) {
             let mut next = self.interp;
-            if next.interpret(&first, &self.config, &self.coords).is_ok() {
-                let saved = core::mem::replace(&mut self.interp, next);
-                let mut probe = self.interp;
-                if probe.interpret(&then, &self.config, &self.coords).is_err() {
-                    self.interp = saved;
-                    return true;
-                }
-                return self.line(&then);
+            let whole = next.interpret(&first, &self.config, &self.coords).is_ok() && {
+                let mut after = next;
+                after.interpret(&then, &self.config, &self.coords).is_ok()
+            };
+            if !whole {
+                return true;
             }
-            return true;
+            self.interp = next;
+            return self.line(&then);
         }
         let mut next = self.interp;
         let Ok(action) = next.interpret(line, &self.config, &self.coords) else {

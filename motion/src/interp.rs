@@ -563,11 +563,6 @@ impl<const N: usize> Interpreter<N> {
         self.feed_percent
     }
 
-    /// Set the feed-rate override (grbl's realtime override), percent.
-    pub(crate) fn set_feed_percent(&mut self, percent: u16) {
-        self.feed_percent = percent;
-    }
-
     /// The modal state a parser-state report names.
     pub(crate) fn modal(&self) -> crate::kernel::ModalReport<N> {
         crate::kernel::ModalReport {

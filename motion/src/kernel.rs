@@ -546,7 +546,21 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         let Action::Effect(effect) = command else {
             return Err(CommandError::ModalConflict);
         };
-        self.check_action(&motion)?;
+        // The rest of the line is its motion: nothing that acts on its own.
+        let moves = matches!(
+            motion,
+            Action::None
+                | Action::Dwell { .. }
+                | Action::Move { .. }
+                | Action::Arc { .. }
+                | Action::Drill { .. }
+                | Action::Via { .. }
+                | Action::Probe { .. }
+        );
+        if !moves {
+            return Err(CommandError::ModalConflict);
+        }
+        self.check_travel(&motion)?;
         match self.act(Action::Effect(effect), next)? {
             Reply::Effect(e) => {
                 // At rest: the motion is taken (checked above, the planner empty).
@@ -557,9 +571,13 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
     }
 
-    /// Refuse `action` as [`Kernel::act`] would for the place it goes to, without acting.
-    fn check_action(&self, action: &Action<'_, N>) -> Result<(), CommandError> {
+    /// Refuse an `action` that moves where the machine may not go (or probes without a probe),
+    /// before anything acts: [`Kernel::act`]'s checks of the place.
+    fn check_travel(&self, action: &Action<'_, N>) -> Result<(), CommandError> {
         match *action {
+            Action::Probe { .. } if self.config.probe_switch.is_none() => {
+                Err(CommandError::NoProbe)
+            }
             Action::Move { target, .. } | Action::Probe { target, .. } => {
                 self.check_move(&target, &target)
             }
@@ -575,8 +593,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 self.check_move(&via, &via)?;
                 self.check_move(&target, &target)
             }
-            Action::None | Action::Dwell { .. } => Ok(()),
-            _ => Err(CommandError::ModalConflict),
+            _ => Ok(()),
         }
     }
 
@@ -637,6 +654,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             self.drain_arc();
             return Ok(Reply::Busy);
         }
+        self.check_travel(&action)?;
         let idle = self.is_idle();
         self.block_rpm = next.spindle_rpm();
         let reply = match action {
@@ -651,7 +669,6 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 feed_mm_min,
                 ramp,
             } => {
-                self.check_move(&target, &target)?;
                 if self.planner.is_full() {
                     return Ok(Reply::Busy);
                 }
@@ -670,8 +687,6 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 feed_mm_min,
                 ramp,
             } => {
-                let (lo, hi) = cutter.bounds();
-                self.check_move(&lo, &hi)?;
                 self.arc = Some(PendingArc {
                     cutter,
                     feed_mm_min,
@@ -683,8 +698,6 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 Reply::Ok
             }
             Action::Drill { cycle, feed_mm_min } => {
-                let (lo, hi) = cycle.bounds();
-                self.check_move(&lo, &hi)?;
                 self.drill = Some(PendingDrill {
                     cycle,
                     feed_mm_min,
@@ -758,10 +771,6 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 away,
                 must_trip,
             } => {
-                if self.config.probe_switch.is_none() {
-                    return Err(CommandError::NoProbe);
-                }
-                self.check_move(&target, &target)?;
                 if !idle {
                     return Ok(Reply::Busy);
                 }
@@ -769,8 +778,6 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 Reply::Ok
             }
             Action::Via { via, target } => {
-                self.check_move(&via, &via)?;
-                self.check_move(&target, &target)?;
                 if B.saturating_sub(self.planner.len()) < 2 {
                     return Ok(Reply::Busy);
                 }
@@ -881,15 +888,6 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         self.interp.modal()
     }
 
-    /// The feed rate of the motion now, mm/min: the programmed feed while the machine moves,
-    /// 0 at rest.
-    pub fn feed_rate_mm_min(&self) -> f32 {
-        match self.state() {
-            MachineState::Running | MachineState::Homing => self.interp.feed_mm_min,
-            _ => 0.0,
-        }
-    }
-
     /// The realtime feed and rapid overrides (grbl's `0x90`–`0x98`), percent.
     pub fn realtime_overrides(&self) -> (u16, u16) {
         self.overrides
@@ -935,11 +933,6 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// The feed-rate override, percent (`M220`).
     pub fn feed_override_percent(&self) -> u16 {
         self.interp.feed_percent()
-    }
-
-    /// Set the feed-rate override, percent: the moves planned from now on run at it.
-    pub fn set_feed_override_percent(&mut self, percent: u16) {
-        self.interp.set_feed_percent(percent.clamp(1, 999));
     }
 
     /// After a [`Kernel::reset`] that cut the motion: lock the machine in

@@ -1000,19 +1000,7 @@ where
                 let Some(a) = m.axes.get(axis) else {
                     return Decimal::ZERO;
                 };
-                let homing = |f: fn(&forja_motion::config::HomingConfig) -> f32| {
-                    a.homing.as_ref().map_or(0.0, f)
-                };
-                number(match field {
-                    AxisField::StepsPerMm => a.steps_per_mm,
-                    AxisField::MaxRate => a.max_rate_mm_min,
-                    AxisField::Accel => a.accel_mm_s2,
-                    AxisField::Min => a.min_mm,
-                    AxisField::Max => a.max_mm,
-                    AxisField::HomingSeek => homing(|h| h.seek_mm_min),
-                    AxisField::HomingLocate => homing(|h| h.locate_mm_min),
-                    AxisField::HomingPullOff => homing(|h| h.pull_off_mm),
-                })
+                number(field.value_of(a))
             }
             _ => Decimal::ZERO,
         }

@@ -67,7 +67,7 @@ use super::text::Text;
 use crate::error::StoreRefusal;
 use forja_hal_abstraction::program::StoreError;
 use forja_motion::PathLimits;
-use forja_motion::config::{HomingConfig, MachineConfig, SoftLimits};
+use forja_motion::config::{AxisConfig, HomingConfig, MachineConfig, SoftLimits};
 use forja_motion::error::ConfigError;
 use forja_protocol::gcode::MAX_LINE_LEN;
 
@@ -136,6 +136,21 @@ impl AxisField {
             Self::HomingSeek => "homing_seek",
             Self::HomingLocate => "homing_locate",
             Self::HomingPullOff => "homing_pull_off",
+        }
+    }
+
+    /// The field's value on axis `a` (0 for a homing field of an axis that does not home).
+    pub(crate) fn value_of(self, a: &AxisConfig) -> f32 {
+        let homing = |f: fn(&HomingConfig) -> f32| a.homing.as_ref().map_or(0.0, f);
+        match self {
+            Self::StepsPerMm => a.steps_per_mm,
+            Self::MaxRate => a.max_rate_mm_min,
+            Self::Accel => a.accel_mm_s2,
+            Self::Min => a.min_mm,
+            Self::Max => a.max_mm,
+            Self::HomingSeek => homing(|h| h.seek_mm_min),
+            Self::HomingLocate => homing(|h| h.locate_mm_min),
+            Self::HomingPullOff => homing(|h| h.pull_off_mm),
         }
     }
 
@@ -817,18 +832,7 @@ impl<const N: usize> Settings<N> {
                 let Some(a) = m.axes.get(axis) else {
                     return Ok(());
                 };
-                let homing = |f: fn(&HomingConfig) -> f32| a.homing.as_ref().map_or(0.0, f);
-                let v = match field {
-                    AxisField::StepsPerMm => a.steps_per_mm,
-                    AxisField::MaxRate => a.max_rate_mm_min,
-                    AxisField::Accel => a.accel_mm_s2,
-                    AxisField::Min => a.min_mm,
-                    AxisField::Max => a.max_mm,
-                    AxisField::HomingSeek => homing(|h| h.seek_mm_min),
-                    AxisField::HomingLocate => homing(|h| h.locate_mm_min),
-                    AxisField::HomingPullOff => homing(|h| h.pull_off_mm),
-                };
-                write_number(out, v)
+                write_number(out, field.value_of(a))
             }
             Key::JogFeed => write_number(out, m.jog_feed_mm_min),
             Key::DefaultFeed => write_number(out, m.default_feed_mm_min),
