@@ -303,7 +303,12 @@ pub fn split<'q, const N: usize, const B: usize, const Q: usize>(
         .ticks()
         .max(1);
     let dir_setup = Duration::from_nanos_ceil(timing.dir_setup_ns, tick_hz).ticks();
-    let isr = StepGenerator::new(queue, &config, Duration::from_ticks(pulse));
+    let isr = StepGenerator::new(
+        queue,
+        &config,
+        Duration::from_ticks(pulse),
+        Duration::from_ticks(dir_setup),
+    );
     let lead = (u64::from(config.queue_lead_ms) * u64::from(tick_hz) / 1000)
         .clamp(1, u64::from(MAX_DELTA)) as u32;
     let origin = queue.positions();
@@ -396,6 +401,15 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         } else {
             MachineState::Running
         }
+    }
+
+    /// The largest distance, in ticks, of a prepared step's tick from its exact time on the
+    /// planned profile since the start (steps moved later by a direction change or by their
+    /// axis's last pulse not counted). Measured in debug builds only, for the property tests.
+    #[doc(hidden)]
+    #[cfg(debug_assertions)]
+    pub fn worst_step_error_ticks(&self) -> f64 {
+        self.prep.worst_error_ticks()
     }
 
     /// Whether every queued move has finished and the steppers are at rest. A feed hold with

@@ -2,74 +2,85 @@
 //!
 //! For every axis of a block, step `j` (1-based, of `n` steps) sits at path position
 //! `L·(j − ½)/n`, the point where the axis's ideal position crosses the half-step; its time is
-//! read off the block's velocity profile in double precision and rounded to the nearest tick.
-//! Every axis thus steps at its own exact time (no Bresenham grid, no jitter beyond one tick),
-//! and every block emits exactly its integer step count, so positions never drift.
+//! that point's time on the block's velocity profile, rounded to the nearest tick. Every axis
+//! thus steps at its own exact time (no Bresenham grid, no jitter beyond one tick), and every
+//! block emits exactly its integer step count, so positions never drift.
 //!
-//! The per-axis step times are merged into one time-ordered stream of events for the
-//! interrupt. The falling edge of a pulse is due `min_pulse` after the rising one; it rides
-//! along with the next event of another axis (one interrupt instead of two) when that keeps a
-//! full low time before the axis's own next step — known exactly when it is in the same block,
-//! else assumed no nearer than the three pulse widths [`crate::MachineConfig::validate_timing`]
-//! guarantees at the maximum rate — and gets an event of its own otherwise. A longer high time
-//! is harmless: drivers latch the rising edge. A direction change is written after the axis's
-//! last falling edge and at least `dir_setup` before its next rising edge; the step is delayed
-//! when there is not room (only ever at a junction where the axis reverses).
+//! The profile is planned in double precision once per block (and again from the last
+//! prepared step when the plan changes: a new exit speed, a feed hold, an override). Each
+//! axis then walks its steps through the profile's phases with a [`StepClock`]: integer
+//! recurrences that give each step's tick within 0.6 tick of its exact time for a few
+//! additions and a multiplication, set up in double precision once per phase. A phase out of
+//! the clocks' range is timed step by step in double precision.
+//!
+//! The per-axis step times are merged into one time-ordered stream of rising edges for the
+//! interrupt, which ends each pulse itself. A direction change is written after the axis's
+//! last pulse has ended and at least `dir_setup` before its next rising edge; the step is
+//! delayed when there is not room (only ever at a junction where the axis reverses). Two
+//! rising edges of one axis are always a high and a low pulse width apart.
 
 use core::sync::atomic::Ordering;
 
 use forja_hal_abstraction::time::Instant;
-use libm::sqrt;
+use libm::{ceil, floor, sqrt};
 
 use crate::planner::{Block, BlockKind, Planner};
-use crate::profile::Profile;
+use crate::profile::{PHASES, Profile, Shape};
 use crate::queue::{Event, MAX_DELTA, Producer};
+use crate::step_clock::StepClock;
 
-/// Free slots kept for the events one step can need (falls, direction, rise, bridges).
+/// Free slots kept for the events one step can need (the previous edge, a direction change,
+/// the splits of a long wait).
 const SLOTS_PER_STEP: usize = 4;
 
+/// No axis.
+const NO_AXIS: u8 = u8::MAX;
+
+/// How an axis's steps are timed in its current phase.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Timing {
+    /// By a step clock.
+    Clock(StepClock),
+    /// Step by step in double precision (a phase out of the clocks' range).
+    Exact,
+}
+
+/// One axis of the block being prepared.
 #[derive(Debug, Clone, Copy)]
-struct Open {
-    tick: u64,
-    ev: Event,
+struct AxisSteps {
+    /// Steps of the block.
+    n: u32,
+    /// The next step to emit (1-based; `n + 1` when all are).
+    j: u32,
+    /// The profile phase `j` is in ([`PHASES`] once past the last one).
+    phase: usize,
+    /// The last step of that phase.
+    phase_last: u32,
+    /// Path length of one step (mm; 0 when the axis has none).
+    step_mm: f64,
+    timing: Timing,
 }
 
 /// The block being prepared.
 #[derive(Debug, Clone, Copy)]
 struct Current<const N: usize> {
-    n: [u32; N],
-    neg: u8,
-    next_j: [u32; N],
-    /// Exact time (ticks) of the next step of each axis; infinity when none.
-    next_t: [f64; N],
-    /// The same rounded to the tick it is emitted at; `u64::MAX` when none.
+    axes: [AxisSteps; N],
+    /// Tick of the next step of each axis; `u64::MAX` when none.
     next_tick: [u64; N],
+    neg: u8,
     mm: f64,
     accel: f64,
     nominal: f64,
     s_anchor: f64,
+    /// Exact time of the anchor, ticks.
     t_anchor: f64,
-    last_s: f64,
-    last_t: f64,
+    /// The axis of the last emitted step ([`NO_AXIS`]: none since the anchor).
+    last_axis: u8,
+    /// The one axis that steps, when only one does.
+    only_axis: Option<usize>,
     profile: Profile,
     exit_used: f32,
     hold_used: bool,
-    /// Path length of one step of each axis (0 when it has none).
-    step_mm: [f64; N],
-    /// The steps of each axis inside the profile's constant-speed phase, timed by a line.
-    cruise: [Cruise; N],
-}
-
-/// Steps `first..=last` of one axis fall inside the constant-speed phase of the profile: step
-/// `j` is due at `base + j·interval` ticks, one multiplication and one addition instead of
-/// the profile's division. The range stays two steps clear of the phase's ends, where the
-/// profile decides.
-#[derive(Debug, Clone, Copy, Default)]
-struct Cruise {
-    first: u32,
-    last: u32,
-    base: f64,
-    interval: f64,
 }
 
 impl<const N: usize> Current<N> {
@@ -88,311 +99,360 @@ impl<const N: usize> Current<N> {
         }
     }
 
-    /// Find each axis's steps in the constant-speed phase of the current profile.
-    fn plan_cruise(&mut self, ticks_per_s: f64) {
-        let phase = self.profile.cruise();
-        for ((c, &step_mm), &n) in self
-            .cruise
-            .iter_mut()
-            .zip(self.step_mm.iter())
-            .zip(self.n.iter())
-        {
-            *c = Cruise::default();
-            let Some((start, end, t_start, v)) = phase else {
-                continue;
-            };
-            if step_mm <= 0.0 {
-                continue;
-            }
-            // Step j is at x = step_mm·(j − ½) − s_anchor along the profile.
-            let from = (start + self.s_anchor) / step_mm + 0.5;
-            let to = (end + self.s_anchor) / step_mm + 0.5;
-            if !(from.is_finite() && to.is_finite()) || to - from < 8.0 {
-                continue;
-            }
-            let first = libm::floor(from) + 2.0;
-            let last = (libm::ceil(to) - 2.0).min(f64::from(n));
-            if first < 1.0 || last < first {
-                continue;
-            }
-            let interval = ticks_per_s * step_mm / v;
-            *c = Cruise {
-                first: first as u32,
-                last: last as u32,
-                base: self.t_anchor
-                    + ticks_per_s * (t_start + (-0.5 * step_mm - self.s_anchor - start) / v),
-                interval,
-            };
+    /// The path position of the last emitted step (the anchor when none), mm.
+    fn last_s(&self) -> f64 {
+        match self.axes.get(usize::from(self.last_axis)) {
+            Some(a) => a.step_mm * (f64::from(a.j) - 1.5),
+            None => self.s_anchor,
         }
     }
 
-    /// Re-plan the rest of the block from the last prepared step.
+    /// The path position and exact time (ticks) of the last emitted step.
+    fn last_point(&self, ticks_per_s: f64) -> (f64, f64) {
+        let s = self.last_s();
+        let dt = self
+            .profile
+            .time_at(s - self.s_anchor)
+            .unwrap_or_else(|| self.profile.duration());
+        (s, self.t_anchor + dt * ticks_per_s)
+    }
+
+    /// Re-plan the rest of the block from the last emitted step.
     fn reanchor(&mut self, exit_sqr: f32, hold: bool, ticks_per_s: f64) {
-        let v = self.profile.speed_at(self.last_s - self.s_anchor);
-        self.s_anchor = self.last_s;
-        self.t_anchor = self.last_t;
+        let (s, t) = self.last_point(ticks_per_s);
+        let v = self.profile.speed_at(s - self.s_anchor);
+        self.s_anchor = s;
+        self.t_anchor = t;
+        self.last_axis = NO_AXIS;
         self.exit_used = exit_sqr;
         self.hold_used = hold;
         self.profile = self.profile_for(v, exit_sqr, hold);
-        self.plan_cruise(ticks_per_s);
         for i in 0..N {
-            self.refresh(i, ticks_per_s);
+            if let Some(a) = self.axes.get_mut(i) {
+                a.phase = 0;
+            }
+            self.enter_phase(i, ticks_per_s);
         }
     }
 
-    /// The exact time (ticks) of the next step of axis `i`, or infinity.
-    fn refresh(&mut self, i: usize, ticks_per_s: f64) {
-        let (Some(&j), Some(&n)) = (self.next_j.get(i), self.n.get(i)) else {
+    /// Find the phase of axis `i`'s next step, from the one it is in, and set up its timing.
+    #[inline(never)]
+    fn enter_phase(&mut self, i: usize, ticks_per_s: f64) {
+        let (Some(a), Some(next)) = (self.axes.get_mut(i), self.next_tick.get_mut(i)) else {
             return;
         };
-        let cruise = self.cruise.get(i).copied().unwrap_or_default();
-        let t = if j > n {
-            f64::INFINITY
-        } else if cruise.first <= j && j <= cruise.last {
-            cruise.base + f64::from(j) * cruise.interval
-        } else {
-            let step_mm = self.step_mm.get(i).copied().unwrap_or(0.0);
-            let s = step_mm * (f64::from(j) - 0.5);
-            match self.profile.time_at(s - self.s_anchor) {
-                Some(dt) => self.t_anchor + dt * ticks_per_s,
-                None => f64::INFINITY,
+        *next = u64::MAX;
+        if a.j > a.n {
+            a.phase = PHASES;
+            return;
+        }
+        let h = a.step_mm;
+        // Step j is at h·(j − ½) − s_anchor along the profile.
+        let offset = self.s_anchor / h + 0.5;
+        while a.phase < PHASES {
+            let ph = self.profile.phase(a.phase);
+            let last = if a.phase + 1 < PHASES {
+                // The last step before the phase's end.
+                (ceil(ph.end / h + offset) - 1.0).min(f64::from(a.n))
+            } else if self.profile.stops() {
+                // Within rounding of a hold's stopping point, a step is at it.
+                let end = ph.end * (1.0 + 1e-9) + 1e-12;
+                floor(end / h + offset).min(f64::from(a.n))
+            } else {
+                f64::from(a.n)
+            };
+            if last >= f64::from(a.j) {
+                a.phase_last = last as u32;
+                break;
+            }
+            a.phase += 1;
+        }
+        if a.phase >= PHASES {
+            return;
+        }
+        let ph = self.profile.phase(a.phase);
+        let x = (h * (f64::from(a.j) - 0.5) - self.s_anchor - ph.start).max(0.0);
+        let steps = a.phase_last - a.j + 1;
+        let start = self.t_anchor + ph.t_start * ticks_per_s;
+        let base = floor(start);
+        let rel = start - base;
+        let base = base as u64;
+        let accel = self.profile.accel();
+        let clock = match ph.shape {
+            Shape::Cruise => StepClock::cruise(
+                base,
+                rel + ticks_per_s * x / ph.v_start,
+                ticks_per_s * h / ph.v_start,
+                steps,
+            ),
+            shape => {
+                let c = ticks_per_s * ph.v_start / accel;
+                let k = 2.0 * ticks_per_s * ticks_per_s / accel;
+                let up = shape == Shape::Up;
+                let (c, y) = if up {
+                    (rel - c, c * c + k * x)
+                } else {
+                    (rel + c, (c * c - k * x).max(0.0))
+                };
+                StepClock::ramp(base, c, y, k * h, up, steps)
             }
         };
-        if let (Some(x), Some(k)) = (self.next_t.get_mut(i), self.next_tick.get_mut(i)) {
-            *x = t;
-            *k = if t.is_finite() {
-                libm::round(t) as u64
-            } else {
-                u64::MAX
-            };
+        match clock {
+            Some(clock) => {
+                a.timing = Timing::Clock(clock);
+                *next = clock.tick();
+            }
+            None => {
+                a.timing = Timing::Exact;
+                let tick = self.exact_tick(i, ticks_per_s);
+                if let Some(next) = self.next_tick.get_mut(i) {
+                    *next = tick;
+                }
+            }
         }
     }
 
-    /// Axis `i` has stepped at exact time `t`.
-    fn advance(&mut self, i: usize, t: f64, ticks_per_s: f64) {
-        let (Some(j), Some(&step_mm)) = (self.next_j.get_mut(i), self.step_mm.get(i)) else {
+    /// The tick of axis `i`'s next step, in double precision.
+    #[cold]
+    fn exact_tick(&self, i: usize, ticks_per_s: f64) -> u64 {
+        let Some(a) = self.axes.get(i) else {
+            return u64::MAX;
+        };
+        let s = a.step_mm * (f64::from(a.j) - 0.5);
+        match self.profile.time_at(s - self.s_anchor) {
+            Some(dt) => libm::round(self.t_anchor + dt * ticks_per_s) as u64,
+            None => u64::MAX,
+        }
+    }
+
+    /// The exact time (ticks) of axis `i`'s next step on the profile.
+    #[cfg(debug_assertions)]
+    fn exact_tick_f64(&self, i: usize, ticks_per_s: f64) -> f64 {
+        let Some(a) = self.axes.get(i) else {
+            return f64::INFINITY;
+        };
+        let s = a.step_mm * (f64::from(a.j) - 0.5);
+        self.profile
+            .time_at(s - self.s_anchor)
+            .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s)
+    }
+
+    /// Axis `i` has emitted its step: time its next one.
+    #[inline(always)]
+    fn advance(&mut self, i: usize, ticks_per_s: f64) {
+        self.last_axis = i as u8;
+        let Some(a) = self.axes.get_mut(i) else {
             return;
         };
-        self.last_s = step_mm * (f64::from(*j) - 0.5);
-        self.last_t = t;
-        *j += 1;
-        self.refresh(i, ticks_per_s);
+        a.j += 1;
+        if a.j > a.phase_last {
+            a.phase += 1;
+            self.enter_phase(i, ticks_per_s);
+            return;
+        }
+        let tick = match &mut a.timing {
+            Timing::Clock(clock) => clock.advance(),
+            Timing::Exact => self.exact_tick(i, ticks_per_s),
+        };
+        if let Some(t) = self.next_tick.get_mut(i) {
+            *t = tick;
+        }
+    }
+
+    /// The axis whose next step comes first, and that step's tick (`u64::MAX`: none).
+    #[inline(always)]
+    fn first_step(&self) -> (usize, u64) {
+        if let Some(i) = self.only_axis {
+            return (i, self.next_tick.get(i).copied().unwrap_or(u64::MAX));
+        }
+        let mut best = (0, u64::MAX);
+        for (i, &t) in self.next_tick.iter().enumerate() {
+            if t < best.1 {
+                best = (i, t);
+            }
+        }
+        best
     }
 
     fn done(&self) -> bool {
-        self.next_j.iter().zip(self.n.iter()).all(|(j, n)| j > n)
+        self.axes.iter().all(|a| a.j > a.n)
     }
 }
 
-/// Builds the event stream: merges edges at equal ticks, places falling edges and direction
-/// changes, and pushes events with their deltas.
+/// Builds the event stream: merges rising edges at equal ticks, places direction changes, and
+/// pushes events with their deltas.
 struct Emitter<const N: usize> {
     pulse: u64,
     dir_setup: u64,
-    open: Option<Open>,
+    /// The event being built, at `open_tick`, if `open`.
+    open: bool,
+    open_tick: u64,
+    open_ev: Event,
     last_pushed: u64,
     last_pushed_rest: bool,
     pushed_ticks: u32,
-    /// When each pending fall is due.
-    fall_at: [u64; N],
-    /// When each axis's last fall was emitted.
-    fell_at: [u64; N],
-    falls: u8,
+    /// When each axis last rose.
+    rose_at: [u64; N],
+    /// Queue slots known to be free (at least): pushes need no check of their own.
+    room: usize,
     dir_neg: u8,
     dir_known: u8,
 }
 
 impl<const N: usize> Emitter<N> {
     /// The tick at or after which new events go.
+    #[inline(always)]
     fn cursor(&self) -> u64 {
-        self.open.map_or(self.last_pushed, |o| o.tick)
+        if self.open {
+            self.open_tick
+        } else {
+            self.last_pushed
+        }
     }
 
-    /// The rising edge of axis `i` (direction `neg`) at tick `t`; `next_rise` holds the next
-    /// step ticks of the block's axes. Returns the tick used.
+    /// The rising edge of axis `i` (direction `neg`) at tick `t`, or as soon after it as
+    /// the axis's last pulse and a direction change allow. Returns the tick used.
+    #[inline(always)]
     fn rise<const Q: usize>(
         &mut self,
         tx: &mut Producer<'_, N, Q>,
         i: usize,
         neg: u8,
         t: u64,
-        next_rise: &[u64; N],
     ) -> u64 {
         let bit = 1u8 << i;
-        let dir_change = self.dir_known & bit == 0 || self.dir_neg & bit != neg;
-        let fell = self.fell_at.get(i).copied().unwrap_or(0);
-        let mut t = t.max(self.cursor()).max(fell + self.pulse);
-        // This axis's own pulse ends first, a full low time before the new one.
-        if self.falls & bit != 0 {
-            let f = self.fall_at.get(i).copied().unwrap_or(0);
-            let at = self.fall(tx, bit, f);
-            t = t.max(at + self.pulse);
-        }
-        if dir_change {
-            // Other pulses end on their own before a direction change (rare: block ends).
-            self.flush_falls(tx, t);
-            let td = t.saturating_sub(self.dir_setup).max(self.cursor());
-            self.add(
-                tx,
-                td,
-                Event {
-                    dir_set: bit,
-                    dir_neg: neg,
-                    ..Event::default()
-                },
-            );
-            t = t.max(td + self.dir_setup);
-            self.dir_neg = (self.dir_neg & !bit) | neg;
-            self.dir_known |= bit;
-        }
-        // Other pulses due by `t` ride along when their axis's next step leaves a full low time.
-        let mut folded = 0u8;
-        while self.falls != 0 {
-            let (j, f) = self.earliest_fall();
-            if f > t {
-                break;
-            }
-            let jbit = 1u8 << j;
-            let next = next_rise.get(j).copied().unwrap_or(0);
-            if t - f <= self.pulse || next > t + self.pulse {
-                folded |= jbit;
-                self.falls &= !jbit;
-            } else {
-                self.fall(tx, jbit, f);
-            }
+        let rose = self.rose_at.get(i).copied().unwrap_or(0);
+        // A full pulse, then as long low, since the axis's last rising edge.
+        let mut t = t.max(self.cursor()).max(rose + 2 * self.pulse);
+        if self.dir_known & bit == 0 || self.dir_neg & bit != neg {
+            t = self.change_direction(tx, bit, neg, rose, t);
         }
         self.add(
             tx,
             t,
             Event {
-                fall: folded,
                 rise: bit,
                 ..Event::default()
             },
         );
-        for (k, fell) in self.fell_at.iter_mut().enumerate() {
-            if folded & (1 << k) != 0 {
-                *fell = t;
-            }
+        if let Some(r) = self.rose_at.get_mut(i) {
+            *r = t;
         }
-        if let Some(f) = self.fall_at.get_mut(i) {
-            *f = t + self.pulse;
-        }
-        self.falls |= bit;
         t
     }
 
-    /// Emit the pending fall(s) `mask` at `f` or the cursor, whichever is later.
-    fn fall<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, mask: u8, f: u64) -> u64 {
-        let at = f.max(self.cursor());
-        self.falls &= !mask;
+    /// Write the direction `neg` of axis `bit`, which last rose at `rose`, before its rising
+    /// edge due at `t`: after that pulse's end and `dir_setup` before the edge, which moves
+    /// later when there is not room. Returns the edge's tick.
+    #[cold]
+    #[inline(never)]
+    fn change_direction<const Q: usize>(
+        &mut self,
+        tx: &mut Producer<'_, N, Q>,
+        bit: u8,
+        neg: u8,
+        rose: u64,
+        t: u64,
+    ) -> u64 {
+        let td = t
+            .saturating_sub(self.dir_setup)
+            .max(self.cursor())
+            .max(rose + self.pulse);
         self.add(
             tx,
-            at,
+            td,
             Event {
-                fall: mask,
+                dir_set: bit,
+                dir_neg: neg,
                 ..Event::default()
             },
         );
-        for (k, fell) in self.fell_at.iter_mut().enumerate() {
-            if mask & (1 << k) != 0 {
-                *fell = at;
-            }
-        }
-        at
+        self.dir_neg = (self.dir_neg & !bit) | neg;
+        self.dir_known |= bit;
+        t.max(td + self.dir_setup)
     }
 
-    /// The axis with the earliest pending fall, and its deadline.
-    fn earliest_fall(&self) -> (usize, u64) {
-        let mut best = (0usize, u64::MAX);
-        for (k, f) in self.fall_at.iter().enumerate() {
-            if self.falls & (1 << k) != 0 && *f < best.1 {
-                best = (k, *f);
-            }
-        }
-        best
-    }
-
-    /// Emit every pending fall due by `until`, each at its deadline (or the cursor).
-    fn flush_falls<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, until: u64) {
-        while self.falls != 0 {
-            let (j, f) = self.earliest_fall();
-            if f > until {
-                break;
-            }
-            self.fall(tx, 1 << j, f);
-        }
-    }
-
-    /// End of motion: every pulse ended, and the last event marked as rest.
+    /// End of motion: the last event marked as rest (the interrupt ends the last pulses).
     fn finish_rest<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>) {
-        self.flush_falls(tx, u64::MAX);
-        match self.open.take() {
-            Some(mut o) => {
-                o.ev.rest = true;
-                self.push(tx, o);
-            }
-            None if !self.last_pushed_rest => {
-                let tick = self.last_pushed;
-                self.push(
-                    tx,
-                    Open {
-                        tick,
-                        ev: Event {
-                            rest: true,
-                            ..Event::default()
-                        },
-                    },
-                );
-            }
-            None => {}
+        if self.open {
+            self.open_ev.rest = true;
+            self.close(tx);
+        } else if !self.last_pushed_rest {
+            self.open = true;
+            self.open_tick = self.last_pushed;
+            self.open_ev = Event {
+                rest: true,
+                ..Event::default()
+            };
+            self.close(tx);
         }
     }
 
     /// Put `ev` at `tick` (never before the cursor), merging with the open event when equal.
+    #[inline(always)]
     fn add<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, tick: u64, ev: Event) {
         let tick = tick.max(self.cursor());
-        match self.open.as_mut() {
-            Some(o) if o.tick == tick => {
-                o.ev.fall |= ev.fall;
-                o.ev.dir_set |= ev.dir_set;
-                o.ev.dir_neg = (o.ev.dir_neg & !ev.dir_set) | ev.dir_neg;
-                o.ev.rise |= ev.rise;
-            }
-            _ => {
-                if let Some(o) = self.open.take() {
-                    self.push(tx, o);
-                }
-                self.open = Some(Open { tick, ev });
-            }
+        if self.open && self.open_tick == tick {
+            let o = &mut self.open_ev;
+            o.dir_set |= ev.dir_set;
+            o.dir_neg = (o.dir_neg & !ev.dir_set) | ev.dir_neg;
+            o.rise |= ev.rise;
+            return;
         }
+        self.close(tx);
+        self.open = true;
+        self.open_tick = tick;
+        self.open_ev = ev;
     }
 
     /// Push the open event, if any.
+    #[inline(always)]
     fn close<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>) {
-        if let Some(o) = self.open.take() {
-            self.push(tx, o);
+        if !self.open {
+            return;
         }
-    }
-
-    fn push<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, o: Open) {
-        let mut delta = o.tick.saturating_sub(self.last_pushed);
-        while delta > u64::from(MAX_DELTA) {
-            tx.push(Event {
-                delta: MAX_DELTA,
-                ..Event::default()
-            });
-            delta -= u64::from(MAX_DELTA);
-            self.pushed_ticks = self.pushed_ticks.wrapping_add(MAX_DELTA);
+        self.open = false;
+        let mut delta = self.open_tick - self.last_pushed;
+        if delta > u64::from(MAX_DELTA) {
+            delta = self.split_wait(tx, delta);
         }
         let ev = Event {
             delta: delta as u32,
-            ..o.ev
+            ..self.open_ev
         };
-        tx.push(ev);
+        self.push(tx, ev);
         self.pushed_ticks = self.pushed_ticks.wrapping_add(delta as u32);
-        self.last_pushed = o.tick;
+        self.last_pushed = self.open_tick;
         self.last_pushed_rest = ev.rest;
+    }
+
+    /// Push `ev` into a slot counted in `room`.
+    #[inline(always)]
+    fn push<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, ev: Event) {
+        if self.room == 0 {
+            self.room = tx.free();
+        }
+        if tx.push_in_room(ev) {
+            self.room = self.room.saturating_sub(1);
+        }
+    }
+
+    /// A wait longer than one event carries: empty events of [`MAX_DELTA`] first. Returns
+    /// what is left.
+    #[cold]
+    fn split_wait<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, mut delta: u64) -> u64 {
+        while delta > u64::from(MAX_DELTA) {
+            self.push(
+                tx,
+                Event {
+                    delta: MAX_DELTA,
+                    ..Event::default()
+                },
+            );
+            delta -= u64::from(MAX_DELTA);
+            self.pushed_ticks = self.pushed_ticks.wrapping_add(MAX_DELTA);
+        }
+        delta
     }
 }
 
@@ -421,6 +481,9 @@ pub(crate) struct Prep<const N: usize> {
     rapid: bool,
     /// The spindle speed of the block in preparation, rpm.
     spindle_rpm: u32,
+    /// The largest distance of a step's tick from its exact time, ticks (debug builds).
+    #[cfg(debug_assertions)]
+    worst_error: f64,
 }
 
 impl<const N: usize> Prep<N> {
@@ -430,13 +493,14 @@ impl<const N: usize> Prep<N> {
             em: Emitter {
                 pulse: u64::from(pulse_ticks.max(1)),
                 dir_setup: u64::from(dir_setup_ticks),
-                open: None,
+                open: false,
+                open_tick: 0,
+                open_ev: Event::default(),
                 last_pushed: 0,
                 last_pushed_rest: true,
                 pushed_ticks: 0,
-                fall_at: [0; N],
-                fell_at: [0; N],
-                falls: 0,
+                rose_at: [0; N],
+                room: 0,
                 dir_neg: 0,
                 dir_known: 0,
             },
@@ -449,6 +513,8 @@ impl<const N: usize> Prep<N> {
             line: 0,
             rapid: false,
             spindle_rpm: 0,
+            #[cfg(debug_assertions)]
+            worst_error: 0.0,
         }
     }
 
@@ -456,8 +522,7 @@ impl<const N: usize> Prep<N> {
     pub(crate) fn reset(&mut self, consumed_ticks: u32) {
         let em = &mut self.em;
         em.pushed_ticks = consumed_ticks;
-        em.open = None;
-        em.falls = 0;
+        em.open = false;
         em.dir_known = 0;
         em.last_pushed_rest = true;
         self.cur = None;
@@ -492,7 +557,7 @@ impl<const N: usize> Prep<N> {
     /// block's nominal speed, whether the block is a rapid, and its spindle speed (rpm).
     pub(crate) fn motion(&self) -> Option<(f64, f64, bool, u32)> {
         let cur = self.cur.as_ref()?;
-        let v = cur.profile.speed_at(cur.last_s - cur.s_anchor);
+        let v = cur.profile.speed_at(cur.last_s() - cur.s_anchor);
         let fraction = if cur.nominal > 0.0 {
             v / cur.nominal
         } else {
@@ -516,6 +581,13 @@ impl<const N: usize> Prep<N> {
         self.line
     }
 
+    /// The largest distance of an emitted step's tick from its exact time on the planned
+    /// profile so far, in ticks (steps moved by a direction change or a pulse not counted).
+    #[cfg(debug_assertions)]
+    pub(crate) fn worst_error_ticks(&self) -> f64 {
+        self.worst_error
+    }
+
     /// Prepare events until `lead_ticks` of motion are queued ahead of `now`, the queue is
     /// full or the plan is exhausted. `running` tells whether the interrupt side is executing
     /// (when it is idle, nothing queued has started yet).
@@ -536,22 +608,21 @@ impl<const N: usize> Prep<N> {
         } else {
             0
         };
+        let pending = self.em.pushed_ticks.wrapping_sub(consumed);
+        let ahead = pending - spent.min(pending);
+        // Events go up to this tick: `lead_ticks` of motion ahead of now.
+        let horizon = self.em.last_pushed + u64::from(lead_ticks.saturating_sub(ahead));
         let tps = self.ticks_per_s;
-        let mut free = tx.free();
+        self.check_plan(planner);
+        self.em.room = tx.free();
         let result = loop {
-            if free < SLOTS_PER_STEP + 2 {
-                free = tx.free();
-                if free < SLOTS_PER_STEP + 2 {
+            if self.em.room < SLOTS_PER_STEP + 2 {
+                self.em.room = tx.free();
+                if self.em.room < SLOTS_PER_STEP + 2 {
                     break Fill::Pending;
                 }
             }
-            free -= SLOTS_PER_STEP.min(free);
-            let pending = self.em.pushed_ticks.wrapping_sub(consumed);
-            let open = self
-                .em
-                .open
-                .map_or(0, |o| (o.tick - self.em.last_pushed) as u32);
-            if pending.saturating_sub(spent.min(pending)) + open >= lead_ticks {
+            if self.em.cursor() >= horizon {
                 break Fill::Pending;
             }
             if self.dwell_left > 0 {
@@ -562,7 +633,7 @@ impl<const N: usize> Prep<N> {
                 self.t_plan = t as f64;
                 continue;
             }
-            if self.cur.is_none() {
+            let Some(cur) = self.cur.as_mut() else {
                 let Some(block) = planner.tail().copied() else {
                     self.em.finish_rest(tx);
                     self.v_carry = 0.0;
@@ -571,37 +642,25 @@ impl<const N: usize> Prep<N> {
                 };
                 match block.kind {
                     BlockKind::Dwell(ms) => {
-                        self.em.flush_falls(tx, u64::MAX);
                         self.dwell_left = libm::round(f64::from(ms) * tps / 1000.0) as u64;
                         self.t_plan = self.t_plan.max(self.em.cursor() as f64);
                         self.line = block.line;
                         planner.retire_tail();
-                        continue;
                     }
                     BlockKind::Move => self.load(&block, planner.tail_exit_sqr()),
                 }
-            }
-            let exit_sqr = planner.tail_exit_sqr();
-            let hold = self.hold;
-            let Some(cur) = self.cur.as_mut() else {
                 continue;
             };
-            if cur.exit_used != exit_sqr || cur.hold_used != hold {
-                cur.reanchor(exit_sqr, hold, tps);
-            }
             // The axis whose step comes first.
-            let mut best = (usize::MAX, u64::MAX);
-            for (i, t) in cur.next_tick.iter().enumerate() {
-                if *t < best.1 {
-                    best = (i, *t);
-                }
-            }
-            let (i, tick) = best;
+            let (i, tick) = cur.first_step();
             if tick != u64::MAX {
-                let neg = cur.neg & (1 << i);
-                let t = cur.next_t.get(i).copied().unwrap_or(0.0);
-                self.em.rise(tx, i, neg, tick, &cur.next_tick);
-                cur.advance(i, t, tps);
+                let _t = self.em.rise(tx, i, cur.neg & (1 << i), tick);
+                #[cfg(debug_assertions)]
+                if _t == tick {
+                    let exact = cur.exact_tick_f64(i, tps);
+                    self.worst_error = self.worst_error.max((tick as f64 - exact).abs());
+                }
+                cur.advance(i, tps);
             } else if cur.done() {
                 // Block done: the next one starts where this profile ends.
                 self.t_plan = cur.t_anchor + cur.profile.duration() * tps;
@@ -610,9 +669,11 @@ impl<const N: usize> Prep<N> {
                 planner.retire_tail();
             } else {
                 // A hold came to rest inside the block: anchor there, at zero speed.
-                cur.last_s = cur.s_anchor + cur.profile.length();
-                cur.last_t = cur.t_anchor + cur.profile.duration() * tps;
-                self.t_plan = cur.last_t;
+                cur.s_anchor += cur.profile.length();
+                cur.t_anchor += cur.profile.duration() * tps;
+                cur.last_axis = NO_AXIS;
+                cur.profile = Profile::hold(0.0, 0.0, cur.accel);
+                self.t_plan = cur.t_anchor;
                 self.held = true;
                 self.em.finish_rest(tx);
                 self.v_carry = 0.0;
@@ -623,48 +684,66 @@ impl<const N: usize> Prep<N> {
         result
     }
 
+    /// Re-plan the block in preparation if its exit speed or the hold changed since it was
+    /// planned.
+    fn check_plan<const B: usize>(&mut self, planner: &Planner<N, B>) {
+        let exit_sqr = planner.tail_exit_sqr();
+        let hold = self.hold;
+        if let Some(cur) = self.cur.as_mut()
+            && (cur.exit_used != exit_sqr || cur.hold_used != hold)
+        {
+            cur.reanchor(exit_sqr, hold, self.ticks_per_s);
+        }
+    }
+
     fn load(&mut self, block: &Block<N>, exit_sqr: f32) {
-        let mut n = [0u32; N];
+        let mm = f64::from(block.mm);
         let mut neg = 0u8;
-        for (i, (c, s)) in n.iter_mut().zip(block.steps.iter()).enumerate() {
-            *c = s.unsigned_abs();
-            if *s < 0 {
+        let axes = core::array::from_fn(|i| {
+            let s = block.steps.get(i).copied().unwrap_or(0);
+            if s < 0 {
                 neg |= 1 << i;
             }
-        }
+            let n = s.unsigned_abs();
+            AxisSteps {
+                n,
+                j: 1,
+                phase: 0,
+                phase_last: 0,
+                step_mm: if n == 0 { 0.0 } else { mm / f64::from(n) },
+                timing: Timing::Exact,
+            }
+        });
         let t0 = self.t_plan;
+        let mut moving = axes
+            .iter()
+            .enumerate()
+            .filter(|(_, a): &(usize, &AxisSteps)| a.n > 0);
+        let only_axis = match (moving.next(), moving.next()) {
+            (Some((i, _)), None) => Some(i),
+            _ => None,
+        };
         let mut cur = Current {
-            n,
-            neg,
-            next_j: [1; N],
-            next_t: [f64::INFINITY; N],
+            axes,
             next_tick: [u64::MAX; N],
-            mm: f64::from(block.mm),
+            neg,
+            mm,
             accel: f64::from(block.accel),
             nominal: sqrt(f64::from(block.nominal_sqr)),
             s_anchor: 0.0,
             t_anchor: t0,
-            last_s: 0.0,
-            last_t: t0,
+            last_axis: NO_AXIS,
+            only_axis,
             profile: Profile::plan(0.0, 0.0, 0.0, 0.0, 1.0),
             exit_used: exit_sqr,
             hold_used: self.hold,
-            step_mm: core::array::from_fn(|i| {
-                if n[i] == 0 {
-                    0.0
-                } else {
-                    f64::from(block.mm) / f64::from(n[i])
-                }
-            }),
-            cruise: [Cruise::default(); N],
         };
         self.line = block.line;
         self.rapid = block.speed.rapid;
         self.spindle_rpm = block.spindle_rpm;
         cur.profile = cur.profile_for(self.v_carry, exit_sqr, self.hold);
-        cur.plan_cruise(self.ticks_per_s);
         for i in 0..N {
-            cur.refresh(i, self.ticks_per_s);
+            cur.enter_phase(i, self.ticks_per_s);
         }
         self.cur = Some(cur);
     }

@@ -8,6 +8,31 @@
 
 use libm::sqrt;
 
+/// Phases of a profile: [`Profile::phase`] takes `0..PHASES`.
+pub(crate) const PHASES: usize = 3;
+
+/// How the speed changes through a phase.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Shape {
+    /// Speeding up at the profile's acceleration.
+    Up,
+    /// Constant speed.
+    Cruise,
+    /// Slowing down at the profile's acceleration.
+    Down,
+}
+
+/// One phase of a [`Profile`]: from `start` to `end` mm past the anchor, entered at `t_start`
+/// s at `v_start` mm/s.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Phase {
+    pub start: f64,
+    pub end: f64,
+    pub t_start: f64,
+    pub v_start: f64,
+    pub shape: Shape,
+}
+
 /// One velocity profile. Lengths in mm, speeds in mm/s, times in s.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Profile {
@@ -106,14 +131,46 @@ impl Profile {
         }
     }
 
-    /// Length covered, mm (less than the block's rest when a hold stops inside it).
-    /// The constant-speed phase, if any: where it starts and ends (distance from the start),
-    /// the time it starts at and its speed. Within it, `time_at(x)` is
-    /// `t_start + (x - start) / speed`.
-    pub(crate) fn cruise(&self) -> Option<(f64, f64, f64, f64)> {
-        (self.d2 > 0.0 && self.v1 > 0.0).then_some((self.d1, self.d1 + self.d2, self.t1, self.v1))
+    /// Phase `p` (0, 1 or 2 of [`PHASES`]): the ramp from the anchor speed, the cruise, the
+    /// ramp down. A phase that does not occur is empty (`end == start`).
+    pub(crate) fn phase(&self, p: usize) -> Phase {
+        match p {
+            0 => Phase {
+                start: 0.0,
+                end: self.d1,
+                t_start: 0.0,
+                v_start: self.v0,
+                shape: if self.up1 { Shape::Up } else { Shape::Down },
+            },
+            1 => Phase {
+                start: self.d1,
+                end: self.d1 + self.d2,
+                t_start: self.t1,
+                v_start: self.v1,
+                shape: Shape::Cruise,
+            },
+            _ => Phase {
+                start: self.d1 + self.d2,
+                end: self.length(),
+                t_start: self.t1 + self.t2,
+                v_start: self.v1,
+                shape: Shape::Down,
+            },
+        }
     }
 
+    /// The acceleration of the ramps, mm/s².
+    pub(crate) fn accel(&self) -> f64 {
+        self.a
+    }
+
+    /// Whether the profile ends at rest inside the block (a completed hold): no point past
+    /// [`Profile::length`] (give or take rounding) is reached.
+    pub(crate) fn stops(&self) -> bool {
+        self.stops
+    }
+
+    /// Length covered, mm (less than the block's rest when a hold stops inside it).
     pub(crate) fn length(&self) -> f64 {
         self.d1 + self.d2 + self.d3
     }
@@ -126,12 +183,6 @@ impl Profile {
     /// Speed at the end, mm/s.
     pub(crate) fn exit_speed(&self) -> f64 {
         self.v3
-    }
-
-    /// Whether the profile ends at rest before the end of the block (a completed hold).
-    #[cfg(test)]
-    pub(crate) fn stops(&self) -> bool {
-        self.stops
     }
 
     /// Time from the anchor to `x` mm past it, s; `None` beyond a hold's stopping point.

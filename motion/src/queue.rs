@@ -7,8 +7,9 @@
 //! atomic has exactly one writer; the comments on each field name it.
 //!
 //! An event is two 32-bit words: the delay since the previous event in ticks (30 bits) with a
-//! "rest" flag, and four 8-bit axis masks: step lines to lower, directions to change, the new
-//! directions, step lines to raise. The interrupt applies them in that order.
+//! "rest" flag, and three 8-bit axis masks: directions to change, the new directions, step
+//! lines to raise. The interrupt applies them in that order; it ends each pulse itself, a
+//! pulse width after the rising edge, so falling edges never travel through the queue.
 
 #![deny(clippy::indexing_slicing)]
 
@@ -26,8 +27,6 @@ pub(crate) struct Event {
     pub delta: u32,
     /// After this event the machine is at rest: the interrupt may go idle if nothing follows.
     pub rest: bool,
-    /// Step lines to return to idle.
-    pub fall: u8,
     /// Axes whose direction line changes.
     pub dir_set: u8,
     /// New directions of those axes: bit set = negative.
@@ -40,10 +39,7 @@ impl Event {
     fn encode(&self) -> [u32; 2] {
         [
             (self.delta & MAX_DELTA) | if self.rest { REST_FLAG } else { 0 },
-            u32::from(self.fall)
-                | u32::from(self.dir_set) << 8
-                | u32::from(self.dir_neg) << 16
-                | u32::from(self.rise) << 24,
+            u32::from(self.dir_set) | u32::from(self.dir_neg) << 8 | u32::from(self.rise) << 16,
         ]
     }
 
@@ -52,7 +48,6 @@ impl Event {
         Self {
             delta: w.delta(),
             rest: w.rest(),
-            fall: w.fall(),
             dir_set: w.dir_set(),
             dir_neg: w.dir_neg(),
             rise: w.rise(),
@@ -81,28 +76,22 @@ impl Raw {
         self.time & REST_FLAG != 0
     }
 
-    /// See [`Event::fall`].
-    #[inline(always)]
-    pub(crate) fn fall(self) -> u8 {
-        self.masks as u8
-    }
-
     /// See [`Event::dir_set`].
     #[inline(always)]
     pub(crate) fn dir_set(self) -> u8 {
-        (self.masks >> 8) as u8
+        self.masks as u8
     }
 
     /// See [`Event::dir_neg`].
     #[inline(always)]
     pub(crate) fn dir_neg(self) -> u8 {
-        (self.masks >> 16) as u8
+        (self.masks >> 8) as u8
     }
 
     /// See [`Event::rise`].
     #[inline(always)]
     pub(crate) fn rise(self) -> u8 {
-        (self.masks >> 24) as u8
+        (self.masks >> 16) as u8
     }
 }
 
@@ -331,10 +320,18 @@ impl<'q, const N: usize, const Q: usize> Producer<'q, N, Q> {
     }
 
     /// Push one event; `false` when full.
+    #[cfg(test)]
     pub(crate) fn push(&mut self, ev: Event) -> bool {
         if self.free() == 0 {
             return false;
         }
+        self.push_in_room(ev)
+    }
+
+    /// Push one event into a slot the caller knows is free (from [`Producer::free`] since
+    /// its last pushes); `false`, and nothing written, when there is none after all.
+    #[inline(always)]
+    pub(crate) fn push_in_room(&mut self, ev: Event) -> bool {
         let [w0, w1] = ev.encode();
         let Some([s0, s1]) = self.q.slot(self.head) else {
             return false;
@@ -403,8 +400,7 @@ mod tests {
             let ev = Event {
                 delta: k * 1000 + 7,
                 rest: k % 3 == 0,
-                fall: k as u8,
-                dir_set: 1,
+                dir_set: k as u8,
                 dir_neg: 2,
                 rise: 0x80 | k as u8,
             };

@@ -1,13 +1,15 @@
 //! The interrupt side: [`StepGenerator::on_alarm`] turns queued step events into pin edges.
 //!
 //! Context: the step interrupt (a one-shot timer alarm on the board's clock). Integer-only,
-//! allocation-free, panic-free, no blocking; each call handles exactly one event — lower the
-//! step lines whose pulse is over, change directions, check the switches of the axes about to
-//! step, raise step lines — and returns when to be called next. All timing decisions (step
-//! times, pulse width, direction set-up) were taken by the thread side; this side only keeps
-//! the schedule (`next = previous scheduled time + delta`, so interrupt latency never
-//! accumulates; the first event after idle is due its delta after the start) and guards the
-//! minimum pulse width against a late rising edge.
+//! allocation-free, panic-free, no blocking; each call lowers the step lines whose pulse is
+//! over, then handles at most one event — change directions, check the switches of the axes
+//! about to step, raise step lines — and returns when to be called next: the next event or the
+//! end of a pulse, whichever comes first. Step times and direction set-up were decided by the
+//! thread side; this side keeps the schedule (`next = previous scheduled time + delta`, so
+//! interrupt latency never accumulates; the first event after idle is due its delta after the
+//! start) and ends every pulse a pulse width after its rising edge was served. A line still
+//! high when its axis must step again or change direction (a rising edge served late) delays
+//! that event, and the schedule after it, until the line has been low for a pulse width.
 
 #![deny(clippy::indexing_slicing, clippy::arithmetic_side_effects)]
 
@@ -29,7 +31,7 @@ enum Mode {
     Idle,
     /// Executing events; `next_at` is armed.
     Running,
-    /// Stopped: waiting for the last pulse to be long enough before lowering it.
+    /// Stopped, or at the end of motion: waiting for the last pulses to end.
     WindDown,
 }
 
@@ -41,9 +43,10 @@ pub struct StepGenerator<'q, const N: usize, const Q: usize> {
     step_sign: [i32; N],
     dir_neg: u8,
     high: u8,
-    /// Raised lines whose rising edge was served late, and when.
-    late: u8,
-    late_since: Instant,
+    /// When the pulse of each raised line ends.
+    fall_at: [Instant; N],
+    /// The earliest of `fall_at` over the raised lines (meaningless when none is).
+    next_fall: Instant,
     next_ev: Raw,
     next_at: Instant,
     /// Scheduled instant of the last consumed event (or of the start after idle).
@@ -62,10 +65,21 @@ pub struct StepGenerator<'q, const N: usize, const Q: usize> {
     probe_of: u8,
     hard_limits: bool,
     pulse: Duration,
+    /// The drivers' direction set-up time.
+    dir_setup: Duration,
+    /// Axes whose direction line changed less than `dir_setup` ago (at the latest), and when
+    /// the last of them is ready.
+    settling: u8,
+    dir_ready_at: Instant,
 }
 
 impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
-    pub(crate) fn new(q: &'q StepQueue<N, Q>, config: &MachineConfig<N>, pulse: Duration) -> Self {
+    pub(crate) fn new(
+        q: &'q StepQueue<N, Q>,
+        config: &MachineConfig<N>,
+        pulse: Duration,
+        dir_setup: Duration,
+    ) -> Self {
         let mut switch_of = [NO_SWITCH; N];
         let mut has_switch = 0u8;
         let mut switch_neg = 0u8;
@@ -84,8 +98,8 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
             step_sign: [1; N],
             dir_neg: 0,
             high: 0,
-            late: 0,
-            late_since: Instant::from_ticks(0),
+            fall_at: [Instant::from_ticks(0); N],
+            next_fall: Instant::from_ticks(0),
             next_ev: Raw::default(),
             next_at: Instant::from_ticks(0),
             last_at: Instant::from_ticks(q.last_event_at.load(Ordering::Relaxed)),
@@ -101,6 +115,9 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
             probe_of: config.probe_switch.unwrap_or(NO_SWITCH),
             hard_limits: config.hard_limits,
             pulse,
+            dir_setup,
+            settling: 0,
+            dir_ready_at: Instant::from_ticks(0),
         }
     }
 
@@ -141,12 +158,48 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         steppers: &mut [S; N],
         switches: &mut [L],
     ) -> Option<Instant> {
+        // The end of a pulse before the next event, the call of every other alarm.
+        if self.mode == Mode::Running
+            && self.high != 0
+            && now.is_at_or_after(self.next_fall)
+            && !now.is_at_or_after(self.wake_at)
+        {
+            return self.end_of_pulse(now, steppers);
+        }
+        self.serve(now, steppers, switches)
+    }
+
+    /// [`StepGenerator::on_alarm`] between events: end the pulses that are over.
+    #[inline(never)]
+    fn end_of_pulse<S: Stepper>(&mut self, now: Instant, steppers: &mut [S; N]) -> Option<Instant> {
+        match self.end_pulses(now, steppers) {
+            Ok(_) => Some(self.soonest()),
+            Err(cause) => self.stop(now, cause, steppers),
+        }
+    }
+
+    /// [`StepGenerator::on_alarm`] at an event, or out of the running state.
+    #[inline(never)]
+    fn serve<S: Stepper, L: LimitSwitch>(
+        &mut self,
+        now: Instant,
+        steppers: &mut [S; N],
+        switches: &mut [L],
+    ) -> Option<Instant> {
         let q = self.rx.q;
+        // Pulses end first, also in a call that has no event to serve.
+        let mut lowered = 0;
+        if self.high != 0 && now.is_at_or_after(self.next_fall) {
+            lowered = match self.end_pulses(now, steppers) {
+                Ok(m) => m,
+                Err(cause) => return self.stop(now, cause, steppers),
+            };
+        }
         let ev = if self.mode == Mode::Running
             && q.flush_req.load(Ordering::Acquire) == self.flush_seen
         {
             if !now.is_at_or_after(self.wake_at) {
-                return Some(self.wake_at);
+                return Some(self.soonest());
             }
             // Peeked by the previous call; only this side removes events.
             self.next_ev
@@ -156,14 +209,13 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
                 Err(next) => return next,
             }
         };
-        // A rising edge served late must still get its full pulse before the falling edge (the
-        // schedule gives it one only when served on time).
-        if ev.fall() & self.late != 0 {
-            let end = self.late_since.wrapping_add(self.pulse);
-            if !now.is_at_or_after(end) {
-                self.wake_at = end;
-                return Some(end);
-            }
+        // A line still high (its rising edge was served late) ends its pulse before its axis
+        // changes direction, and stays low a pulse width before it rises again; a direction
+        // written late is given its set-up time before the axis steps.
+        if (ev.dir_set() & self.high) | (ev.rise() & (self.high | lowered | self.settling)) != 0
+            && let Some(at) = self.wait_for_lines(now, ev, lowered)
+        {
+            return Some(at);
         }
         self.rx.advance();
         self.consumed_ticks = self.consumed_ticks.wrapping_add(ev.delta());
@@ -178,10 +230,106 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
                     .next_at
                     .wrapping_add(Duration::from_ticks(next.delta()));
                 self.wake_at = self.next_at;
-                Some(self.next_at)
+                Some(self.soonest())
             }
             None => self.ran_dry(now, ev.rest(), steppers),
         }
+    }
+
+    /// The next instant something is due: the next event, or the end of a pulse before it.
+    #[inline(always)]
+    fn soonest(&self) -> Instant {
+        if self.high != 0 && !self.next_fall.is_at_or_after(self.wake_at) {
+            self.next_fall
+        } else {
+            self.wake_at
+        }
+    }
+
+    /// Lower the raised lines whose pulse is over at `now`; returns them, or the first axis
+    /// whose driver failed (after trying every one).
+    #[inline(always)]
+    fn end_pulses<S: Stepper>(
+        &mut self,
+        now: Instant,
+        steppers: &mut [S; N],
+    ) -> Result<u8, StopCause> {
+        let high = self.high;
+        // One line raised (one axis moving, or the others' pulses over): it is the one due.
+        if high & high.wrapping_sub(1) == 0 {
+            let i = high.trailing_zeros() as usize;
+            self.high = 0;
+            return match steppers.get_mut(i).map(|s| s.step_end()) {
+                Some(Err(_)) => Err(StopCause::Fault(i as u8)),
+                _ => Ok(high),
+            };
+        }
+        let mut due = 0u8;
+        let mut failed = None;
+        let mut next: Option<Instant> = None;
+        // Only the raised axes, lowest first: the cost follows the axes that step.
+        let mut axes = self.high;
+        while axes != 0 {
+            let i = axes.trailing_zeros() as usize;
+            axes &= axes.wrapping_sub(1);
+            let Some(&at) = self.fall_at.get(i) else {
+                continue;
+            };
+            if now.is_at_or_after(at) {
+                due |= 1 << i;
+                if let Some(s) = steppers.get_mut(i)
+                    && s.step_end().is_err()
+                {
+                    failed = failed.or(Some(StopCause::Fault(i as u8)));
+                }
+            } else if next.is_none_or(|n| n.is_at_or_after(at)) {
+                next = Some(at);
+            }
+        }
+        self.high &= !due;
+        if let Some(n) = next {
+            self.next_fall = n;
+        }
+        failed.map_or(Ok(due), Err)
+    }
+
+    /// `ev` needs a line low that is high or was lowered just now, or steps an axis whose
+    /// direction changed less than the set-up time ago: `Some` instant to serve it at, once
+    /// the line has been low a pulse width and the direction set up, or `None` when it may be
+    /// served now. The events after it keep their spacing: the schedule moves by the delay.
+    #[cold]
+    #[inline(never)]
+    fn wait_for_lines(&mut self, now: Instant, ev: Raw, lowered: u8) -> Option<Instant> {
+        if now.is_at_or_after(self.dir_ready_at) {
+            self.settling = 0;
+        }
+        let mut until = now;
+        if ev.rise() & self.settling != 0 {
+            until = self.dir_ready_at;
+        }
+        if ev.rise() & lowered != 0 {
+            let low = now.wrapping_add(self.pulse);
+            if low.is_at_or_after(until) {
+                until = low;
+            }
+        }
+        let mut axes = (ev.dir_set() | ev.rise()) & self.high;
+        while axes != 0 {
+            let i = axes.trailing_zeros() as usize;
+            axes &= axes.wrapping_sub(1);
+            if let Some(&at) = self.fall_at.get(i) {
+                let low = at.wrapping_add(self.pulse);
+                if low.is_at_or_after(until) {
+                    until = low;
+                }
+            }
+        }
+        if until == now {
+            return None;
+        }
+        self.next_at = until;
+        self.wake_at = until;
+        Some(self.soonest())
     }
 
     /// Everything but an event of a running motion: a flush, a stop, the wind-down, the start
@@ -260,23 +408,8 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         steppers: &mut [S; N],
         switches: &mut [L],
     ) -> Result<(), StopCause> {
-        let fall = ev.fall() & self.high;
-        if fall != 0 {
-            self.high &= !fall;
-            self.late &= !fall;
-            // Only the axes whose bit is set, lowest first: the cost follows the axes that
-            // step, not the machine's axis count.
-            let mut axes = fall;
-            while axes != 0 {
-                let i = axes.trailing_zeros() as usize;
-                axes &= axes.wrapping_sub(1);
-                if let Some(s) = steppers.get_mut(i) {
-                    s.step_end().map_err(|_| StopCause::Fault(i as u8))?;
-                }
-            }
-        }
         if ev.dir_set() != 0 {
-            self.change_directions(ev, steppers)?;
+            self.change_directions(ev, now, steppers)?;
         }
         let rise = ev.rise();
         if rise == 0 {
@@ -287,27 +420,30 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         if self.watch || q.switch_edges.load(Ordering::Relaxed) != self.edges_seen {
             self.check_switches(rise, switches)?;
         }
+        let fall = now.wrapping_add(self.pulse);
         let mut axes = rise;
         while axes != 0 {
             let i = axes.trailing_zeros() as usize;
             axes &= axes.wrapping_sub(1);
-            if let (Some(s), Some(p), Some(d)) = (
+            if let (Some(s), Some(p), Some(d), Some(f)) = (
                 steppers.get_mut(i),
                 q.positions.get(i),
                 self.step_sign.get(i),
+                self.fall_at.get_mut(i),
             ) {
                 s.step_begin().map_err(|_| StopCause::Fault(i as u8))?;
                 p.store(
                     p.load(Ordering::Relaxed).wrapping_add(*d),
                     Ordering::Relaxed,
                 );
+                *f = fall;
             }
         }
-        self.high |= rise;
-        if now != self.next_at {
-            self.late |= rise;
-            self.late_since = now;
+        // Lines already high end sooner than these.
+        if self.high == 0 {
+            self.next_fall = fall;
         }
+        self.high |= rise;
         Ok(())
     }
 
@@ -317,8 +453,10 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
     fn change_directions<S: Stepper>(
         &mut self,
         ev: Raw,
+        now: Instant,
         steppers: &mut [S; N],
     ) -> Result<(), StopCause> {
+        self.dir_ready_at = now.wrapping_add(self.dir_setup);
         for ((i, s), sign) in steppers
             .iter_mut()
             .enumerate()
@@ -335,6 +473,7 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
             };
             s.set_direction(d).map_err(|_| StopCause::Fault(i as u8))?;
             *sign = step;
+            self.settling |= bit;
             self.dir_neg = (self.dir_neg & !bit) | (ev.dir_neg() & bit);
         }
         Ok(())
@@ -403,32 +542,16 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         self.wind_down(now, steppers)
     }
 
-    /// Lower any raised step line once its pulse is long enough, then go idle.
+    /// Lower every raised step line as its pulse ends, then go idle.
     #[cold]
     fn wind_down<S: Stepper>(&mut self, now: Instant, steppers: &mut [S; N]) -> Option<Instant> {
+        if self.high != 0 && now.is_at_or_after(self.next_fall) {
+            // Nothing better to do with an error here: motion is already stopping.
+            let _ = self.end_pulses(now, steppers);
+        }
         if self.high != 0 {
-            // Raised at or before the last consumed event: at its scheduled instant, or when it
-            // was served if that was late.
-            let since = if self.late != 0 && self.late_since.is_at_or_after(self.last_at) {
-                self.late_since
-            } else {
-                self.last_at
-            };
-            let end = since.wrapping_add(self.pulse);
-            if !now.is_at_or_after(end) {
-                self.mode = Mode::WindDown;
-                return Some(end);
-            }
-            let mut m = self.high;
-            self.high = 0;
-            while m != 0 {
-                let i = m.trailing_zeros() as usize;
-                m &= m.wrapping_sub(1);
-                if let Some(s) = steppers.get_mut(i) {
-                    // Nothing better to do with an error here: motion is already stopping.
-                    let _ = s.step_end();
-                }
-            }
+            self.mode = Mode::WindDown;
+            return Some(self.next_fall);
         }
         self.go_idle()
     }

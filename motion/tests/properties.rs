@@ -1,5 +1,6 @@
-//! Property tests of the whole kernel on the simulated machine: exact step counts, and step
-//! times that respect every axis's rate and acceleration limits.
+//! Property tests of the whole kernel on the simulated machine: exact step counts, step times
+//! within one tick of their exact times on the planned profiles (measured by the kernel in
+//! debug builds), and step times that respect every axis's rate and acceleration limits.
 //!
 //! The 100,000-move drift test runs only in release builds:
 //! `cargo test -p forja-motion --release --test properties`.
@@ -67,6 +68,12 @@ fn run(moves: &[Move], tick_hz: u32, jd: f32) -> (f64, f64) {
         at = target;
     }
     assert!(s.run_until_idle(u64::from(tick_hz) * 3600));
+    // Every step on its exact time on the planned profile, rounded: within one tick.
+    #[cfg(debug_assertions)]
+    {
+        let e = s.kernel.worst_step_error_ticks();
+        assert!(e <= 1.0, "a step {e} ticks from its exact time");
+    }
     let r = s.record();
     assert_eq!(r.position, at, "end position in steps");
     assert!(r.violations.is_empty(), "{:?}", r.violations);
@@ -189,6 +196,11 @@ fn drift(n: usize) {
         }
     }
     assert!(s.record().violations.is_empty());
+    #[cfg(debug_assertions)]
+    {
+        let e = s.kernel.worst_step_error_ticks();
+        assert!(e <= 1.0, "a step {e} ticks from its exact time");
+    }
 }
 
 /// No drift over 500 moves (every build).

@@ -1,0 +1,296 @@
+//! Step clocks: the tick of each step of one axis through one phase of a velocity profile,
+//! from integer recurrences (thread side).
+//!
+//! In a phase of constant speed `v`, the steps of an axis are equally spaced in time: the
+//! clock adds a 32.32 fixed-point interval per step. In a phase of constant acceleration `a`
+//! from speed `v₀`, the point `x` along the path is reached at `t = (√(v₀² + 2ax) − v₀)/a`
+//! (speeding up) or `(v₀ − √(v₀² − 2ax))/a` (slowing down). With `F` ticks per second, that
+//! is `F·t = c ± √Y` with `Y = (F·v₀/a)² ± (2F²/a)·x`, and `Y` changes by the same amount at
+//! every step of an axis. The clock keeps `W = Y·4^k` as an integer and `R = ⌊√W⌋`, the
+//! square root in units of `2^−k` tick: the next `R` is predicted as the last one plus the
+//! last increment, then corrected unit by unit against `W` (one 32×32 multiplication each); a
+//! prediction off by more than [`MAX_NUDGES`] units (the first steps from rest, where the
+//! intervals shrink fastest) takes a full square root instead.
+//!
+//! Accuracy: with `k` = [`RAMP_BITS`] = 4, `R` is within one unit (1/16 tick) below `√W`, the
+//! offset `c` is rounded to half a unit, and the per-step change of `W` to half a unit of `W`
+//! (which moves `R` by `m/(4R)` units after `m` steps); the cruise's interval is exact to
+//! 2^−33 tick per step. A step's tick, its time rounded to the nearest tick, is thus within
+//! 0.6 tick of the exact time. A phase whose times do not fit the fixed-point ranges (a ramp
+//! longer than about 2^27 ticks, 16 s at 8 MHz; a cruise longer than 2^32 ticks) gets no
+//! clock: its caller times its steps in double precision.
+
+use libm::{round, sqrt};
+
+/// Fraction bits of a ramp's times: `R` counts sixteenths of a tick.
+const RAMP_BITS: u32 = 4;
+/// `2^RAMP_BITS`.
+const RAMP_UNIT: f64 = (1u32 << RAMP_BITS) as f64;
+/// Corrections by one unit tried before a full square root.
+const MAX_NUDGES: u32 = 2;
+/// `2^32`: the cruise's fixed point.
+const CRUISE_UNIT: f64 = 4_294_967_296.0;
+
+/// The steps of one axis through one phase. See the [module documentation](self).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum StepClock {
+    /// Constant speed.
+    Cruise {
+        /// The tick the times count from.
+        base: u64,
+        /// The current step's time plus half a tick, ticks since `base`, 32.32 fixed point.
+        time: u64,
+        /// Ticks per step, 32.32 fixed point.
+        interval: u64,
+    },
+    /// Constant acceleration.
+    Ramp {
+        /// The tick the times count from.
+        base: u64,
+        /// `Y·4^k` at the current step.
+        w: u64,
+        /// Its change per step.
+        dw: u64,
+        /// `⌊√w⌋`.
+        r: u32,
+        /// The last change of `r`.
+        d: u32,
+        /// `(c + ½)·2^k`, modulo 2^32: the step's tick is `base + (off ± r) >> k`.
+        off: u32,
+        /// Speeding up (`+√Y`, `W` growing) or slowing down.
+        up: bool,
+    },
+}
+
+impl StepClock {
+    /// A clock for `steps` steps at constant speed: the first one at `first` ticks after
+    /// `base` (exact, `≥ −½`), the others `interval` ticks apart. `None` beyond its range.
+    pub(crate) fn cruise(base: u64, first: f64, interval: f64, steps: u32) -> Option<Self> {
+        let last = first + interval * f64::from(steps.saturating_sub(1));
+        if !(first >= -0.5 && interval >= 0.0 && last + 1.0 < CRUISE_UNIT) {
+            return None;
+        }
+        Some(Self::Cruise {
+            base,
+            time: round((first + 0.5) * CRUISE_UNIT) as u64,
+            interval: round(interval * CRUISE_UNIT) as u64,
+        })
+    }
+
+    /// A clock for `steps` steps at constant acceleration: step `m` (from 0) is at
+    /// `base + c ± √(y + m·dy)` ticks (`+`, `y` growing, when `up`; else `−`, `y` shrinking),
+    /// with `y ≥ 0` and `dy ≥ 0` in ticks². `None` beyond its range.
+    pub(crate) fn ramp(base: u64, c: f64, y: f64, dy: f64, up: bool, steps: u32) -> Option<Self> {
+        let y_end = if up {
+            y + dy * f64::from(steps.saturating_sub(1))
+        } else {
+            y
+        };
+        let tau_max = sqrt(y_end.max(y));
+        // The largest time since `base`: the last step speeding up, the first slowing down.
+        let t_max = if up { c + tau_max } else { c };
+        let fits = y >= 0.0
+            && dy >= 0.0
+            && tau_max * RAMP_UNIT < 2_147_483_648.0
+            && (t_max + 2.0) * RAMP_UNIT < CRUISE_UNIT
+            && (c + 0.5) * RAMP_UNIT > -CRUISE_UNIT;
+        if !fits {
+            return None;
+        }
+        let scale = RAMP_UNIT * RAMP_UNIT;
+        let w = round(y * scale) as u64;
+        let dw = round(dy * scale) as u64;
+        let r = isqrt(w);
+        let next = if up { w + dw } else { w.saturating_sub(dw) };
+        // Wrapping: `off ± r` is a time since `base` in [0, 2^32) units, whatever `off`'s sign.
+        let off = round((c + 0.5) * RAMP_UNIT) as i64 as u32;
+        Some(Self::Ramp {
+            base,
+            w,
+            dw,
+            r,
+            d: isqrt(next).abs_diff(r),
+            off,
+            up,
+        })
+    }
+
+    /// The current step's tick.
+    #[inline]
+    pub(crate) fn tick(&self) -> u64 {
+        match *self {
+            Self::Cruise { base, time, .. } => base + (time >> 32),
+            Self::Ramp {
+                base, r, off, up, ..
+            } => {
+                let units = if up {
+                    off.wrapping_add(r)
+                } else {
+                    off.wrapping_sub(r)
+                };
+                base + u64::from(units >> RAMP_BITS)
+            }
+        }
+    }
+
+    /// Move to the next step; returns its tick.
+    #[inline]
+    pub(crate) fn advance(&mut self) -> u64 {
+        match self {
+            Self::Cruise { time, interval, .. } => *time = time.wrapping_add(*interval),
+            Self::Ramp {
+                w, dw, r, d, up, ..
+            } => {
+                let (w_next, guess) = if *up {
+                    (w.wrapping_add(*dw), r.wrapping_add(*d))
+                } else {
+                    (w.saturating_sub(*dw), r.saturating_sub(*d))
+                };
+                let next = nudge(guess, w_next);
+                *d = next.abs_diff(*r);
+                *r = next;
+                *w = w_next;
+            }
+        }
+        self.tick()
+    }
+}
+
+/// `⌊√w⌋` from a guess: corrected by single units, or computed anew when the guess is off
+/// by more than [`MAX_NUDGES`].
+#[inline(always)]
+fn nudge(guess: u32, w: u64) -> u32 {
+    let mut r = guess;
+    let mut sq = u64::from(r) * u64::from(r);
+    for _ in 0..MAX_NUDGES {
+        if sq > w {
+            // (r − 1)² = r² − 2r + 1
+            sq -= 2 * u64::from(r) - 1;
+            r -= 1;
+        } else if sq + 2 * u64::from(r) < w {
+            // (r + 1)² = r² + 2r + 1 ≤ w
+            sq += 2 * u64::from(r) + 1;
+            r += 1;
+        } else {
+            return r;
+        }
+    }
+    if sq <= w && w - sq <= 2 * u64::from(r) {
+        r
+    } else {
+        isqrt(w)
+    }
+}
+
+/// `⌊√w⌋` for `w < 2^62`.
+#[cold]
+#[inline(never)]
+fn isqrt(w: u64) -> u32 {
+    let mut r = sqrt(w as f64) as u64;
+    while r * r > w {
+        r -= 1;
+    }
+    while (r + 1) * (r + 1) <= w {
+        r += 1;
+    }
+    r as u32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every tick of `clock` over `steps` steps against the exact times `exact(m)`: within
+    /// 0.6 tick.
+    fn check(mut clock: StepClock, steps: u32, exact: impl Fn(u32) -> f64) {
+        for m in 0..steps {
+            let tick = if m == 0 {
+                clock.tick()
+            } else {
+                clock.advance()
+            };
+            let t = exact(m);
+            assert!(
+                (tick as f64 - t).abs() <= 0.6,
+                "step {m}: tick {tick}, exact {t}"
+            );
+        }
+    }
+
+    #[test]
+    fn isqrt_is_exact() {
+        for w in [0u64, 1, 2, 3, 4, 15, 16, 17, (1 << 62) - 1, 999_999_999_999] {
+            let r = u64::from(isqrt(w));
+            assert!(r * r <= w && (r + 1) * (r + 1) > w, "{w}");
+        }
+        assert_eq!(nudge(10, 99), 9);
+        assert_eq!(nudge(1, 99), 9);
+        assert_eq!(nudge(9, 100), 10);
+    }
+
+    #[test]
+    fn a_cruise_adds_its_interval() {
+        let clock = StepClock::cruise(1000, 12.25, 123.456, 10_000);
+        let clock = clock.expect("in range");
+        check(clock, 10_000, |m| 1000.0 + 12.25 + 123.456 * f64::from(m));
+        assert!(StepClock::cruise(0, 0.0, 1e6, 10_000).is_none());
+    }
+
+    /// Ramps from rest and between speeds, up and down, on 1 MHz and 8 MHz clocks and a
+    /// range of step lengths and accelerations: every step within 0.6 tick.
+    #[test]
+    fn ramps_land_within_a_tick() {
+        for &f in &[1e6, 8e6, 2.5e7] {
+            for &(a, h) in &[
+                (3000.0f64, 1.0 / 80.0),
+                (200.0, 1.0 / 400.0),
+                (50.0, 0.01),
+                (20_000.0, 1.0 / 3200.0),
+            ] {
+                for &(v0, v1) in &[
+                    (0.0f64, 200.0f64),
+                    (13.0, 100.0),
+                    (100.0, 0.0),
+                    (150.0, 40.0),
+                ] {
+                    let up = v1 > v0;
+                    let length: f64 = ((v1 * v1 - v0 * v0) / (2.0 * a)).abs();
+                    let steps = (length / h) as u32;
+                    if steps == 0 {
+                        continue;
+                    }
+                    let base = 777u64;
+                    let rel0 = 0.3;
+                    let cc = f * v0 / a;
+                    // Step m at x = h·(m + ½).
+                    let x0 = 0.5 * h;
+                    let k = 2.0 * f * f / a;
+                    let (c, y) = if up {
+                        (rel0 - cc, cc * cc + k * x0)
+                    } else {
+                        (rel0 + cc, cc * cc - k * x0)
+                    };
+                    let Some(clock) = StepClock::ramp(base, c, y, k * h, up, steps) else {
+                        continue;
+                    };
+                    check(clock, steps, |m| {
+                        let x = h * (f64::from(m) + 0.5);
+                        let t = if up {
+                            ((v0 * v0 + 2.0 * a * x).sqrt() - v0) / a
+                        } else {
+                            (v0 - (v0 * v0 - 2.0 * a * x).max(0.0).sqrt()) / a
+                        };
+                        base as f64 + rel0 + t * f
+                    });
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_ramp_out_of_range_has_no_clock() {
+        // 100 s of ramp at 8 MHz.
+        let tau = 8e8;
+        assert!(StepClock::ramp(0, -tau, tau * tau, 1.0, true, 10).is_none());
+    }
+}
