@@ -171,6 +171,13 @@ where
         self.wake_at
     }
 
+    /// Whether the last poll left steps to prepare before the step queue holds its lead
+    /// (`Kernel::needs_poll`): poll again at once, after the board's other work of the moment
+    /// (`wake_at` is then the poll's own instant).
+    pub fn needs_poll(&self) -> bool {
+        self.controller.kernel().needs_poll()
+    }
+
     /// Send what a link session asks of the controller (a board whose link has sessions:
     /// frames 54 and 55): announce the new controlling client, or send the keep-alive. A
     /// client the session refuses ([`Admit::Refuse`](crate::session::Admit::Refuse)) is
@@ -385,6 +392,11 @@ where
     /// timed.
     pub fn wake_at(&self) -> Option<Instant> {
         self.firmware.wake_at()
+    }
+
+    /// See [`Firmware::needs_poll`].
+    pub fn needs_poll(&self) -> bool {
+        self.firmware.needs_poll()
     }
 
     /// The firmware, for what a board reads of it (its controller's statistics).

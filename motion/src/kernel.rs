@@ -17,7 +17,7 @@ use crate::interp::{
     Action, Interpreter, LimitChange, NM_PER_MM, mm_to_nm, nm_to_steps, steps_to_nm,
 };
 use crate::planner::{MoveRequest, PathLimits, Planner};
-use crate::prep::Prep;
+use crate::prep::{Fill, Prep};
 use crate::queue::{
     MAX_DELTA, PROBE_CONTACT, PROBE_OFF, PROBE_RELEASE, Producer, StepQueue, StopCause,
 };
@@ -242,6 +242,8 @@ pub struct Kernel<'q, const N: usize, const B: usize = 32, const Q: usize = 256>
     tx: Producer<'q, N, Q>,
     planner: Planner<N, B>,
     prep: Prep<N>,
+    /// The last [`Kernel::poll`] stopped preparing with work left.
+    prep_more: bool,
     interp: Interpreter<N>,
     /// Commanded machine position in steps (where the last queued move ends).
     steps: [i32; N],
@@ -321,6 +323,7 @@ pub fn split<'q, const N: usize, const B: usize, const Q: usize>(
         tx: Producer::new(queue),
         planner: Planner::new(),
         prep: Prep::new(tick_hz, pulse, dir_setup),
+        prep_more: false,
         steps: [0; N],
         origin,
         homed: 0,
@@ -1296,8 +1299,10 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// otherwise.
     ///
     /// Context: thread. Call it at least every half of `queue_lead_ms` while the machine
-    /// moves, and after each [`Kernel::execute`] that was taken. Its cost is bounded by the
-    /// room in the step queue.
+    /// moves, after each [`Kernel::execute`] that was taken, and again at once while
+    /// [`Kernel::needs_poll`] says so. Its cost is bounded: one call prepares at most a few
+    /// dozen step events (under 20,000 instructions on a Cortex-M4, `docs/performance.md`),
+    /// and a motion starts once its lead is prepared.
     pub fn poll(&mut self, now: Instant) -> Option<Instant> {
         let q = self.tx.shared();
         let stops = q.stops.load(Ordering::Acquire);
@@ -1326,14 +1331,25 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return self.start_interrupt(now, true);
         }
         let running = !self.isr_idle();
-        let _ = self.prep.fill(
+        let fill = self.prep.fill(
             &mut self.planner,
             &mut self.tx,
             self.lead_ticks,
             now,
             running,
         );
+        self.prep_more = fill == Fill::More;
+        if self.prep_more && !running {
+            // The motion starts with its lead prepared, a few calls from now.
+            return None;
+        }
         self.start_interrupt(now, false)
+    }
+
+    /// Whether the last [`Kernel::poll`] stopped with steps left to prepare before the queue
+    /// holds its lead: call it again at once (after the board's other work of the moment).
+    pub fn needs_poll(&self) -> bool {
+        self.prep_more
     }
 
     fn start_interrupt(&mut self, now: Instant, force: bool) -> Option<Instant> {

@@ -19,9 +19,11 @@
 //!
 //! [`split`] creates both halves around a [`StepQueue`] that outlives them (a `static`, or a
 //! local in tests). The [`Kernel`] lives in a thread context; [`Kernel::poll`] must run at least
-//! every half `queue_lead_ms` while the machine moves, and returns the instant to arm the step
-//! alarm at when the interrupt side is idle and has work. The [`StepGenerator`] lives in the
-//! step interrupt: each alarm, call [`StepGenerator::on_alarm`] and re-arm at what it returns.
+//! every half `queue_lead_ms` while the machine moves, and again at once while
+//! [`Kernel::needs_poll`] (one call prepares a bounded share of steps); it returns the instant
+//! to arm the step alarm at when the interrupt side is idle and has work. The
+//! [`StepGenerator`] lives in the step interrupt: each alarm, call
+//! [`StepGenerator::on_alarm`] and re-arm at what it returns.
 //!
 //! ## Contract
 //!

@@ -36,6 +36,17 @@ const SLOTS_PER_STEP: usize = 4;
 /// No axis.
 const NO_AXIS: u8 = u8::MAX;
 
+/// The work one [`Prep::fill`] call may do, in units of one step event, so that no call takes
+/// long (the link, the heaters and the reports wait behind it): a call stops at this many and
+/// says there is more ([`Fill::More`]).
+const WORK_PER_FILL: u32 = 48;
+/// What planning a profile (a block's start, a re-plan) counts, in steps.
+const PROFILE_WORK: u32 = 24;
+/// What setting up an axis's step clock for a phase counts, in steps.
+const PHASE_WORK: u32 = 24;
+/// What a step timed by a full square root (or in double precision) counts, in steps.
+const ROOT_WORK: u32 = 3;
+
 /// How an axis's steps are timed in its current phase.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Timing {
@@ -78,6 +89,9 @@ struct Current<const N: usize> {
     last_axis: u8,
     /// The one axis that steps, when only one does.
     only_axis: Option<usize>,
+    /// Axes whose timing is not set up for the current profile yet: `fill` sets them up one
+    /// per turn (each is a few thousand instructions) before the next step.
+    unset: u8,
     profile: Profile,
     exit_used: f32,
     hold_used: bool,
@@ -117,7 +131,8 @@ impl<const N: usize> Current<N> {
         (s, self.t_anchor + dt * ticks_per_s)
     }
 
-    /// Re-plan the rest of the block from the last emitted step.
+    /// Re-plan the rest of the block from the last emitted step (the axes' clocks are set up
+    /// again by the next calls of `fill`, see [`Current::unset`]).
     fn reanchor(&mut self, exit_sqr: f32, hold: bool, ticks_per_s: f64) {
         let (s, t) = self.last_point(ticks_per_s);
         let v = self.profile.speed_at(s - self.s_anchor);
@@ -127,12 +142,21 @@ impl<const N: usize> Current<N> {
         self.exit_used = exit_sqr;
         self.hold_used = hold;
         self.profile = self.profile_for(v, exit_sqr, hold);
-        for i in 0..N {
-            if let Some(a) = self.axes.get_mut(i) {
-                a.phase = 0;
-            }
-            self.enter_phase(i, ticks_per_s);
+        for a in self.axes.iter_mut() {
+            a.phase = 0;
         }
+        self.unset = self.steps_left();
+    }
+
+    /// The axes with steps left in the block.
+    fn steps_left(&self) -> u8 {
+        let mut mask = 0;
+        for (i, a) in self.axes.iter().enumerate() {
+            if a.j <= a.n {
+                mask |= 1 << i;
+            }
+        }
+        mask
     }
 
     /// Find the phase of axis `i`'s next step, from the one it is in, and set up its timing.
@@ -237,26 +261,28 @@ impl<const N: usize> Current<N> {
             .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s)
     }
 
-    /// Axis `i` has emitted its step: time its next one.
+    /// Axis `i` has emitted its step: time its next one. Returns the work it took (see
+    /// [`WORK_PER_FILL`]).
     #[inline(always)]
-    fn advance(&mut self, i: usize, ticks_per_s: f64) {
+    fn advance(&mut self, i: usize, ticks_per_s: f64) -> u32 {
         self.last_axis = i as u8;
         let Some(a) = self.axes.get_mut(i) else {
-            return;
+            return 1;
         };
         a.j += 1;
         if a.j > a.phase_last {
             a.phase += 1;
             self.enter_phase(i, ticks_per_s);
-            return;
+            return 1 + PHASE_WORK;
         }
-        let tick = match &mut a.timing {
+        let (tick, rooted) = match &mut a.timing {
             Timing::Clock(clock) => clock.advance(),
-            Timing::Exact => self.exact_tick(i, ticks_per_s),
+            Timing::Exact => (self.exact_tick(i, ticks_per_s), true),
         };
         if let Some(t) = self.next_tick.get_mut(i) {
             *t = tick;
         }
+        if rooted { 1 + ROOT_WORK } else { 1 }
     }
 
     /// The axis whose next step comes first, and that step's tick (`u64::MAX`: none).
@@ -465,6 +491,9 @@ pub(crate) enum Fill {
     Drained,
     /// A feed hold has come to rest; nothing more until it is released.
     Held,
+    /// The call did its share of work ([`WORK_PER_FILL`]) before the queue had its lead:
+    /// call again at once.
+    More,
 }
 
 pub(crate) struct Prep<const N: usize> {
@@ -613,9 +642,12 @@ impl<const N: usize> Prep<N> {
         // Events go up to this tick: `lead_ticks` of motion ahead of now.
         let horizon = self.em.last_pushed + u64::from(lead_ticks.saturating_sub(ahead));
         let tps = self.ticks_per_s;
-        self.check_plan(planner);
+        let mut work = self.check_plan(planner);
         self.em.room = tx.free();
         let result = loop {
+            if work >= WORK_PER_FILL {
+                break Fill::More;
+            }
             if self.em.room < SLOTS_PER_STEP + 2 {
                 self.em.room = tx.free();
                 if self.em.room < SLOTS_PER_STEP + 2 {
@@ -647,10 +679,20 @@ impl<const N: usize> Prep<N> {
                         self.line = block.line;
                         planner.retire_tail();
                     }
-                    BlockKind::Move => self.load(&block, planner.tail_exit_sqr()),
+                    BlockKind::Move => {
+                        self.load(&block, planner.tail_exit_sqr());
+                        work += PROFILE_WORK;
+                    }
                 }
                 continue;
             };
+            if cur.unset != 0 {
+                let i = cur.unset.trailing_zeros() as usize;
+                cur.unset &= !(1 << i);
+                cur.enter_phase(i, tps);
+                work += PHASE_WORK;
+                continue;
+            }
             // The axis whose step comes first.
             let (i, tick) = cur.first_step();
             if tick != u64::MAX {
@@ -660,7 +702,7 @@ impl<const N: usize> Prep<N> {
                     let exact = cur.exact_tick_f64(i, tps);
                     self.worst_error = self.worst_error.max((tick as f64 - exact).abs());
                 }
-                cur.advance(i, tps);
+                work += cur.advance(i, tps);
             } else if cur.done() {
                 // Block done: the next one starts where this profile ends.
                 self.t_plan = cur.t_anchor + cur.profile.duration() * tps;
@@ -685,14 +727,16 @@ impl<const N: usize> Prep<N> {
     }
 
     /// Re-plan the block in preparation if its exit speed or the hold changed since it was
-    /// planned.
-    fn check_plan<const B: usize>(&mut self, planner: &Planner<N, B>) {
+    /// planned. Returns the work it took.
+    fn check_plan<const B: usize>(&mut self, planner: &Planner<N, B>) -> u32 {
         let exit_sqr = planner.tail_exit_sqr();
         let hold = self.hold;
-        if let Some(cur) = self.cur.as_mut()
-            && (cur.exit_used != exit_sqr || cur.hold_used != hold)
-        {
-            cur.reanchor(exit_sqr, hold, self.ticks_per_s);
+        match self.cur.as_mut() {
+            Some(cur) if cur.exit_used != exit_sqr || cur.hold_used != hold => {
+                cur.reanchor(exit_sqr, hold, self.ticks_per_s);
+                PROFILE_WORK
+            }
+            _ => 0,
         }
     }
 
@@ -734,6 +778,7 @@ impl<const N: usize> Prep<N> {
             t_anchor: t0,
             last_axis: NO_AXIS,
             only_axis,
+            unset: 0,
             profile: Profile::plan(0.0, 0.0, 0.0, 0.0, 1.0),
             exit_used: exit_sqr,
             hold_used: self.hold,
@@ -742,9 +787,7 @@ impl<const N: usize> Prep<N> {
         self.rapid = block.speed.rapid;
         self.spindle_rpm = block.spindle_rpm;
         cur.profile = cur.profile_for(self.v_carry, exit_sqr, self.hold);
-        for i in 0..N {
-            cur.enter_phase(i, self.ticks_per_s);
-        }
+        cur.unset = cur.steps_left();
         self.cur = Some(cur);
     }
 }

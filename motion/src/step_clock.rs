@@ -81,18 +81,24 @@ impl StepClock {
     /// `base + c ± √(y + m·dy)` ticks (`+`, `y` growing, when `up`; else `−`, `y` shrinking),
     /// with `y ≥ 0` and `dy ≥ 0` in ticks². `None` beyond its range.
     pub(crate) fn ramp(base: u64, c: f64, y: f64, dy: f64, up: bool, steps: u32) -> Option<Self> {
-        let y_end = if up {
+        // The largest `√Y` (the last step speeding up, the first slowing down) and the largest
+        // time since `base` must fit `r`'s 31 bits and the ticks' 32, in units: compared
+        // squared, with no square root.
+        let y_max = if up {
             y + dy * f64::from(steps.saturating_sub(1))
         } else {
             y
         };
-        let tau_max = sqrt(y_end.max(y));
-        // The largest time since `base`: the last step speeding up, the first slowing down.
-        let t_max = if up { c + tau_max } else { c };
+        let tau_limit = (2_147_483_648.0 / RAMP_UNIT).min(if up {
+            CRUISE_UNIT / RAMP_UNIT - 2.0 - c
+        } else {
+            f64::INFINITY
+        });
         let fits = y >= 0.0
             && dy >= 0.0
-            && tau_max * RAMP_UNIT < 2_147_483_648.0
-            && (t_max + 2.0) * RAMP_UNIT < CRUISE_UNIT
+            && tau_limit > 0.0
+            && y_max < tau_limit * tau_limit
+            && (c + 2.0) * RAMP_UNIT < CRUISE_UNIT
             && (c + 0.5) * RAMP_UNIT > -CRUISE_UNIT;
         if !fits {
             return None;
@@ -101,7 +107,8 @@ impl StepClock {
         let w = round(y * scale) as u64;
         let dw = round(dy * scale) as u64;
         let r = isqrt(w);
-        let next = if up { w + dw } else { w.saturating_sub(dw) };
+        // The first increment, `√(w ± dw) − √w ≈ dw / 2√w`: a guess the first step corrects.
+        let d = (dy * scale / (2.0 * f64::from(r) + 1.0)).min(f64::from(u32::MAX >> 1)) as u32;
         // Wrapping: `off ± r` is a time since `base` in [0, 2^32) units, whatever `off`'s sign.
         let off = round((c + 0.5) * RAMP_UNIT) as i64 as u32;
         Some(Self::Ramp {
@@ -109,7 +116,7 @@ impl StepClock {
             w,
             dw,
             r,
-            d: isqrt(next).abs_diff(r),
+            d,
             off,
             up,
         })
@@ -133,9 +140,11 @@ impl StepClock {
         }
     }
 
-    /// Move to the next step; returns its tick.
+    /// Move to the next step; returns its tick, and whether it took a full square root (the
+    /// first steps of a ramp from rest: a few hundred instructions instead of a few dozen).
     #[inline]
-    pub(crate) fn advance(&mut self) -> u64 {
+    pub(crate) fn advance(&mut self) -> (u64, bool) {
+        let mut rooted = false;
         match self {
             Self::Cruise { time, interval, .. } => *time = time.wrapping_add(*interval),
             Self::Ramp {
@@ -147,12 +156,13 @@ impl StepClock {
                     (w.saturating_sub(*dw), r.saturating_sub(*d))
                 };
                 let next = nudge(guess, w_next);
+                rooted = next.abs_diff(guess) > MAX_NUDGES;
                 *d = next.abs_diff(*r);
                 *r = next;
                 *w = w_next;
             }
         }
-        self.tick()
+        (self.tick(), rooted)
     }
 }
 
@@ -207,7 +217,7 @@ mod tests {
             let tick = if m == 0 {
                 clock.tick()
             } else {
-                clock.advance()
+                clock.advance().0
             };
             let t = exact(m);
             assert!(

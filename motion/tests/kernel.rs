@@ -604,3 +604,29 @@ fn a_spindle_command_on_a_motion_line_acts_first_at_rest_and_s_rides_on_the_move
     assert_eq!(s.kernel.motion_now().spindle_rpm, 9000);
     assert_eq!(s.send("S-1"), Err(CommandError::BadValue { letter: b'S' }));
 }
+
+/// One `poll` prepares a bounded share of a move and asks to be called again; the motion
+/// starts only once its lead is prepared, and runs to its end.
+#[test]
+fn a_poll_prepares_a_bounded_share_and_the_motion_starts_with_its_lead() {
+    use forja_hal_abstraction::clock::Alarm as _;
+    use forja_hal_abstraction::time::Instant;
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    let line = Line::parse(b"G1 X100 Y50 F6000").expect("parse");
+    assert_eq!(s.kernel.execute(&line), Ok(Reply::Ok));
+    let now = Instant::from_ticks(s.now() as u32);
+    let mut calls = 1;
+    let mut arm = s.kernel.poll(now);
+    while s.kernel.needs_poll() {
+        assert_eq!(arm, None, "no start before the lead is prepared");
+        arm = s.kernel.poll(now);
+        calls += 1;
+    }
+    assert!(calls > 2, "the lead took {calls} calls");
+    assert_eq!(arm, Some(now), "the motion starts with its lead");
+    let _ = s.wiring.machine.alarm().set_alarm(now);
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    assert_eq!(s.positions(), [steps(100.0), steps(50.0), 0]);
+    assert!(s.record().violations.is_empty());
+}

@@ -1385,6 +1385,9 @@ where
         {
             ms = ms.min(u32::from(self.kernel.config().queue_lead_ms / 2).max(1));
         }
+        if self.kernel.needs_poll() {
+            ms = 0;
+        }
         Some(self.clock.after(ms))
     }
 }

@@ -398,12 +398,18 @@ impl<P: ProgramStore> Bench<P> {
         (program, storage, physical)
     }
 
-    /// Run virtual time forward `ms` milliseconds.
+    /// Run virtual time forward `ms` milliseconds. Each turn of the thread loop polls the
+    /// controller again at once while the kernel has steps left to prepare, as a board does.
     fn run_ms(&mut self, ms: u64) {
         let until = self.wiring.now() + ms * 1000;
         let (ctl, link) = (&mut self.ctl, &mut self.link);
-        self.wiring
-            .advance_to(until, |now| ctl.poll(now, link).arm_alarm);
+        self.wiring.advance_to(until, |now| {
+            let mut arm = ctl.poll(now, link).arm_alarm;
+            while ctl.kernel().needs_poll() {
+                arm = arm.or(ctl.poll(now, link).arm_alarm);
+            }
+            arm
+        });
         self.collect();
     }
 

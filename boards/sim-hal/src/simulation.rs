@@ -49,8 +49,19 @@ pub const PACING_SLACK: std::time::Duration = std::time::Duration::from_micros(5
 pub enum Flow {
     /// Keep running.
     Continue,
+    /// Keep running, and poll again at once (after the alarms due now): the thread side
+    /// stopped with work left, as a board's thread loop polls again when its firmware asks.
+    Again,
     /// Stop the simulation: the job is done or the firmware gave up.
     Stop,
+}
+
+impl Flow {
+    /// [`Flow::Again`] when `again` (the firmware has work left for its next turn, e.g. steps
+    /// to prepare), else [`Flow::Continue`].
+    pub fn again_if(again: bool) -> Self {
+        if again { Self::Again } else { Self::Continue }
+    }
 }
 
 /// The firmware under simulation: its step interrupt and its thread side.
@@ -109,9 +120,13 @@ impl<F: Firmware + ?Sized, H: FnMut(&mut F, Instant) -> Flow> Firmware for Hooke
         self.firmware.on_alarm(now)
     }
     fn poll(&mut self, now: Instant) -> Flow {
-        match self.firmware.poll(now) {
-            Flow::Stop => Flow::Stop,
-            Flow::Continue => (self.hook)(self.firmware, now),
+        let firmware = self.firmware.poll(now);
+        if firmware == Flow::Stop {
+            return Flow::Stop;
+        }
+        match (self.hook)(self.firmware, now) {
+            Flow::Continue => firmware,
+            hook => hook,
         }
     }
 }
@@ -402,9 +417,10 @@ impl Simulation {
                 }
             } else {
                 report.polls += 1;
-                next_poll = t + period;
-                if firmware.poll(Instant::from_ticks(t as u32)) == Flow::Stop {
-                    break Ok(finish(report, StopReason::Firmware));
+                match firmware.poll(Instant::from_ticks(t as u32)) {
+                    Flow::Stop => break Ok(finish(report, StopReason::Firmware)),
+                    Flow::Again => next_poll = t,
+                    Flow::Continue => next_poll = t + period,
                 }
             }
         };

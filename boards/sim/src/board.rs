@@ -121,7 +121,7 @@ pub struct BoardStatus {
 /// The firmware of one axis count.
 trait Wiring {
     fn on_alarm(&mut self, now: Instant) -> Option<Instant>;
-    fn poll(&mut self, now: Instant, ports: &mut Ports, arbiter: &mut Arbiter<Vec<u8>>);
+    fn poll(&mut self, now: Instant, ports: &mut Ports, arbiter: &mut Arbiter<Vec<u8>>) -> Flow;
     fn status(&self, active_port: Option<PortId>) -> BoardStatus;
     fn keep_alive_ms(&self) -> u32;
     fn program_line(&mut self, index: u16) -> Option<String>;
@@ -245,13 +245,14 @@ impl<const N: usize, X: Peripherals<N>, R> Wiring for Wired<N, X, R> {
         next
     }
 
-    fn poll(&mut self, now: Instant, ports: &mut Ports, arbiter: &mut Arbiter<Vec<u8>>) {
+    fn poll(&mut self, now: Instant, ports: &mut Ports, arbiter: &mut Arbiter<Vec<u8>>) -> Flow {
         look_at_switches(&mut self.switch_edges, &self.switch_alert);
         let now_ms = self.machine.now_ms() as u32;
         let controller = self.firmware.controller_mut();
         if let Some(at) = arbiter.poll(ports, controller, now, now_ms).arm_alarm {
             let _ = self.machine.alarm().set_alarm(at);
         }
+        Flow::again_if(self.firmware.needs_poll())
     }
 
     fn status(&self, active_port: Option<PortId>) -> BoardStatus {
@@ -448,8 +449,7 @@ impl Firmware for SimBoard {
     }
 
     fn poll(&mut self, now: Instant) -> Flow {
-        self.wiring.poll(now, &mut self.ports, &mut self.arbiter);
-        Flow::Continue
+        self.wiring.poll(now, &mut self.ports, &mut self.arbiter)
     }
 }
 

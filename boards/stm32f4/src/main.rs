@@ -166,7 +166,7 @@ mod app {
     }
 
     /// The protocol and planner task: polled when bytes wait, a limit line fired, or the
-    /// firmware's `wake_at` has come.
+    /// firmware's `wake_at` has come, and again at once while it has steps to prepare.
     #[task(binds = SDIO, priority = 1, shared = [timer], local = [firmware, clock])]
     fn controller(mut cx: controller::Context) {
         let now = cx.local.clock.now();
@@ -175,6 +175,9 @@ mod app {
             cx.shared.timer.lock(|timer| {
                 let _ = timer.set_alarm(at);
             });
+        }
+        if firmware.needs_poll() {
+            rtic::pend(vectors::CONTROLLER);
         }
         LINK_COUNTERS.publish(firmware.link(), &firmware.firmware().controller().stats());
     }

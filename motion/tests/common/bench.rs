@@ -281,6 +281,19 @@ impl<'q, const N: usize, const Q: usize> Wiring<'q, N, Q> {
     }
 }
 
+/// The thread loop's turn: `Kernel::poll`, again at once while it has steps left to prepare
+/// (`Kernel::needs_poll`), as a board's loop does. Returns where to arm the alarm.
+fn poll_loop<const N: usize, const B: usize, const Q: usize>(
+    kernel: &mut Kernel<'_, N, B, Q>,
+    now: Instant,
+) -> Option<Instant> {
+    let mut arm = kernel.poll(now);
+    while kernel.needs_poll() {
+        arm = arm.or(kernel.poll(now));
+    }
+    arm
+}
+
 /// A kernel and its interrupt side on a simulated machine.
 pub struct KernelSim<'q, const N: usize, const B: usize, const Q: usize> {
     /// The thread side.
@@ -331,13 +344,13 @@ impl<'q, const N: usize, const B: usize, const Q: usize> KernelSim<'q, N, B, Q> 
     /// Run the thread side once, now.
     pub fn poll(&mut self) {
         let kernel = &mut self.kernel;
-        self.wiring.poll_now(|now| kernel.poll(now));
+        self.wiring.poll_now(|now| poll_loop(kernel, now));
     }
 
     /// Advance virtual time to `until`, firing alarms and polling on the way.
     pub fn advance_to(&mut self, until: u64) {
         let kernel = &mut self.kernel;
-        self.wiring.advance_to(until, |now| kernel.poll(now));
+        self.wiring.advance_to(until, |now| poll_loop(kernel, now));
     }
 
     /// Advance by `ticks`.

@@ -246,8 +246,19 @@ impl Bench {
             }
         }
         self.now = until.ticks();
-        if let Some(at) = bench_prep(&mut self.kernel, Instant::from_ticks(self.now)) {
-            self.alarm = Some(at);
+        self.poll();
+    }
+
+    /// The thread loop's turn: the thread side, again at once while it has steps left to
+    /// prepare, as the firmware's loop does.
+    fn poll(&mut self) {
+        loop {
+            if let Some(at) = bench_prep(&mut self.kernel, Instant::from_ticks(self.now)) {
+                self.alarm = Some(at);
+            }
+            if !self.kernel.needs_poll() {
+                break;
+            }
         }
     }
 
@@ -267,9 +278,7 @@ impl Bench {
                 text.clear();
                 pending = lines(&mut text);
             }
-            if let Some(at) = bench_prep(&mut self.kernel, Instant::from_ticks(self.now)) {
-                self.alarm = Some(at);
-            }
+            self.poll();
             self.run_period();
             if !pending && self.kernel.is_idle() {
                 break;
