@@ -18,6 +18,7 @@
 //! | [`uart`] | [`UartBuffers`](uart::UartBuffers), [`UartLink`](uart::UartLink) | `embedded_io::{Read, ReadReady, Write, WriteReady}` | RX/TX interrupts push and pop; the protocol task reads and writes |
 //! | [`port_link`] | [`PortLink`](port_link::PortLink): what a link a board serves as a port must do; [`Admission`](port_link::Admission): the session rules a connection-oriented link asks about its clients (the application's) | (contract) `embedded_io::{Read, ReadReady, Write}`, `LinkStatus` | thread: the board's host task |
 //! | `tcp` (feature `embassy-net`) | `TcpServer`, `TcpLink` | `embedded_io::{Read, ReadReady, Write, WriteReady}`, `LinkStatus` | thread: listening tasks serve the sockets; the controller's task reads and writes |
+//! | `web` (feature `embassy-net`) | `TcpServer::listen_web`, `Mirror`, `WebCounters` | the same `TcpServer` | thread: web tasks serve the page (`forja-web`'s assets) and the link over a WebSocket, controlling or watching |
 //! | [`thermistor`] | [`Thermistor`](thermistor::Thermistor) | `TemperatureSensor` | thread: may block for one ADC conversion |
 //! | [`max31855`] | [`Max31855`](max31855::Max31855) | `TemperatureSensor` | thread: one SPI transfer |
 //! | [`heater`] | [`PidHeater`](heater::PidHeater) (sans-IO controller), [`HeaterChannel`](heater::HeaterChannel) | `TemperatureControl` (for `HeaterChannel`) | thread: the temperature loop |
@@ -64,7 +65,7 @@
 //! | feature | adds |
 //! |---|---|
 //! | `alloc` | `PortLink` for `Box<T>` (with `embedded-io`'s and `LinkStatus`'s own), for a board that serves links of several types; it allocates nothing itself |
-//! | `embassy-net` | the `tcp` module: a TCP host link over an `embassy-net` stack (embassy-sync queues, embassy-time time-outs), for boards with a network; no executor is named |
+//! | `embassy-net` | the `tcp` module: a TCP host link over an `embassy-net` stack (embassy-sync queues, embassy-time time-outs), for boards with a network; no executor is named; and the `web` module beside it (the operator's page, `forja-web`) |
 //! | `sd-card` | the `sd_card` module: the named-file store (`FileStore`) on a FAT16/FAT32 SD card, over embedded-sdmmc (without its logging) |
 //!
 //! ## Writing a driver
@@ -105,6 +106,8 @@ pub mod storage;
 pub mod tcp;
 pub mod thermistor;
 pub mod uart;
+#[cfg(feature = "embassy-net")]
+pub mod web;
 
 #[cfg(test)]
 mod test_fakes;

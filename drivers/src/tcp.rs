@@ -81,6 +81,10 @@ use embassy_time::{Duration, Instant, Timer, with_deadline, with_timeout};
 use forja_hal_abstraction::link::{LinkState, LinkStatus};
 
 use crate::port_link::{Admission, Admit};
+use crate::web::Mirror;
+
+/// Most bytes of a frame header a framing puts before a payload.
+pub(crate) const MAX_HEADER: usize = forja_web::websocket::MAX_HEADER;
 
 /// A client that acknowledges nothing for this long is gone.
 pub const CLIENT_TIMEOUT: Duration = Duration::from_secs(10);
@@ -94,10 +98,10 @@ pub const TX_HEADROOM: usize = 512;
 const SOCKET_BUF: usize = 1536;
 
 /// Bytes moved between a socket and a queue at a time.
-const CHUNK: usize = 512;
+pub(crate) const CHUNK: usize = 512;
 
 /// How long a refused client is given to receive the refusal.
-const REFUSAL_TIMEOUT: Duration = Duration::from_millis(500);
+pub(crate) const REFUSAL_TIMEOUT: Duration = Duration::from_millis(500);
 
 /// The milliseconds of the session clock (embassy's time base, wrapping).
 pub fn now_ms() -> u32 {
@@ -143,7 +147,7 @@ impl Default for LinkCounters {
     }
 }
 
-fn bump(counter: &AtomicU32, by: usize) {
+pub(crate) fn bump(counter: &AtomicU32, by: usize) {
     // One writer at a time, and targets without read-modify-write atomics (RISC-V `imc`): load
     // and store.
     counter.store(
@@ -198,6 +202,8 @@ pub struct TcpServer<A, const RX: usize, const TX: usize> {
     shared: Mutex<CriticalSectionRawMutex, RefCell<Shared<A>>>,
     taken: AtomicBool,
     counters: &'static LinkCounters,
+    /// Where what the controlling client is sent is copied for the web page's watchers.
+    pub(crate) mirror: Option<&'static Mirror>,
 }
 
 impl<A: Admission, const RX: usize, const TX: usize> TcpServer<A, RX, TX> {
@@ -219,7 +225,16 @@ impl<A: Admission, const RX: usize, const TX: usize> TcpServer<A, RX, TX> {
             })),
             taken: AtomicBool::new(false),
             counters,
+            mirror: None,
         }
+    }
+
+    /// The same server, copying every byte its controlling client is sent (on raw TCP or the
+    /// web page's WebSocket) into `mirror`, for the page's watchers
+    /// ([`crate::web`]).
+    pub const fn with_mirror(mut self, mirror: &'static Mirror) -> Self {
+        self.mirror = Some(mirror);
+        self
     }
 
     /// Run `f` on the session rules and return what it returns: at init, to set them up (the
@@ -249,14 +264,14 @@ impl<A: Admission, const RX: usize, const TX: usize> TcpServer<A, RX, TX> {
     }
 
     /// Whether a client is in control, as the session rules say.
-    fn is_connected(&self) -> bool {
+    pub(crate) fn is_connected(&self) -> bool {
         self.admission(|a| a.state() == LinkState::Connected)
     }
 
     /// A client connected at `now_ms`: the session rules decide whether it is the controller.
     /// A new controller finds the transmit queue empty (what was queued before it belongs to
     /// nobody) and is greeted by the controller's task.
-    fn connect(&self, now_ms: u32) -> Admit {
+    pub(crate) fn connect(&self, now_ms: u32) -> Admit {
         let admit = self.shared.lock(|s| {
             let mut s = s.borrow_mut();
             let admit = s.admission.on_connect(now_ms);
@@ -274,7 +289,7 @@ impl<A: Admission, const RX: usize, const TX: usize> TcpServer<A, RX, TX> {
     }
 
     /// The controlling client went away: the session ends, its unsent replies are dropped.
-    fn disconnect(&self) {
+    pub(crate) fn disconnect(&self) {
         self.admission(A::on_disconnect);
         self.tx.clear();
         self.wake.signal(());
@@ -293,34 +308,20 @@ impl<A: Admission, const RX: usize, const TX: usize> TcpServer<A, RX, TX> {
         port: u16,
         refusal: fn(&mut [u8; R]) -> usize,
     ) -> ! {
-        let mut rx_buf = [0u8; SOCKET_BUF];
-        let mut tx_buf = [0u8; SOCKET_BUF];
-        let mut socket = TcpSocket::new(stack, &mut rx_buf, &mut tx_buf);
-        let endpoint = IpListenEndpoint { addr: None, port };
-        loop {
-            socket.set_timeout(None);
-            if socket.accept(endpoint).await.is_err() {
-                socket.abort();
-                Timer::after(Duration::from_millis(100)).await;
-                continue;
-            }
-            socket.set_timeout(Some(CLIENT_TIMEOUT));
-            socket.set_nagle_enabled(false);
+        accept_forever(stack, port, None, async |socket| {
             match self.connect(now_ms()) {
                 Admit::Control => {
-                    self.serve(&mut socket).await;
+                    self.serve(socket, &mut Raw, &[]).await;
                     self.disconnect();
                 }
-                Admit::Refuse => self.refuse(&mut socket, refusal).await,
+                Admit::Refuse => self.refuse(socket, refusal).await,
             }
-            socket.close();
-            let _ = with_timeout(REFUSAL_TIMEOUT, socket.flush()).await;
-            socket.abort();
-        }
+        })
+        .await
     }
 
     /// Tell a second client that another is in control, with what `refusal` writes.
-    async fn refuse<S: embedded_io_async::Write, const R: usize>(
+    pub(crate) async fn refuse<S: embedded_io_async::Write, const R: usize>(
         &self,
         socket: &mut S,
         refusal: fn(&mut [u8; R]) -> usize,
@@ -335,57 +336,203 @@ impl<A: Admission, const RX: usize, const TX: usize> TcpServer<A, RX, TX> {
         .await;
     }
 
-    /// Serve the controlling client until it goes away: its bytes into the receive queue (as
-    /// room allows), the transmit queue to it.
-    async fn serve<S>(&self, socket: &mut S)
+    /// Serve the controlling client until it goes away: the link bytes its bytes carry
+    /// (`framing`: as they are, or in WebSocket frames) into the receive queue, as room allows
+    /// (`initial`: bytes it sent before, at most [`CHUNK`]), the transmit queue to it, copied
+    /// into the mirror if any.
+    pub(crate) async fn serve<S, F>(&self, socket: &mut S, framing: &mut F, initial: &[u8])
     where
         S: embedded_io_async::Read + embedded_io_async::Write,
+        F: Framing,
     {
+        let mut raw = [0u8; CHUNK];
         let mut inbound = [0u8; CHUNK];
-        // Received bytes not yet in the receive queue: inbound[start..end].
+        // Link bytes not yet in the receive queue: inbound[start..end].
         let (mut start, mut end) = (0usize, 0usize);
-        let mut outbound = [0u8; CHUNK];
+        // A frame's header, then its payload from MAX_HEADER on; `carry` bytes held back from
+        // the last frame (the start of a character) begin the next payload.
+        let mut outbound = [0u8; MAX_HEADER + CHUNK];
+        let mut carry = 0usize;
+        let mut woke = None;
+        if let Some(first) = raw.get_mut(..initial.len()).filter(|_| !initial.is_empty()) {
+            first.copy_from_slice(initial);
+            woke = Some(Wake::Received(Some(initial.len())));
+        }
         loop {
+            match woke {
+                None => {}
+                Some(Wake::Received(None | Some(0))) => return,
+                Some(Wake::Received(Some(n))) => {
+                    let mut reply = Reply::new();
+                    let raw = raw.get(..n).unwrap_or_default();
+                    let received = framing.receive(raw, &mut inbound, &mut reply);
+                    end = *received.as_ref().unwrap_or(&0);
+                    bump(&self.counters.rx_bytes, end);
+                    start = inbound
+                        .get(..end)
+                        .map_or(0, |b| self.rx.try_write(b).unwrap_or(0));
+                    self.wake.signal(());
+                    let replied = send(socket, reply.bytes()).await;
+                    if replied.is_err() || received.is_err() {
+                        return;
+                    }
+                }
+                Some(Wake::Queued(n)) => {
+                    start += n;
+                    self.wake.signal(());
+                }
+                Some(Wake::ToSend(n)) => {
+                    if let (Some(m), Some(fresh)) = (
+                        self.mirror,
+                        outbound.get(MAX_HEADER + carry..MAX_HEADER + carry + n),
+                    ) {
+                        m.push(fresh);
+                    }
+                    match send_framed(socket, framing, &mut outbound, &mut carry, n).await {
+                        Ok(sent) => bump(&self.counters.tx_bytes, sent),
+                        Err(()) => return,
+                    }
+                }
+            }
             let receive = async {
                 match inbound.get(start..end).filter(|rest| !rest.is_empty()) {
                     Some(rest) => Wake::Queued(self.rx.write(rest).await),
-                    None => Wake::Received(socket.read(&mut inbound).await.ok()),
+                    None => Wake::Received(socket.read(&mut raw).await.ok()),
                 }
             };
             let transmit = async {
                 if self.tx.is_empty() {
                     self.tx_kick.wait().await;
                 }
-                Wake::ToSend(self.tx.try_read(&mut outbound).unwrap_or(0))
+                let room = outbound.get_mut(MAX_HEADER + carry..).unwrap_or_default();
+                Wake::ToSend(self.tx.try_read(room).unwrap_or(0))
             };
-            let woke = match select(receive, transmit).await {
+            woke = Some(match select(receive, transmit).await {
                 Either::First(w) | Either::Second(w) => w,
-            };
-            match woke {
-                Wake::Received(None | Some(0)) => return,
-                Wake::Received(Some(n)) => {
-                    bump(&self.counters.rx_bytes, n);
-                    end = n;
-                    start = inbound
-                        .get(..n)
-                        .map_or(0, |b| self.rx.try_write(b).unwrap_or(0));
-                    self.wake.signal(());
-                }
-                Wake::Queued(n) => {
-                    start += n;
-                    self.wake.signal(());
-                }
-                Wake::ToSend(n) => {
-                    if send(socket, outbound.get(..n).unwrap_or_default())
-                        .await
-                        .is_err()
-                    {
-                        return;
-                    }
-                    bump(&self.counters.tx_bytes, n);
-                }
-            }
+            });
         }
+    }
+}
+
+/// Frame and send the `carry` bytes held back at `outbound[MAX_HEADER..]` and the `n` bytes
+/// after them; what `framing` holds back stays there for the next call (`carry`). Returns the
+/// link bytes sent. Errors: the connection is gone.
+pub(crate) async fn send_framed<S: embedded_io_async::Write, F: Framing>(
+    socket: &mut S,
+    framing: &mut F,
+    outbound: &mut [u8; MAX_HEADER + CHUNK],
+    carry: &mut usize,
+    n: usize,
+) -> Result<usize, ()> {
+    let taken = *carry + n;
+    let payload = outbound
+        .get_mut(MAX_HEADER..MAX_HEADER + taken)
+        .unwrap_or_default();
+    let mut header = [0u8; MAX_HEADER];
+    let (h, m) = framing.frame(payload, &mut header);
+    let from = MAX_HEADER - h.min(MAX_HEADER);
+    if let Some(slot) = outbound.get_mut(from..MAX_HEADER) {
+        slot.copy_from_slice(header.get(..h).unwrap_or_default());
+    }
+    send(
+        socket,
+        outbound.get(from..MAX_HEADER + m).unwrap_or_default(),
+    )
+    .await?;
+    outbound.copy_within(MAX_HEADER + m..MAX_HEADER + taken, MAX_HEADER);
+    *carry = taken - m;
+    Ok(m)
+}
+
+/// How a connection's bytes carry the link's bytes: as they are (the raw TCP link, [`Raw`]),
+/// or in WebSocket frames (the web page's, [`crate::web`]).
+pub(crate) trait Framing {
+    /// `raw` arrived from the client: write the link bytes it carries into `data` (which is
+    /// as long as any `raw`) and return how many; queue what the client is to be sent at once
+    /// (a pong, a close frame) in `reply`. `Err`: the connection ends once `reply` is sent.
+    fn receive(&mut self, raw: &[u8], data: &mut [u8], reply: &mut Reply) -> Result<usize, ()>;
+
+    /// Make ready `payload`, link bytes taken from the transmit queue: how many of its first
+    /// bytes to send now (the rest is kept for the next call), and the header that goes
+    /// before them, written into `header` (its length; 0 for none).
+    fn frame(&mut self, payload: &mut [u8], header: &mut [u8; MAX_HEADER]) -> (usize, usize);
+}
+
+/// The raw TCP link: the link's bytes as they are.
+pub(crate) struct Raw;
+
+impl Framing for Raw {
+    fn receive(&mut self, raw: &[u8], data: &mut [u8], _: &mut Reply) -> Result<usize, ()> {
+        let n = raw.len().min(data.len());
+        if let (Some(d), Some(r)) = (data.get_mut(..n), raw.get(..n)) {
+            d.copy_from_slice(r);
+        }
+        Ok(n)
+    }
+
+    fn frame(&mut self, payload: &mut [u8], _: &mut [u8; MAX_HEADER]) -> (usize, usize) {
+        (0, payload.len())
+    }
+}
+
+/// What a connection's client is sent at once, apart from the link's bytes: pongs, a close
+/// frame.
+pub(crate) struct Reply {
+    buf: [u8; 256],
+    len: usize,
+}
+
+impl Reply {
+    pub(crate) const fn new() -> Self {
+        Self {
+            buf: [0; 256],
+            len: 0,
+        }
+    }
+
+    /// Queue `bytes` whole, if they fit.
+    pub(crate) fn push(&mut self, bytes: &[u8]) {
+        let end = self.len + bytes.len();
+        if let Some(slot) = self.buf.get_mut(self.len..end) {
+            slot.copy_from_slice(bytes);
+            self.len = end;
+        }
+    }
+
+    pub(crate) fn bytes(&self) -> &[u8] {
+        self.buf.get(..self.len).unwrap_or_default()
+    }
+}
+
+/// Accept clients on `port` of `stack` for ever, one at a time on one socket of
+/// [`SOCKET_BUF`]-byte buffers: each is set up ([`CLIENT_TIMEOUT`], TCP keep-alives every
+/// `keep_alive` if any, no Nagle) and handed to `serve`, then closed, its last bytes given
+/// [`REFUSAL_TIMEOUT`] to leave.
+pub(crate) async fn accept_forever(
+    stack: Stack<'_>,
+    port: u16,
+    keep_alive: Option<Duration>,
+    mut serve: impl AsyncFnMut(&mut TcpSocket<'_>),
+) -> ! {
+    let mut rx_buf = [0u8; SOCKET_BUF];
+    let mut tx_buf = [0u8; SOCKET_BUF];
+    let mut socket = TcpSocket::new(stack, &mut rx_buf, &mut tx_buf);
+    let endpoint = IpListenEndpoint { addr: None, port };
+    loop {
+        socket.set_timeout(None);
+        socket.set_keep_alive(None);
+        if socket.accept(endpoint).await.is_err() {
+            socket.abort();
+            Timer::after(Duration::from_millis(100)).await;
+            continue;
+        }
+        socket.set_timeout(Some(CLIENT_TIMEOUT));
+        socket.set_keep_alive(keep_alive);
+        socket.set_nagle_enabled(false);
+        serve(&mut socket).await;
+        socket.close();
+        let _ = with_timeout(REFUSAL_TIMEOUT, socket.flush()).await;
+        socket.abort();
     }
 }
 
@@ -400,7 +547,10 @@ enum Wake {
 }
 
 /// Write all of `bytes` to `socket`. Errors: the connection is gone.
-async fn send<S: embedded_io_async::Write>(socket: &mut S, mut bytes: &[u8]) -> Result<(), ()> {
+pub(crate) async fn send<S: embedded_io_async::Write>(
+    socket: &mut S,
+    mut bytes: &[u8],
+) -> Result<(), ()> {
     while !bytes.is_empty() {
         match socket.write(bytes).await {
             Ok(0) | Err(_) => return Err(()),
@@ -580,7 +730,7 @@ impl<A: Admission, const RX: usize, const TX: usize> embedded_io_async::Write
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::port_link::SingleClient;
     use core::task::Poll;
@@ -588,7 +738,8 @@ mod tests {
     use embedded_io::{Read, ReadReady, Write, WriteReady};
     use std::vec::Vec;
 
-    fn server<const RX: usize, const TX: usize>() -> &'static TcpServer<SingleClient, RX, TX> {
+    pub(crate) fn server<const RX: usize, const TX: usize>()
+    -> &'static TcpServer<SingleClient, RX, TX> {
         let queues = Box::leak(Box::new(TcpQueues::new()));
         let counters = Box::leak(Box::new(LinkCounters::new()));
         Box::leak(Box::new(TcpServer::new(
@@ -600,10 +751,10 @@ mod tests {
 
     /// A client on the other end of a socket: it sends `inbound`, one chunk per read, keeps
     /// what it is sent, and closes once it has received `close_after` bytes.
-    struct Client {
-        inbound: Vec<&'static [u8]>,
-        received: Vec<u8>,
-        close_after: usize,
+    pub(crate) struct Client {
+        pub(crate) inbound: Vec<&'static [u8]>,
+        pub(crate) received: Vec<u8>,
+        pub(crate) close_after: usize,
     }
 
     impl embedded_io_async::ErrorType for Client {
@@ -750,7 +901,7 @@ mod tests {
             received: Vec::new(),
             close_after: 6,
         };
-        block_on(s.serve(&mut client));
+        block_on(s.serve(&mut client, &mut Raw, &[]));
         assert_eq!(client.received, b"start\n");
         let mut buf = [0u8; 32];
         let n = link.try_read(&mut buf);
@@ -771,7 +922,8 @@ mod tests {
             close_after: 0,
         };
         let mut received = Vec::new();
-        let mut serving = core::pin::pin!(s.serve(&mut client));
+        let mut raw = Raw;
+        let mut serving = core::pin::pin!(s.serve(&mut client, &mut raw, &[]));
         let waker = core::task::Waker::noop();
         let mut cx = core::task::Context::from_waker(waker);
         while serving.as_mut().poll(&mut cx).is_pending() {

@@ -71,8 +71,8 @@ struct Cli {
     #[arg(long, value_name = "LINE", conflicts_with = "listen")]
     before: Vec<String>,
 
-    /// Wait for hosts on TCP and on a pseudo-terminal instead of running the job, and print
-    /// where they are. Paced to the wall clock (see --time-scale). Ends at --time-limit or on
+    /// Wait for hosts on TCP, on a pseudo-terminal and on the web link (the operator's page,
+    /// see --http-port) instead of running the job, and print where they are. Paced to the wall clock (see --time-scale). Ends at --time-limit or on
     /// Ctrl-C.
     #[arg(long)]
     listen: bool,
@@ -84,6 +84,17 @@ struct Cli {
     /// TCP port [default: the machine file's, else 2323]; 0 picks any free port.
     #[arg(long, value_name = "PORT")]
     tcp_port: Option<u16>,
+
+    /// Address the web link listens on: the operator's page at http://ADDR:PORT/, its
+    /// WebSocket at /ws [default: the TCP link's address].
+    #[arg(long, value_name = "ADDR")]
+    http_bind: Option<IpAddr>,
+
+    /// Port of the web link [default: the machine file's http_port, else 8080]; 0 picks any
+    /// free port. Printed as `http: ADDR:PORT` at start. When the default port is taken (by
+    /// another simulator), any free port is used instead; a port given here must be free.
+    #[arg(long, value_name = "PORT")]
+    http_port: Option<u16>,
 
     /// Also make a symbolic link at PATH to the pseudo-terminal, a stable name for host
     /// software (the /dev/pts number changes from run to run).
@@ -284,6 +295,13 @@ fn run(cli: &Cli) -> Result<ExitCode, String> {
                 cli.tcp_bind.unwrap_or(machine.link.tcp_bind),
                 cli.tcp_port.unwrap_or(machine.link.tcp_port),
             ),
+            http: SocketAddr::new(
+                cli.http_bind
+                    .or(cli.tcp_bind)
+                    .unwrap_or(machine.link.tcp_bind),
+                cli.http_port.unwrap_or(machine.link.http_port),
+            ),
+            http_any_port_if_taken: cli.http_port.is_none(),
             pty_link: cli.pty_link.clone(),
             faults,
             pacing,
@@ -536,5 +554,8 @@ fn print_machine(source: &str, m: &MachineConfig) {
     for o in &m.outputs {
         println!("  output {}: duty 0..{}", o.name, o.max_duty);
     }
-    println!("  link: tcp {}:{}", m.link.tcp_bind, m.link.tcp_port);
+    println!(
+        "  link: tcp {}:{}, http {}:{}",
+        m.link.tcp_bind, m.link.tcp_port, m.link.tcp_bind, m.link.http_port
+    );
 }

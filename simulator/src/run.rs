@@ -1,6 +1,6 @@
 //! The simulator's two ways of running: a job streamed through the controller over an
-//! in-memory link ([`run_job`]), in the RepRap dialect or in grbl's, and serving hosts on TCP
-//! and a pseudo-terminal ([`listen`]).
+//! in-memory link ([`run_job`]), in the RepRap dialect or in grbl's, and serving hosts on TCP,
+//! a pseudo-terminal and the operator's web page ([`listen`]).
 
 use core::fmt;
 use std::io::Write as _;
@@ -18,7 +18,9 @@ use forja_host::grbl_sender::{self, GrblSender};
 use forja_host::program::Program;
 use forja_host::streamer::{Config, Stats};
 
-use forja_sim_hal::link::{FaultConfig, FaultInjector, MemoryLink, PortLink, PtyLink, TcpLink};
+use forja_sim_hal::link::{
+    FaultConfig, FaultInjector, MemoryLink, PortLink, PtyLink, Tapped, TcpLink, WebLink,
+};
 use forja_sim_hal::{
     Flow, MachineConfig, Pacing, SimClock, SimMachine, Simulation, SimulationConfig, StopReason,
 };
@@ -579,6 +581,12 @@ impl<L: PortLink> PortLink for Watched<L> {
 pub struct ListenOptions {
     /// Where the TCP link listens (port 0: any free port).
     pub tcp: SocketAddr,
+    /// Where the web link listens: the operator's page at `/`, its WebSocket at `/ws` (port
+    /// 0: any free port).
+    pub http: SocketAddr,
+    /// When the port of [`ListenOptions::http`] is taken, listen on any free port instead,
+    /// and say so on stderr: for a default port, not one the operator asked for.
+    pub http_any_port_if_taken: bool,
     /// A symbolic link to make to the pseudo-terminal.
     pub pty_link: Option<PathBuf>,
     /// Faults on the bytes from hosts.
@@ -594,7 +602,8 @@ pub struct ListenOptions {
     /// Keep the board's SD card in this directory (`None`: a fresh temporary one).
     pub sd_dir: Option<PathBuf>,
     /// What a host that is not in control is sent: a TCP client that connects while another
-    /// host is in control (it is then closed), and a terminal host whose input is refused.
+    /// host is in control (it is then closed), a terminal host whose input is refused, and a
+    /// web page that watches and sends.
     /// Every board sends [`busy_message`].
     pub busy_message: Vec<u8>,
     /// Virtual time after which a silent controlling host loses control (a TCP client is
@@ -621,9 +630,11 @@ fn watched<L: PortLink>(
     ))
 }
 
-/// Serve hosts on TCP (with frames 54 and 55) and on a pseudo-terminal, through the
-/// controller, paced to the wall clock, until the time limit or until `stop` is raised.
-/// Prints where the links are, then a summary.
+/// Serve hosts on TCP (with frames 54 and 55), on a pseudo-terminal and on the web link (the
+/// operator's page and its WebSocket, with frames 54 and 55 too), through the controller, one
+/// controlling host across the three, paced to the wall clock, until the time limit or until
+/// `stop` is raised. The web link's watchers see what the TCP client is sent as well as what
+/// a page in control is. Prints where the links are, then a summary.
 ///
 /// Errors: a link that cannot be opened or fails, a board that cannot be built.
 pub fn listen(
@@ -637,6 +648,24 @@ pub fn listen(
     let tcp_addr = tcp
         .local_addr()
         .map_err(|e| format!("tcp {tcp_addr}: {e}"))?;
+    let http_addr = options.http;
+    let web = match WebLink::bind(http_addr, options.busy_message.clone()) {
+        Err(e) if e.kind() == std::io::ErrorKind::AddrInUse && options.http_any_port_if_taken => {
+            let any = SocketAddr::new(http_addr.ip(), 0);
+            let web = WebLink::bind(any, options.busy_message.clone());
+            eprintln!(
+                "forja-sim: http port {} is taken: any free port instead",
+                http_addr.port()
+            );
+            web
+        }
+        bound => bound,
+    }
+    .map_err(|e| format!("http {http_addr}: {e}"))?;
+    let http_addr = web
+        .local_addr()
+        .map_err(|e| format!("http {http_addr}: {e}"))?;
+    let tcp = Tapped::new(tcp, web.tap());
     let pty = PtyLink::open(options.pty_link.as_deref()).map_err(|e| match &options.pty_link {
         Some(p) => format!("pseudo-terminal (link {}): {e}", p.display()),
         None => format!("pseudo-terminal: {e}"),
@@ -644,6 +673,7 @@ pub fn listen(
     println!("machine: {}", config.name);
     println!("tcp: {tcp_addr}");
     println!("pty: {}", pty.slave_path().display());
+    println!("http: {http_addr}");
     if let Some(link) = pty.symlink_path() {
         println!(
             "pty-link: {} -> {}",
@@ -666,7 +696,8 @@ pub fn listen(
     let mut board = SimBoard::new(&machine, board_config).map_err(|e| e.to_string())?;
     let tcp_port = board.add_port(watched("tcp", tcp, &machine, options.faults)?, true);
     let pty_port = board.add_port(watched("pty", pty, &machine, options.faults)?, false);
-    for port in [tcp_port, pty_port] {
+    let web_port = board.add_port(watched("http", web, &machine, options.faults)?, true);
+    for port in [tcp_port, pty_port, web_port] {
         board.set_idle_timeout(port, options.idle_timeout_ms);
     }
     board.set_busy_message(options.busy_message.clone());
@@ -679,7 +710,7 @@ pub fn listen(
     let mut failure = None;
     let report = board
         .run(&mut sim, |board, _| {
-            for id in [tcp_port, pty_port] {
+            for id in [tcp_port, pty_port, web_port] {
                 if let Some(e) = board.port_failure(id) {
                     failure = Some(e.to_string());
                     return Flow::Stop;
@@ -700,8 +731,9 @@ pub fn listen(
         "ended ({why}) after {:.3} s of virtual time",
         report.virtual_ticks() as f64 / f64::from(config.tick_hz)
     );
-    summary::<TcpLink>(&board, tcp_port, "tcp", options.faults);
+    summary::<Tapped<TcpLink>>(&board, tcp_port, "tcp", options.faults);
     summary::<PtyLink>(&board, pty_port, "pty", options.faults);
+    summary::<WebLink>(&board, web_port, "http", options.faults);
     let stats = board.status().controller.stats;
     println!(
         "controller: {} lines executed, {} refused, {} resends, {} frames, {} errors",
@@ -738,8 +770,15 @@ fn summary<L: PortLink<Error = std::io::Error> + 'static>(
         );
     }
     let link: &dyn std::any::Any = port.inner().inner();
-    if let Some(tcp) = link.downcast_ref::<TcpLink>() {
-        print!(", {} dropped for not reading", tcp.overflows());
+    if let Some(tcp) = link.downcast_ref::<Tapped<TcpLink>>() {
+        print!(", {} dropped for not reading", tcp.inner().overflows());
+    } else if let Some(web) = link.downcast_ref::<WebLink>() {
+        let s = web.stats();
+        print!(
+            ", {} assets served, {} requests refused, {} watchers, {} protocol errors, {} \
+             dropped for not reading",
+            s.served, s.refused_requests, s.watchers, s.protocol_errors, s.overflows
+        );
     } else if let Some(pty) = link.downcast_ref::<PtyLink>() {
         print!(", {} reply bytes discarded", pty.tx_discarded());
     }

@@ -3,13 +3,16 @@
 //! Every firmware crate is described by one [`Firmware`] entry in [`BOARDS`]: adding a board
 //! is adding an entry. A board has one or more variants (Cargo features: pin maps or chips);
 //! `test` formats, lints and builds every variant that is built by default, and `size` checks
-//! them against the board's budget.
+//! them against the board's budget, and the operator's web page (`forja-web`, embedded in the
+//! ESP32 images) against its own.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use object::read::elf::{ElfFile32, FileHeader, ProgramHeader};
 use object::{Object, ObjectSection, ObjectSymbol};
+
+use forja_sim_hal::link::forja_web;
 
 use crate::qemu;
 use crate::{Step, root};
@@ -702,11 +705,41 @@ pub fn check_sizes() -> Result<(), String> {
          rp2040: as stm32f4, but the image starts at the flash's first byte (the 256-byte boot \
          loader) and its budget is the flash below the 48 KiB of stores at the top."
     );
+    if !web_page_fits() {
+        over.push("web page".to_string());
+    }
     if over.is_empty() {
         Ok(())
     } else {
         Err(format!("over budget: {}", over.join(", ")))
     }
+}
+
+/// Print what the operator's web page (`forja-web`'s assets, gzip-compressed, embedded in the
+/// ESP32 images' flash) costs against [`forja_web::GZIP_BUDGET`]; whether it fits.
+fn web_page_fits() -> bool {
+    let total = forja_web::total_gzip_len();
+    let raw: usize = forja_web::ASSETS.iter().map(|a| a.raw_len).sum();
+    let fits = total <= forja_web::GZIP_BUDGET;
+    println!(
+        "\nweb page: {} gzip ({} raw) in {} files, budget {} gzip: {}; embedded in the esp32 \
+         images above (their flash includes it)",
+        kib(total as u64),
+        kib(raw as u64),
+        forja_web::ASSETS.len(),
+        kib(forja_web::GZIP_BUDGET as u64),
+        if fits { "fits" } else { "OVER" }
+    );
+    for asset in forja_web::ASSETS {
+        println!(
+            "  {:<20} {:>10} gzip {:>10} raw  {}",
+            asset.path,
+            kib(asset.gzip.len() as u64),
+            kib(asset.raw_len as u64),
+            asset.content_type
+        );
+    }
+    fits
 }
 
 /// Boot the QEMU image and run the end-to-end test of [`qemu::end_to_end`]: a G-code job with

@@ -2,7 +2,7 @@
 //! graph").
 //!
 //! The layers point one way (see `docs/architecture.md`): the hardware traits and the codecs
-//! stand alone, the drivers know only the traits, the kernel knows no driver, application or
+//! (the protocol's, and the web page's HTTP and WebSocket with its assets) stand alone, the drivers know only the traits, the kernel knows no driver, application or
 //! board, and the operator's client knows none of the firmware. A forbidden arrow fails the
 //! check, whether it is a direct dependency or reached through another Forja crate. Only what
 //! ships counts (normal and build dependencies): a test may use anything.
@@ -38,6 +38,7 @@ const FIRMWARE_MANIFESTS: &[&str] = &[
 
 const HAL: &str = "forja-hal-abstraction";
 const PROTOCOL: &str = "forja-protocol";
+const WEB: &str = "forja-web";
 const KERNEL: &str = "forja-motion";
 const APP: &str = "forja-app";
 const DRIVERS: &str = "forja-drivers";
@@ -140,7 +141,7 @@ fn forbidden(name: &str, packages: &BTreeMap<String, Package>) -> Vec<(String, &
         list.iter().map(|n| (n.to_string(), why)).collect()
     };
     match name {
-        HAL | PROTOCOL => packages
+        HAL | PROTOCOL | WEB => packages
             .keys()
             .filter(|n| n.as_str() != name)
             .map(|n| (n.clone(), "the traits and the codecs stand alone"))
@@ -200,6 +201,7 @@ pub fn check() -> Result<(), String> {
     for must in [
         HAL,
         PROTOCOL,
+        WEB,
         KERNEL,
         APP,
         DRIVERS,

@@ -16,6 +16,7 @@
 //! | `net_task` (×2) | esp-rtos executor | thread | the station and access point IP stacks (`net::run`) |
 //! | `dhcp_task` | esp-rtos executor | thread | DHCP server of the access point (`net::serve_dhcp`) |
 //! | `link_task` (×4) | esp-rtos executor | thread | TCP listeners, session (`link::listen`) |
+//! | `web_task` (×6) | esp-rtos executor | thread | the operator's page on port 80, the link over its WebSocket (`link::listen_web`) |
 //! | `controller_task` | esp-rtos executor | thread | 54/55, `Controller::poll`, arms the step alarm, feeds the watchdog (`controller::run`) |
 //!
 //! RTIC's ESP32-C3 backend does not work with esp-hal 1.x, so the step interrupt is a plain
@@ -99,6 +100,9 @@ async fn main(spawner: Spawner) -> ! {
         for _ in 0..link::LISTENERS {
             spawner.spawn(link_task(stack).unwrap_or_else(|_| reset()));
         }
+        for _ in 0..link::WEB_LISTENERS {
+            spawner.spawn(web_task(stack).unwrap_or_else(|_| reset()));
+        }
     }
     core::future::pending().await
 }
@@ -136,4 +140,9 @@ async fn dhcp_task(stack: Stack<'static>) -> ! {
 #[embassy_executor::task(pool_size = 4)]
 async fn link_task(stack: Stack<'static>) -> ! {
     link::listen(stack).await
+}
+
+#[embassy_executor::task(pool_size = 6)]
+async fn web_task(stack: Stack<'static>) -> ! {
+    link::listen_web(stack).await
 }

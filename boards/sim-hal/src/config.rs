@@ -71,6 +71,8 @@
 //! [link]                      # optional
 //! tcp_bind = "127.0.0.1"      # default 127.0.0.1
 //! tcp_port = 2323             # default 2323; 0 = any free port
+//! http_port = 8080            # the operator's web page (and its WebSocket), on tcp_bind;
+//!                             # default 8080; 0 = any free port
 //! ```
 //!
 //! Unknown fields are errors, so that a misspelt field is not silently ignored. Integers are
@@ -110,6 +112,10 @@ pub const BUNDLED: &[(&str, &str)] = &[
 /// The ESP32 board serves its WiFi link on port 23 like other WiFi CNC controllers; a host
 /// process may not bind ports below 1024, hence 2323.
 pub const DEFAULT_TCP_PORT: u16 = 2323;
+
+/// The default port of the simulator's web link (the operator's page and its WebSocket): HTTP's
+/// port 80 is privileged on a host, hence 8080. The ESP32 board serves it on port 80.
+pub const DEFAULT_HTTP_PORT: u16 = 8080;
 
 /// The default virtual clock rate: 1 MHz, one tick per microsecond.
 pub const DEFAULT_TICK_HZ: u32 = 1_000_000;
@@ -325,6 +331,8 @@ pub struct LinkConfig {
     pub tcp_bind: IpAddr,
     /// TCP port; 0 picks any free port.
     pub tcp_port: u16,
+    /// The web link's port, on `tcp_bind`; 0 picks any free port.
+    pub http_port: u16,
 }
 
 impl Default for LinkConfig {
@@ -332,6 +340,7 @@ impl Default for LinkConfig {
         Self {
             tcp_bind: IpAddr::from([127, 0, 0, 1]),
             tcp_port: DEFAULT_TCP_PORT,
+            http_port: DEFAULT_HTTP_PORT,
         }
     }
 }
@@ -636,6 +645,7 @@ struct RawProbe {
 struct RawLink {
     tcp_bind: Option<Spanned<String>>,
     tcp_port: Option<Spanned<i64>>,
+    http_port: Option<Spanned<i64>>,
 }
 
 /// Turns raw, spanned values into a [`MachineConfig`], naming the line of each error.
@@ -1231,6 +1241,9 @@ impl Validator<'_> {
         if let Some(p) = &l.tcp_port {
             link.tcp_port = self.integer(p, "link", "tcp_port", 0..=i64::from(u16::MAX))? as u16;
         }
+        if let Some(p) = &l.http_port {
+            link.http_port = self.integer(p, "link", "http_port", 0..=i64::from(u16::MAX))? as u16;
+        }
         Ok(link)
     }
 }
@@ -1271,6 +1284,7 @@ travel_max_mm = 300
         assert_eq!(router.axes[3].kind, AxisKind::Rotary);
         assert_eq!(router.tick_hz, DEFAULT_TICK_HZ);
         assert_eq!(router.link.tcp_port, DEFAULT_TCP_PORT);
+        assert_eq!(router.link.http_port, DEFAULT_HTTP_PORT);
         let printer =
             MachineConfig::from_toml_str(MachineConfig::bundled_toml("printer").unwrap()).unwrap();
         assert_eq!(printer.heaters.len(), 2);
@@ -1479,6 +1493,8 @@ travel_max_mm = 300
 
         let e = invalid(&format!("{MINIMAL}[link]\ntcp_port = 70000\n"));
         assert_eq!(e.field(), Some("tcp_port"));
+        let e = invalid(&format!("{MINIMAL}[link]\nhttp_port = -1\n"));
+        assert_eq!(e.field(), Some("http_port"));
         let e = invalid(&format!("{MINIMAL}[link]\ntcp_bind = \"localhost:1\"\n"));
         assert_eq!(e.field(), Some("tcp_bind"));
     }

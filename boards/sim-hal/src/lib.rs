@@ -62,7 +62,10 @@
 //! [`link`] has the host links, each an `embedded-io` byte stream with a connection state
 //! ([`link::PortLink`]): [`link::TcpLink`] (like the ESP32's WiFi, one controlling client at a
 //! time as the port's session rules decide, `forja_app::session::LinkSession` on the simulator
-//! board; default port [`config::DEFAULT_TCP_PORT`]), [`link::PtyLink`] (a pseudo-terminal that
+//! board; default port [`config::DEFAULT_TCP_PORT`]), [`link::WebLink`] (the operator's page
+//! over HTTP and the link over its WebSocket, like the ESP32's web server, under the same
+//! session rules, a second page watching; default port [`config::DEFAULT_HTTP_PORT`]; its
+//! client for tests, [`link::web_client`]), [`link::PtyLink`] (a pseudo-terminal that
 //! serial host software opens like a UART), [`link::MemoryLink`] (in-process), and
 //! [`link::FaultInjector`], which corrupts and drops bytes from the host at seeded rates.
 //!

@@ -42,7 +42,7 @@
 //! | [`storage`] | the settings' record store, the program's slot store and the file store of the SD-card commands in the `forja` partition | thread; flash operations stall every interrupt (see there) |
 //! | [`wifi`] | the radio ([`wifi::radio`]) and the connection task ([`wifi::run`]): station, reconnection, fallback access point | a task |
 //! | [`net`] | the station and access point IP stacks, the access point's DHCP server | tasks |
-//! | [`link`] | the host link on TCP port 2323 (`forja_drivers::tcp`), its listening tasks' body | tasks; the controller's end in the controller task |
+//! | [`link`] | the host link on TCP port 2323 (`forja_drivers::tcp`) and the operator's web page on port 80 (`forja_drivers::web`: the page, the link over a WebSocket), their listening tasks' bodies | tasks; the controller's end in the controller task |
 //! | [`controller`] | the controller task's body ([`controller::run`]) | a task |
 //!
 //! ## What a board provides
@@ -58,7 +58,8 @@
 //!   [`StepCell::on_switch_interrupt`](step::StepCell::on_switch_interrupt).
 //! - The one [`StepCell`](step::StepCell) in a `static`, and the tasks: [`wifi::run`],
 //!   [`net::run`] for each stack, [`net::serve_dhcp`], [`link::listen`]
-//!   ([`link::LISTENERS`] per stack) and [`controller::run`].
+//!   ([`link::LISTENERS`] per stack), [`link::listen_web`] ([`link::WEB_LISTENERS`] per
+//!   stack) and [`controller::run`].
 //! - A `partitions.csv` with a data partition labelled `forja` ([`storage`]).
 #![no_std]
 

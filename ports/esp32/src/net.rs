@@ -3,8 +3,8 @@
 //!
 //! | stack | interface | address | sockets |
 //! |---|---|---|---|
-//! | station | `Interface::station()` | from the network's DHCP server | DHCP client, [`crate::link::LISTENERS`] TCP |
-//! | access point | `Interface::access_point()` | [`AP_ADDRESS`]/24 | DHCP server (UDP), [`crate::link::LISTENERS`] TCP |
+//! | station | `Interface::station()` | from the network's DHCP server | DHCP client, [`crate::link::LISTENERS`] TCP, [`crate::link::WEB_LISTENERS`] web |
+//! | access point | `Interface::access_point()` | [`AP_ADDRESS`]/24 | DHCP server (UDP), [`crate::link::LISTENERS`] TCP, [`crate::link::WEB_LISTENERS`] web |
 //!
 //! Both stacks exist from boot; a stack whose interface is down simply has no link. Each
 //! needs its runner task ([`run`]), and the access point its DHCP server task ([`serve_dhcp`]),
@@ -22,13 +22,13 @@ use embassy_time::{Duration, Timer};
 use esp_radio::wifi::Interface;
 use static_cell::StaticCell;
 
-use crate::link::LISTENERS;
+use crate::link::{LISTENERS, WEB_LISTENERS};
 use crate::wifi::{AP_ADDRESS, AP_PREFIX_LEN};
 
-/// Sockets of the station stack: the TCP listeners and the DHCP client.
-const STATION_SOCKETS: usize = LISTENERS + 1;
-/// Sockets of the access point stack: the TCP listeners and the DHCP server.
-const AP_SOCKETS: usize = LISTENERS + 1;
+/// Sockets of the station stack: the TCP listeners, the web page's and the DHCP client.
+const STATION_SOCKETS: usize = LISTENERS + WEB_LISTENERS + 1;
+/// Sockets of the access point stack: the TCP listeners, the web page's and the DHCP server.
+const AP_SOCKETS: usize = LISTENERS + WEB_LISTENERS + 1;
 
 /// Leases the access point's DHCP server keeps (clients at once).
 const DHCP_LEASES: usize = 4;

@@ -1,4 +1,5 @@
-//! Host links: TCP (like the ESP32's WiFi), a pseudo-terminal (like a UART), an in-process
+//! Host links: TCP (like the ESP32's WiFi), the web page's WebSocket (like the ESP32's web
+//! server), a pseudo-terminal (like a UART), an in-process
 //! pair, and a fault injector over any of them.
 //!
 //! Every link is a [`PortLink`], the contract of a firmware board's links: bytes move through
@@ -10,6 +11,7 @@
 //! | link | what | connected while |
 //! |---|---|---|
 //! | [`TcpLink`] | a listening socket, one controlling client at a time, as the port's session rules decide ([`Admission`], [`PortLink::admit`]) | a client is admitted and has not closed |
+//! | [`WebLink`] | an HTTP listener serving the operator's page and a WebSocket at `/ws`: one controlling client, the others watch ([`WebLink`]) | a WebSocket client is admitted and has not closed |
 //! | [`PtyLink`] | a pseudo-terminal pair; host software opens the slave (`/dev/pts/N`) | some process holds the slave open |
 //! | [`MemoryLink`] | an in-process pipe to a [`MemoryHost`], for tests and scripted jobs | the [`MemoryHost`] exists |
 //! | [`FaultInjector`] | wraps any of them; corrupts and drops received bytes | as the wrapped link |
@@ -42,6 +44,7 @@
 //! | link | a peer that stops reading |
 //! |---|---|
 //! | [`TcpLink`] | is dropped: its connection is closed ([`TcpLink::overflows`] counts them), and the next client may connect |
+//! | [`WebLink`] | is dropped: its WebSocket is closed with 1008 ([`WebStats::overflows`]), and a watcher or the next client may take control |
 //! | [`PtyLink`] | the writes that do not fit are discarded whole and counted ([`PtyLink::tx_discarded`]): a terminal cannot be closed from this side |
 //!
 //! [`Write::flush`] sends what it can and waits for the rest at most [`FLUSH_LIMIT`]; it fails
@@ -57,6 +60,8 @@ mod fault;
 mod memory;
 mod pty;
 mod tcp;
+mod web;
+pub mod web_client;
 
 use std::collections::VecDeque;
 use std::io;
@@ -66,6 +71,10 @@ pub use fault::{FaultConfig, FaultConfigError, FaultInjector, FaultStats, Faulty
 pub use memory::{MemoryHost, MemoryLink};
 pub use pty::PtyLink;
 pub use tcp::TcpLink;
+pub use web::{MAX_HTTP, MAX_WATCHERS, Tap, Tapped, WebLink, WebStats};
+
+/// The page [`WebLink`] serves and the codecs it speaks with (the page's own crate).
+pub use forja_web;
 
 /// What every link here is: a link a board serves as a port, the firmware boards' contract.
 pub use forja_drivers::port_link::PortLink;
