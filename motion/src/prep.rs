@@ -305,21 +305,23 @@ impl<const N: usize> Current<N> {
     }
 }
 
-/// Builds the event stream: merges rising edges at equal ticks, places direction changes, and
-/// pushes events with their deltas.
+/// Builds the event stream: places rising edges and direction changes, and writes events with
+/// their deltas into the queue, where they stay unpublished (and the last one can still take
+/// an edge at the same tick) until [`Emitter::publish`].
 struct Emitter<const N: usize> {
     pulse: u64,
     dir_setup: u64,
-    /// The event being built, at `open_tick`, if `open`.
-    open: bool,
-    open_tick: u64,
-    open_ev: Event,
-    last_pushed: u64,
-    last_pushed_rest: bool,
+    /// The tick of the last event written: no event goes before it.
+    last_tick: u64,
+    /// The last event written is not published yet: an edge at its tick joins it.
+    amendable: bool,
+    /// The last event written ends the motion.
+    last_rest: bool,
+    /// Ticks of all events written (wrapping), against the interrupt's consumed ticks.
     pushed_ticks: u32,
     /// When each axis last rose.
     rose_at: [u64; N],
-    /// Queue slots known to be free (at least): pushes need no check of their own.
+    /// Queue slots known to be free (at least): writes need no check of their own.
     room: usize,
     dir_neg: u8,
     dir_known: u8,
@@ -329,11 +331,7 @@ impl<const N: usize> Emitter<N> {
     /// The tick at or after which new events go.
     #[inline(always)]
     fn cursor(&self) -> u64 {
-        if self.open {
-            self.open_tick
-        } else {
-            self.last_pushed
-        }
+        self.last_tick
     }
 
     /// The rising edge of axis `i` (direction `neg`) at tick `t`, or as soon after it as
@@ -349,11 +347,11 @@ impl<const N: usize> Emitter<N> {
         let bit = 1u8 << i;
         let rose = self.rose_at.get(i).copied().unwrap_or(0);
         // A full pulse, then as long low, since the axis's last rising edge.
-        let mut t = t.max(self.cursor()).max(rose + 2 * self.pulse);
+        let mut t = t.max(self.last_tick).max(rose + 2 * self.pulse);
         if self.dir_known & bit == 0 || self.dir_neg & bit != neg {
             t = self.change_direction(tx, bit, neg, rose, t);
         }
-        self.add(
+        self.put(
             tx,
             t,
             Event {
@@ -382,9 +380,9 @@ impl<const N: usize> Emitter<N> {
     ) -> u64 {
         let td = t
             .saturating_sub(self.dir_setup)
-            .max(self.cursor())
+            .max(self.last_tick)
             .max(rose + self.pulse);
-        self.add(
+        self.put(
             tx,
             td,
             Event {
@@ -400,65 +398,60 @@ impl<const N: usize> Emitter<N> {
 
     /// End of motion: the last event marked as rest (the interrupt ends the last pulses).
     fn finish_rest<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>) {
-        if self.open {
-            self.open_ev.rest = true;
-            self.close(tx);
-        } else if !self.last_pushed_rest {
-            self.open = true;
-            self.open_tick = self.last_pushed;
-            self.open_ev = Event {
-                rest: true,
-                ..Event::default()
-            };
-            self.close(tx);
+        if !self.last_rest {
+            let tick = self.last_tick;
+            self.put(
+                tx,
+                tick,
+                Event {
+                    rest: true,
+                    ..Event::default()
+                },
+            );
         }
     }
 
-    /// Put `ev` at `tick` (never before the cursor), merging with the open event when equal.
+    /// Put `ev` at `tick` (never before the last event): into the last event when it is at
+    /// that tick, not published and not the end of a motion, else as a new one.
     #[inline(always)]
-    fn add<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, tick: u64, ev: Event) {
-        let tick = tick.max(self.cursor());
-        if self.open && self.open_tick == tick {
-            let o = &mut self.open_ev;
-            o.dir_set |= ev.dir_set;
-            o.dir_neg = (o.dir_neg & !ev.dir_set) | ev.dir_neg;
-            o.rise |= ev.rise;
-            return;
+    fn put<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, tick: u64, ev: Event) {
+        let tick = tick.max(self.last_tick);
+        // An event that ends the motion takes nothing more: motion after it is a new event.
+        if self.amendable && !self.last_rest && tick == self.last_tick {
+            tx.amend_last(&ev);
+        } else {
+            let mut delta = tick - self.last_tick;
+            if delta > u64::from(MAX_DELTA) {
+                delta = self.split_wait(tx, delta);
+            }
+            self.write(
+                tx,
+                Event {
+                    delta: delta as u32,
+                    ..ev
+                },
+            );
+            self.pushed_ticks = self.pushed_ticks.wrapping_add(delta as u32);
+            self.last_tick = tick;
+            self.amendable = true;
         }
-        self.close(tx);
-        self.open = true;
-        self.open_tick = tick;
-        self.open_ev = ev;
+        self.last_rest = ev.rest;
     }
 
-    /// Push the open event, if any.
+    /// Make every event written visible to the interrupt.
     #[inline(always)]
-    fn close<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>) {
-        if !self.open {
-            return;
-        }
-        self.open = false;
-        let mut delta = self.open_tick - self.last_pushed;
-        if delta > u64::from(MAX_DELTA) {
-            delta = self.split_wait(tx, delta);
-        }
-        let ev = Event {
-            delta: delta as u32,
-            ..self.open_ev
-        };
-        self.push(tx, ev);
-        self.pushed_ticks = self.pushed_ticks.wrapping_add(delta as u32);
-        self.last_pushed = self.open_tick;
-        self.last_pushed_rest = ev.rest;
+    fn publish<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>) {
+        tx.publish();
+        self.amendable = false;
     }
 
-    /// Push `ev` into a slot counted in `room`.
+    /// Write `ev` into a slot counted in `room`.
     #[inline(always)]
-    fn push<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, ev: Event) {
+    fn write<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, ev: Event) {
         if self.room == 0 {
             self.room = tx.free();
         }
-        if tx.push_in_room(ev) {
+        if tx.write(&ev) {
             self.room = self.room.saturating_sub(1);
         }
     }
@@ -468,7 +461,7 @@ impl<const N: usize> Emitter<N> {
     #[cold]
     fn split_wait<const Q: usize>(&mut self, tx: &mut Producer<'_, N, Q>, mut delta: u64) -> u64 {
         while delta > u64::from(MAX_DELTA) {
-            self.push(
+            self.write(
                 tx,
                 Event {
                     delta: MAX_DELTA,
@@ -522,11 +515,9 @@ impl<const N: usize> Prep<N> {
             em: Emitter {
                 pulse: u64::from(pulse_ticks.max(1)),
                 dir_setup: u64::from(dir_setup_ticks),
-                open: false,
-                open_tick: 0,
-                open_ev: Event::default(),
-                last_pushed: 0,
-                last_pushed_rest: true,
+                last_tick: 0,
+                amendable: false,
+                last_rest: true,
                 pushed_ticks: 0,
                 rose_at: [0; N],
                 room: 0,
@@ -551,16 +542,16 @@ impl<const N: usize> Prep<N> {
     pub(crate) fn reset(&mut self, consumed_ticks: u32) {
         let em = &mut self.em;
         em.pushed_ticks = consumed_ticks;
-        em.open = false;
+        em.amendable = false;
         em.dir_known = 0;
-        em.last_pushed_rest = true;
+        em.last_rest = true;
         self.cur = None;
         self.dwell_left = 0;
         self.v_carry = 0.0;
         self.hold = false;
         self.held = false;
         // Continue the timeline after everything pushed.
-        self.t_plan = self.t_plan.max(self.em.last_pushed as f64);
+        self.t_plan = self.t_plan.max(self.em.last_tick as f64);
     }
 
     /// Ask for (or release) a feed hold.
@@ -640,7 +631,7 @@ impl<const N: usize> Prep<N> {
         let pending = self.em.pushed_ticks.wrapping_sub(consumed);
         let ahead = pending - spent.min(pending);
         // Events go up to this tick: `lead_ticks` of motion ahead of now.
-        let horizon = self.em.last_pushed + u64::from(lead_ticks.saturating_sub(ahead));
+        let horizon = self.em.last_tick + u64::from(lead_ticks.saturating_sub(ahead));
         let tps = self.ticks_per_s;
         let mut work = self.check_plan(planner);
         self.em.room = tx.free();
@@ -661,7 +652,7 @@ impl<const N: usize> Prep<N> {
                 let d = self.dwell_left.min(u64::from(MAX_DELTA));
                 self.dwell_left -= d;
                 let t = self.em.cursor() + d;
-                self.em.add(tx, t, Event::default());
+                self.em.put(tx, t, Event::default());
                 self.t_plan = t as f64;
                 continue;
             }
@@ -669,7 +660,7 @@ impl<const N: usize> Prep<N> {
                 let Some(block) = planner.tail().copied() else {
                     self.em.finish_rest(tx);
                     self.v_carry = 0.0;
-                    self.t_plan = self.t_plan.max(self.em.last_pushed as f64);
+                    self.t_plan = self.t_plan.max(self.em.last_tick as f64);
                     break Fill::Drained;
                 };
                 match block.kind {
@@ -722,7 +713,7 @@ impl<const N: usize> Prep<N> {
                 break Fill::Held;
             }
         };
-        self.em.close(tx);
+        self.em.publish(tx);
         result
     }
 

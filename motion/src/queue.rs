@@ -290,17 +290,24 @@ impl<'q> SwitchAlert<'q> {
     }
 }
 
-/// The thread's end of the queue.
+/// The thread's end of the queue. Events are written ahead of what the interrupt sees and
+/// made visible together ([`Producer::publish`]); until then the last one written can still
+/// change ([`Producer::amend_last`]).
 pub(crate) struct Producer<'q, const N: usize, const Q: usize> {
     q: &'q StepQueue<N, Q>,
+    /// Events published (free-running): the interrupt sees those before it.
     head: u32,
+    /// Events written (free-running), published or not.
+    next: u32,
 }
 
 impl<'q, const N: usize, const Q: usize> Producer<'q, N, Q> {
     pub(crate) fn new(q: &'q StepQueue<N, Q>) -> Self {
+        let head = q.head.load(Ordering::Relaxed);
         Self {
             q,
-            head: q.head.load(Ordering::Relaxed),
+            head,
+            next: head,
         }
     }
 
@@ -311,36 +318,74 @@ impl<'q, const N: usize, const Q: usize> Producer<'q, N, Q> {
     /// Slots free now.
     pub(crate) fn free(&self) -> usize {
         let tail = self.q.tail.load(Ordering::Acquire);
-        Q - self.head.wrapping_sub(tail) as usize
+        Q - self.next.wrapping_sub(tail) as usize
     }
 
-    /// Events waiting for the interrupt.
+    /// Events written and not yet taken by the interrupt.
     pub(crate) fn len(&self) -> usize {
         Q - self.free()
     }
 
-    /// Push one event; `false` when full.
+    /// Push one event and publish it; `false` when full.
     #[cfg(test)]
     pub(crate) fn push(&mut self, ev: Event) -> bool {
         if self.free() == 0 {
             return false;
         }
-        self.push_in_room(ev)
+        let written = self.write(&ev);
+        self.publish();
+        written
     }
 
-    /// Push one event into a slot the caller knows is free (from [`Producer::free`] since
-    /// its last pushes); `false`, and nothing written, when there is none after all.
+    /// Write one event, unpublished, into a slot the caller knows is free (from
+    /// [`Producer::free`] since its last writes); `false`, and nothing written, when there is
+    /// none after all.
     #[inline(always)]
-    pub(crate) fn push_in_room(&mut self, ev: Event) -> bool {
+    pub(crate) fn write(&mut self, ev: &Event) -> bool {
         let [w0, w1] = ev.encode();
-        let Some([s0, s1]) = self.q.slot(self.head) else {
+        let Some([s0, s1]) = self.q.slot(self.next) else {
             return false;
         };
         s0.store(w0, Ordering::Relaxed);
         s1.store(w1, Ordering::Relaxed);
-        self.head = self.head.wrapping_add(1);
-        self.q.head.store(self.head, Ordering::Release);
+        self.next = self.next.wrapping_add(1);
         true
+    }
+
+    /// Merge `ev`'s edges and flags into the last event written, if it is not published yet
+    /// (its delta stays); `false` when there is none such.
+    #[inline(always)]
+    pub(crate) fn amend_last(&mut self, ev: &Event) -> bool {
+        if self.next == self.head {
+            return false;
+        }
+        let Some([s0, s1]) = self.q.slot(self.next.wrapping_sub(1)) else {
+            return false;
+        };
+        let last = Raw {
+            time: s0.load(Ordering::Relaxed),
+            masks: s1.load(Ordering::Relaxed),
+        };
+        let merged = Event {
+            delta: last.delta(),
+            rest: last.rest() || ev.rest,
+            dir_set: last.dir_set() | ev.dir_set,
+            dir_neg: (last.dir_neg() & !ev.dir_set) | ev.dir_neg,
+            rise: last.rise() | ev.rise,
+        };
+        let [w0, w1] = merged.encode();
+        s0.store(w0, Ordering::Relaxed);
+        s1.store(w1, Ordering::Relaxed);
+        true
+    }
+
+    /// Make every event written visible to the interrupt.
+    #[inline(always)]
+    pub(crate) fn publish(&mut self) {
+        if self.head != self.next {
+            self.head = self.next;
+            self.q.head.store(self.head, Ordering::Release);
+        }
     }
 }
 

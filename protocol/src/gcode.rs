@@ -212,16 +212,18 @@ impl<'a> Line<'a> {
             _ => {}
         }
         let line = number.and_then(|n| u32::try_from(n).ok());
-        let (words, text) = parse_body(rest, line)?;
-        if number == Some(-1) && !words.first().is_some_and(|w| w.is(b'M', 110)) {
+        // The words go straight into the line returned: no copy of the whole array.
+        let mut out = Line {
+            number,
+            words: Words::new(),
+            text: None,
+            crc: matches!(marker, Some((_, Field::Crc(_)))),
+        };
+        out.text = parse_body(rest, line, &mut out.words)?;
+        if number == Some(-1) && !out.words.first().is_some_and(|w| w.is(b'M', 110)) {
             return Err(LineError::BadLineNumber);
         }
-        Ok(Line {
-            number,
-            words,
-            text,
-            crc: matches!(marker, Some((_, Field::Crc(_)))),
-        })
+        Ok(out)
     }
 
     /// A line from its parts, to be [encoded](Self::encode) (a host sending a program).
@@ -590,9 +592,13 @@ fn parse_line_number(body: &[u8]) -> Result<(Option<i64>, &[u8]), LineError> {
 
 type Words = Vec<Word, MAX_WORDS, u8>;
 
-/// The words of a line body (after the line number, before the checksum marker).
-fn parse_body(body: &[u8], line: Option<u32>) -> Result<(Words, Option<&[u8]>), LineError> {
-    let mut words = Words::new();
+/// The words of a line body (after the line number, before the checksum marker), into
+/// `words`; returns the text of a text command.
+fn parse_body<'a>(
+    body: &'a [u8],
+    line: Option<u32>,
+    words: &mut Words,
+) -> Result<Option<&'a [u8]>, LineError> {
     let mut i = 0;
     while let Some(&b) = body.get(i) {
         match b {
@@ -624,14 +630,13 @@ fn parse_body(body: &[u8], line: Option<u32>) -> Result<(Words, Option<&[u8]>), 
                     .map_err(|_| LineError::TooManyWords { line })?;
                 i += 1 + used;
                 if words.len() == 1 && is_text_command(&word) {
-                    let text = parse_text(body.get(i..).unwrap_or(&[]), line)?;
-                    return Ok((words, text));
+                    return parse_text(body.get(i..).unwrap_or(&[]), line);
                 }
             }
             _ => return Err(LineError::UnexpectedCharacter { line }),
         }
     }
-    Ok((words, None))
+    Ok(None)
 }
 
 /// Whether `rest` (what follows a letter) starts where a word may end: nothing, a blank,
