@@ -25,6 +25,26 @@ use crate::queue::{Consumer, PROBE_CONTACT, PROBE_OFF, Raw, StepQueue, StopCause
 /// No switch for this axis.
 const NO_SWITCH: u8 = u8::MAX;
 
+/// The lowest set bit of each axis mask: one load, where RV32IMC (the ESP32-C3's core, which
+/// has no count-trailing-zeros instruction) would take a dozen instructions to count them.
+// Evaluated by the compiler: an index out of range would fail the build, not panic.
+#[allow(clippy::indexing_slicing, clippy::arithmetic_side_effects)]
+const LOWEST_AXIS: [u8; 256] = {
+    let mut t = [0u8; 256];
+    let mut m = 1;
+    while m < 256 {
+        t[m] = (m as u8).trailing_zeros() as u8;
+        m += 1;
+    }
+    t
+};
+
+/// The lowest axis in `mask` (0 for an empty mask).
+#[inline(always)]
+fn lowest_axis(mask: u8) -> usize {
+    usize::from(LOWEST_AXIS.get(usize::from(mask)).copied().unwrap_or(0))
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Mode {
     /// No alarm armed; the thread side starts us.
@@ -257,7 +277,7 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         let high = self.high;
         // One line raised (one axis moving, or the others' pulses over): it is the one due.
         if high & high.wrapping_sub(1) == 0 {
-            let i = high.trailing_zeros() as usize;
+            let i = lowest_axis(high);
             self.high = 0;
             return match steppers.get_mut(i).map(|s| s.step_end()) {
                 Some(Err(_)) => Err(StopCause::Fault(i as u8)),
@@ -270,7 +290,7 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         // Only the raised axes, lowest first: the cost follows the axes that step.
         let mut axes = self.high;
         while axes != 0 {
-            let i = axes.trailing_zeros() as usize;
+            let i = lowest_axis(axes);
             axes &= axes.wrapping_sub(1);
             let Some(&at) = self.fall_at.get(i) else {
                 continue;
@@ -315,7 +335,7 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         }
         let mut axes = (ev.dir_set() | ev.rise()) & self.high;
         while axes != 0 {
-            let i = axes.trailing_zeros() as usize;
+            let i = lowest_axis(axes);
             axes &= axes.wrapping_sub(1);
             if let Some(&at) = self.fall_at.get(i) {
                 let low = at.wrapping_add(self.pulse);
@@ -423,7 +443,7 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         let fall = now.wrapping_add(self.pulse);
         let mut axes = rise;
         while axes != 0 {
-            let i = axes.trailing_zeros() as usize;
+            let i = lowest_axis(axes);
             axes &= axes.wrapping_sub(1);
             if let (Some(s), Some(p), Some(d), Some(f)) = (
                 steppers.get_mut(i),
