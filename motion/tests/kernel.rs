@@ -630,3 +630,39 @@ fn a_poll_prepares_a_bounded_share_and_the_motion_starts_with_its_lead() {
     assert_eq!(s.positions(), [steps(100.0), steps(50.0), 0]);
     assert!(s.record().violations.is_empty());
 }
+
+/// A ramp too long for the step clocks' fixed point (a slow axis with a small acceleration on
+/// a 168 MHz clock: the ramp lasts 20 s, over 2^31 ticks) is timed step by step in double
+/// precision: every step still within one tick of its exact time, the rates and the
+/// acceleration within the axis's limits, the position exact.
+#[test]
+fn a_ramp_beyond_the_step_clocks_range_is_timed_exactly() {
+    use forja_motion::AxisConfig;
+    let mut config = machine();
+    config.axes[2] = AxisConfig::linear(b'Z', 400.0, 120.0, 0.1, 100.0);
+    let mut q = StepQueue::<3, 256>::new();
+    let hz = 168_000_000;
+    let mut s = sim(&mut q, config.clone(), hz);
+    s.wiring.machine.set_tracing(true);
+    s.send("G1 Z50 F120").expect("ok");
+    assert!(s.run_until_idle(700 * u64::from(hz)));
+    let r = s.record();
+    assert_eq!(r.position, [0, 0, 20_000]);
+    assert!(r.violations.is_empty(), "{:?}", r.violations);
+    #[cfg(debug_assertions)]
+    {
+        let e = s.kernel.worst_step_error_ticks();
+        assert!(e <= 1.0, "a step {e} ticks from its exact time");
+    }
+    let z = &config.axes[2];
+    let d = check_axis(
+        &r.steps[2],
+        0,
+        f64::from(z.steps_per_mm),
+        f64::from(z.max_rate_mm_s()),
+        f64::from(z.accel_mm_s2),
+        f64::from(hz),
+        None,
+    );
+    assert!(d.rate <= 1.01 && d.accel <= 1.01, "{d:?}");
+}
