@@ -1304,6 +1304,9 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// dozen step events (under 20,000 instructions on a Cortex-M4, `docs/performance.md`),
     /// and a motion starts once its lead is prepared.
     pub fn poll(&mut self, now: Instant) -> Option<Instant> {
+        // Only a preparation this call stops short asks for another at once: a call that
+        // returns before preparing (a flush under way) leaves the interrupt to run first.
+        self.prep_more = false;
         let q = self.tx.shared();
         let stops = q.stops.load(Ordering::Acquire);
         if stops != self.stops_seen {

@@ -151,3 +151,22 @@ fn a_jog_among_moves_not_yet_run_keeps_clear_of_the_switches() {
     ];
     run(&Op::decode(&bytes));
 }
+
+/// Found by the `controller` fuzz target: a move, a jog, a pause, two moves held behind it,
+/// `M112` and `M999`; the machine must come to rest with its position true.
+#[test]
+fn an_emergency_stop_during_a_pause_with_moves_held_comes_to_rest() {
+    run(&Op::decode(&[
+        0x04, 0x32, 0x01, 0x00, 0x00, 0x00, 0xb7, 0x00, 0xac, 0x00, 0x00, 0x00, 0x33, 0x00, 0x00,
+        0x00, 0x01, 0x00, 0x00, 0x99, 0x01,
+    ]));
+}
+
+/// Found by the `controller` fuzz target with the one above.
+#[test]
+fn a_second_emergency_stop_script_comes_to_rest() {
+    run(&Op::decode(&[
+        0x00, 0x95, 0x4b, 0x75, 0x0a, 0x00, 0x57, 0xff, 0x12, 0xff, 0x5f, 0x00, 0x00, 0x00, 0xcc,
+        0x08,
+    ]));
+}

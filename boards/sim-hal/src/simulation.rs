@@ -166,6 +166,9 @@ pub struct SimulationConfig {
     pub poll_period_ticks: u64,
     /// Alarms allowed at a single tick before the run fails with [`RunError::AlarmStorm`].
     pub max_alarms_per_tick: u32,
+    /// Polls in a row at a single tick ([`Flow::Again`]) before the run fails with
+    /// [`RunError::PollStorm`].
+    pub max_polls_per_tick: u32,
     /// Largest delay of the step interrupt after its alarm's instant, in ticks: each alarm is
     /// served up to this late (pseudo-random, the same in every run). 0: on time.
     pub max_latency_ticks: u64,
@@ -173,13 +176,14 @@ pub struct SimulationConfig {
 
 impl SimulationConfig {
     /// As fast as possible, no time limit, a thread poll every millisecond, at most 10 000
-    /// alarms per tick, interrupts on time.
+    /// alarms and 10 000 polls in a row per tick, interrupts on time.
     pub fn new(tick_hz: u32) -> Self {
         Self {
             pacing: Pacing::AsFastAsPossible,
             time_limit_ticks: None,
             poll_period_ticks: u64::from(tick_hz / 1000).max(1),
             max_alarms_per_tick: 10_000,
+            max_polls_per_tick: 10_000,
             max_latency_ticks: 0,
         }
     }
@@ -232,6 +236,14 @@ pub enum RunError {
         /// Alarms fired at that tick.
         alarms: u32,
     },
+    /// The thread side kept asking to be polled again ([`Flow::Again`]) without virtual time
+    /// moving: it never finishes the work it says it has left.
+    PollStorm {
+        /// The tick it happened at.
+        at_ticks: u64,
+        /// Polls in a row at that tick.
+        polls: u32,
+    },
 }
 
 impl fmt::Display for RunError {
@@ -240,6 +252,11 @@ impl fmt::Display for RunError {
             Self::AlarmStorm { at_ticks, alarms } => write!(
                 f,
                 "the step alarm fired {alarms} times at tick {at_ticks} without time moving"
+            ),
+            Self::PollStorm { at_ticks, polls } => write!(
+                f,
+                "the thread side asked {polls} times in a row at tick {at_ticks} to be polled \
+                 again without time moving"
             ),
         }
     }
@@ -298,7 +315,7 @@ impl Simulation {
     /// Run `firmware` until it stops, the time limit passes or the stop flag is raised. The
     /// first poll happens at the current virtual time.
     ///
-    /// Errors: [`RunError::AlarmStorm`].
+    /// Errors: [`RunError::AlarmStorm`], [`RunError::PollStorm`].
     pub fn run<F: Firmware + ?Sized>(&mut self, firmware: &mut F) -> Result<RunReport, RunError> {
         let now = self.machine.now_ticks();
         self.run_from(firmware, now, None)
@@ -310,7 +327,7 @@ impl Simulation {
     /// them (the first at the current virtual time, when none ran), so that runs in slices
     /// poll as one long run does.
     ///
-    /// Errors: [`RunError::AlarmStorm`].
+    /// Errors: [`RunError::AlarmStorm`], [`RunError::PollStorm`].
     pub fn run_until<F: Firmware + ?Sized>(
         &mut self,
         firmware: &mut F,
@@ -362,6 +379,7 @@ impl Simulation {
             wall: std::time::Duration::ZERO,
         };
         let mut storm = (start_ticks, 0u32);
+        let mut again = (start_ticks, 0u32);
         let finish = |mut report: RunReport, stop| {
             report.stop = stop;
             report.end_ticks = m.now_ticks();
@@ -419,7 +437,20 @@ impl Simulation {
                 report.polls += 1;
                 match firmware.poll(Instant::from_ticks(t as u32)) {
                     Flow::Stop => break Ok(finish(report, StopReason::Firmware)),
-                    Flow::Again => next_poll = t,
+                    Flow::Again => {
+                        again = if again.0 == t {
+                            (t, again.1 + 1)
+                        } else {
+                            (t, 1)
+                        };
+                        if again.1 > self.config.max_polls_per_tick {
+                            break Err(RunError::PollStorm {
+                                at_ticks: t,
+                                polls: again.1,
+                            });
+                        }
+                        next_poll = t;
+                    }
                     Flow::Continue => next_poll = t + period,
                 }
             }
@@ -433,7 +464,7 @@ impl Simulation {
     /// reads replies and sends lines, a test that watches). The run also ends when `hook`
     /// returns [`Flow::Stop`].
     ///
-    /// Errors: [`RunError::AlarmStorm`].
+    /// Errors: [`RunError::AlarmStorm`], [`RunError::PollStorm`].
     pub fn run_hooked<F, H>(&mut self, firmware: &mut F, hook: H) -> Result<RunReport, RunError>
     where
         F: Firmware + ?Sized,
@@ -718,6 +749,21 @@ mod tests {
             }
         );
         assert!(e.to_string().contains("10001 times at tick 10"));
+    }
+
+    #[test]
+    fn a_poll_storm_is_an_error() {
+        let m = machine();
+        let mut sim = Simulation::new(m.clone(), SimulationConfig::new(m.tick_hz()));
+        let e = sim.run_with(|_| None, |_| Flow::Again).unwrap_err();
+        assert_eq!(
+            e,
+            RunError::PollStorm {
+                at_ticks: 0,
+                polls: 10_001
+            }
+        );
+        assert!(e.to_string().contains("10001 times in a row at tick 0"));
     }
 
     #[test]
