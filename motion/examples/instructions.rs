@@ -77,8 +77,14 @@ fn main() {
         {
             next += 1;
         }
-        if let Some(at) = count_thread(&mut kernel, Instant::from_ticks(now)) {
-            alarm = Some(at);
+        // The thread loop's turn: again at once while steps are left to prepare.
+        loop {
+            if let Some(at) = count_thread(&mut kernel, Instant::from_ticks(now)) {
+                alarm = Some(at);
+            }
+            if !kernel.needs_poll() {
+                break;
+            }
         }
         let until = now.wrapping_add(1000);
         while let Some(at) = alarm {
