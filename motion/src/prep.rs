@@ -72,6 +72,13 @@ struct AxisSteps {
     timing: Timing,
 }
 
+impl AxisSteps {
+    /// Where step `j` is along the block, mm: the half-step point `step_mm·(j − ½)`.
+    fn step_mm_at(&self, j: u32) -> f64 {
+        self.step_mm * (f64::from(j) - 0.5)
+    }
+}
+
 /// The block being prepared.
 #[derive(Debug, Clone, Copy)]
 struct Current<const N: usize> {
@@ -116,7 +123,7 @@ impl<const N: usize> Current<N> {
     /// The path position of the last emitted step (the anchor when none), mm.
     fn last_s(&self) -> f64 {
         match self.axes.get(usize::from(self.last_axis)) {
-            Some(a) => a.step_mm * (f64::from(a.j) - 1.5),
+            Some(a) => a.step_mm_at(a.j.saturating_sub(1)),
             None => self.s_anchor,
         }
     }
@@ -195,7 +202,7 @@ impl<const N: usize> Current<N> {
             return;
         }
         let ph = self.profile.phase(a.phase);
-        let x = (h * (f64::from(a.j) - 0.5) - self.s_anchor - ph.start).max(0.0);
+        let x = (a.step_mm_at(a.j) - self.s_anchor - ph.start).max(0.0);
         let steps = a.phase_last - a.j + 1;
         let start = self.t_anchor + ph.t_start * ticks_per_s;
         let base = floor(start);
@@ -239,26 +246,16 @@ impl<const N: usize> Current<N> {
     /// The tick of axis `i`'s next step, in double precision.
     #[cold]
     fn exact_tick(&self, i: usize, ticks_per_s: f64) -> u64 {
-        let Some(a) = self.axes.get(i) else {
-            return u64::MAX;
-        };
-        let s = a.step_mm * (f64::from(a.j) - 0.5);
-        match self.profile.time_at(s - self.s_anchor) {
-            Some(dt) => libm::round(self.t_anchor + dt * ticks_per_s) as u64,
-            None => u64::MAX,
-        }
+        self.exact_time(i, ticks_per_s)
+            .map_or(u64::MAX, |t| libm::round(t) as u64)
     }
 
-    /// The exact time (ticks) of axis `i`'s next step on the profile.
-    #[cfg(debug_assertions)]
-    fn exact_tick_f64(&self, i: usize, ticks_per_s: f64) -> f64 {
-        let Some(a) = self.axes.get(i) else {
-            return f64::INFINITY;
-        };
-        let s = a.step_mm * (f64::from(a.j) - 0.5);
-        self.profile
-            .time_at(s - self.s_anchor)
-            .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s)
+    /// The exact time (ticks) of axis `i`'s next step on the profile; `None` past a hold's
+    /// stopping point.
+    fn exact_time(&self, i: usize, ticks_per_s: f64) -> Option<f64> {
+        let a = self.axes.get(i)?;
+        let dt = self.profile.time_at(a.step_mm_at(a.j) - self.s_anchor)?;
+        Some(self.t_anchor + dt * ticks_per_s)
     }
 
     /// Axis `i` has emitted its step: time its next one. Returns the work it took (see
@@ -690,7 +687,7 @@ impl<const N: usize> Prep<N> {
                 let _t = self.em.rise(tx, i, cur.neg & (1 << i), tick);
                 #[cfg(debug_assertions)]
                 if _t == tick {
-                    let exact = cur.exact_tick_f64(i, tps);
+                    let exact = cur.exact_time(i, tps).unwrap_or(f64::INFINITY);
                     self.worst_error = self.worst_error.max((tick as f64 - exact).abs());
                 }
                 work += cur.advance(i, tps);
