@@ -31,11 +31,10 @@ mod common;
 
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::sync::Mutex;
+use std::process::Command;
 use std::time::Duration;
 
-use common::{Driver, Sim, axis, positions, scratch, settle};
+use common::{Driver, Sim, axis, npm_prefix, positions, scratch, settle};
 
 /// The CNCjs release line the test runs.
 const CNCJS: &str = "cncjs@1";
@@ -67,53 +66,17 @@ fn manifest_dir() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// The npm prefix CNCjs is installed into, installed if needed. One test at a time checks or
-/// fills it: the tests of this file run in parallel and share it.
+/// The npm prefix CNCjs is installed into (`target/cncjs`), installed if needed.
 fn cncjs_prefix() -> PathBuf {
-    static INSTALLING: Mutex<()> = Mutex::new(());
-    let _one = INSTALLING.lock().unwrap_or_else(|e| e.into_inner());
-    let prefix = manifest_dir().join("../target/cncjs");
-    let ready = |prefix: &Path| {
-        let modules = prefix.join("node_modules");
-        Command::new("node")
-            .arg("-e")
-            .arg(
-                "const [m] = process.argv.slice(1); \
-                 const v = require(m + '/cncjs/package.json').version; \
-                 require.resolve(m + '/socket.io-client'); \
-                 require.resolve(m + '/jsonwebtoken'); \
-                 process.exit(v.startsWith('1.') ? 0 : 1)",
-            )
-            .arg(&modules)
-            .output()
-            .is_ok_and(|o| o.status.success())
-    };
-    if ready(&prefix) {
-        return prefix;
-    }
-    std::fs::create_dir_all(&prefix)
-        .unwrap_or_else(|e| panic!("cannot make {}: {e}", prefix.display()));
-    let npm = Command::new("npm")
-        .args(["install", "--no-audit", "--no-fund", "--prefix"])
-        .arg(&prefix)
-        .arg(CNCJS)
-        .stdin(Stdio::null())
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run npm to install {CNCJS}: {e}"));
-    assert!(
-        npm.status.success(),
-        "npm could not install {CNCJS} into {}: {}{}",
-        prefix.display(),
-        String::from_utf8_lossy(&npm.stdout),
-        String::from_utf8_lossy(&npm.stderr)
-    );
-    assert!(
-        ready(&prefix),
-        "{CNCJS} was installed into {} but its package, socket.io-client or jsonwebtoken \
-         does not load with `node`",
-        prefix.display()
-    );
-    prefix
+    npm_prefix(
+        "cncjs",
+        CNCJS,
+        "const [m] = process.argv.slice(1); \
+         const v = require(m + '/cncjs/package.json').version; \
+         require.resolve(m + '/socket.io-client'); \
+         require.resolve(m + '/jsonwebtoken'); \
+         process.exit(v.startsWith('1.') ? 0 : 1)",
+    )
 }
 
 /// Start `script` of tests/cncjs (the CNCjs server in its process group) on `sim`, with `args`

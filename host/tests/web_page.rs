@@ -28,7 +28,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
-use common::{Driver, scratch, sim_binary};
+use common::{Driver, npm_prefix, scratch, sim_binary};
 
 /// The puppeteer-core release line the driver uses (24 runs on Node 18 and later).
 const PUPPETEER: &str = "puppeteer-core@24";
@@ -59,46 +59,15 @@ fn e2e_dir() -> PathBuf {
 
 /// The `node_modules` that holds puppeteer-core, installed if needed.
 fn puppeteer_modules() -> PathBuf {
-    let prefix = e2e_dir();
-    let modules = prefix.join("node_modules");
-    let ready = |modules: &Path| {
-        Command::new("node")
-            .arg("-e")
-            .arg(
-                "const [m] = process.argv.slice(1); \
-                 const v = require(m + '/puppeteer-core/package.json').version; \
-                 require(m + '/puppeteer-core'); \
-                 process.exit(v.startsWith('24.') ? 0 : 1)",
-            )
-            .arg(modules)
-            .output()
-            .is_ok_and(|o| o.status.success())
-    };
-    if ready(&modules) {
-        return modules;
-    }
-    std::fs::create_dir_all(&prefix)
-        .unwrap_or_else(|e| panic!("cannot make {}: {e}", prefix.display()));
-    let npm = Command::new("npm")
-        .args(["install", "--no-audit", "--no-fund", "--prefix"])
-        .arg(&prefix)
-        .arg(PUPPETEER)
-        .stdin(Stdio::null())
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run npm to install {PUPPETEER}: {e}"));
-    assert!(
-        npm.status.success(),
-        "npm could not install {PUPPETEER} into {}: {}{}",
-        prefix.display(),
-        String::from_utf8_lossy(&npm.stdout),
-        String::from_utf8_lossy(&npm.stderr)
-    );
-    assert!(
-        ready(&modules),
-        "{PUPPETEER} was installed into {} but does not load with `node`",
-        prefix.display()
-    );
-    modules
+    npm_prefix(
+        "web-e2e",
+        PUPPETEER,
+        "const [m] = process.argv.slice(1); \
+         const v = require(m + '/puppeteer-core/package.json').version; \
+         require(m + '/puppeteer-core'); \
+         process.exit(v.startsWith('24.') ? 0 : 1)",
+    )
+    .join("node_modules")
 }
 
 /// The system's Chromium: Debian's package, never a browser of npm's.

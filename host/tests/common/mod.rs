@@ -1,7 +1,8 @@
 //! The simulator as the tests run it: the `forja-sim` binary listening on TCP and a
 //! pseudo-terminal, its virtual time four times as fast as the wall clock (the moves take less
 //! waiting) unless a test asks for another pace, and the `forja` binary run against it; and the
-//! Python environments in which the tests install the hosts they drive (Printrun, OctoPrint).
+//! Python environments and npm prefixes in which the tests install the hosts and tools they
+//! drive (Printrun, OctoPrint, CNCjs, Puppeteer).
 
 #![allow(dead_code)]
 
@@ -97,6 +98,51 @@ pub fn venv_python(name: &str, packages: &[&str], no_deps: bool, ready: &str) ->
         venv.display()
     );
     python
+}
+
+/// The npm prefix `target/<name>` inside the checkout, with `package` installed into it by npm
+/// if `ready` (a Node script given the prefix's `node_modules` as its argument, which exits
+/// non-zero when what the test needs does not load) fails. The test fails, saying why, when
+/// npm cannot install it. One test at a time checks or fills a prefix: the tests of a file run
+/// in parallel and share theirs.
+pub fn npm_prefix(name: &str, package: &str, ready: &str) -> PathBuf {
+    static INSTALLING: Mutex<()> = Mutex::new(());
+    let _one = INSTALLING.lock().unwrap_or_else(|e| e.into_inner());
+    let prefix = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../target")
+        .join(name);
+    let is_ready = |prefix: &Path| {
+        Command::new("node")
+            .args(["-e", ready])
+            .arg(prefix.join("node_modules"))
+            .output()
+            .is_ok_and(|o| o.status.success())
+    };
+    if is_ready(&prefix) {
+        return prefix;
+    }
+    std::fs::create_dir_all(&prefix)
+        .unwrap_or_else(|e| panic!("cannot make {}: {e}", prefix.display()));
+    let npm = Command::new("npm")
+        .args(["install", "--no-audit", "--no-fund", "--prefix"])
+        .arg(&prefix)
+        .arg(package)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run npm to install {package}: {e}"));
+    assert!(
+        npm.status.success(),
+        "npm could not install {package} into {}: {}{}",
+        prefix.display(),
+        String::from_utf8_lossy(&npm.stdout),
+        String::from_utf8_lossy(&npm.stderr)
+    );
+    assert!(
+        is_ready(&prefix),
+        "{package} was installed into {} but `{ready}` fails with `node`",
+        prefix.display()
+    );
+    prefix
 }
 
 /// A scratch directory for one test.
