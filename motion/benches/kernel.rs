@@ -17,7 +17,7 @@ use forja_motion::{Estimate, Kernel, Reply, StepGenerator, StepQueue, split};
 use forja_protocol::gcode::Line;
 
 mod common;
-use common::{Pin, Switch, config, program};
+use common::{Pin, Switch, config, program, thread_turn};
 
 fn plan(c: &mut Criterion) {
     let lines = program(2000);
@@ -61,14 +61,8 @@ fn run_pipeline(
                 _ => next += 1,
             }
         }
-        // The thread loop's turn: again at once while steps are left to prepare.
-        loop {
-            if let Some(at) = kernel.poll(Instant::from_ticks(*now)) {
-                alarm = Some(at);
-            }
-            if !kernel.needs_poll() {
-                break;
-            }
+        if let Some(at) = thread_turn(kernel, Instant::from_ticks(*now), |k, t| k.poll(t)) {
+            alarm = Some(at);
         }
         // Run the interrupt for up to 1 ms of machine time, then poll again.
         let until = now.wrapping_add(1000);
@@ -149,13 +143,10 @@ fn isr(c: &mut Criterion) {
                     let line = Line::parse(text.as_bytes()).expect("parses");
                     let _ = kernel.execute(&line).expect("ok");
                 }
-                loop {
-                    if let Some(at) = kernel.poll(Instant::from_ticks(now)) {
-                        alarm = Some(at);
-                    }
-                    if !kernel.needs_poll() {
-                        break;
-                    }
+                if let Some(at) =
+                    thread_turn(&mut kernel, Instant::from_ticks(now), |k, t| k.poll(t))
+                {
+                    alarm = Some(at);
                 }
                 // Timed: the events of the next millisecond (the thread side keeps 20 ms queued).
                 let until = Instant::from_ticks(now.wrapping_add(1000));

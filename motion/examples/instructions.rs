@@ -19,7 +19,7 @@ use forja_protocol::gcode::Line;
 
 #[path = "../benches/common/mod.rs"]
 mod common;
-use common::{Pin, Switch, config, program};
+use common::{Pin, Switch, config, program, thread_turn};
 
 #[inline(never)]
 fn count_plan(kernel: &Kernel<'_, 3>, lines: &[String]) -> f32 {
@@ -77,14 +77,8 @@ fn main() {
         {
             next += 1;
         }
-        // The thread loop's turn: again at once while steps are left to prepare.
-        loop {
-            if let Some(at) = count_thread(&mut kernel, Instant::from_ticks(now)) {
-                alarm = Some(at);
-            }
-            if !kernel.needs_poll() {
-                break;
-            }
+        if let Some(at) = thread_turn(&mut kernel, Instant::from_ticks(now), count_thread) {
+            alarm = Some(at);
         }
         let until = now.wrapping_add(1000);
         while let Some(at) = alarm {

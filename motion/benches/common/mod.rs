@@ -9,7 +9,8 @@ use std::hint::black_box;
 use forja_hal_abstraction::ErrorType;
 use forja_hal_abstraction::limit::LimitSwitch;
 use forja_hal_abstraction::stepper::{Direction, StepTiming, Stepper};
-use forja_motion::{AxisConfig, MachineConfig};
+use forja_hal_abstraction::time::Instant;
+use forja_motion::{AxisConfig, Kernel, MachineConfig};
 
 /// A step/direction output that counts its steps; `black_box` keeps every call.
 pub struct Pin(pub u64);
@@ -64,4 +65,21 @@ pub fn program(n: usize) -> Vec<String> {
             format!("G1 X{x:.3} Y{y:.3} F6000")
         })
         .collect()
+}
+
+/// The thread loop's turn at `now`: `poll` (the kernel's, or a counted call of it), again at
+/// once while the kernel has steps left to prepare, as a board's loop does. Returns where to
+/// arm the step alarm, if anywhere.
+pub fn thread_turn<'q>(
+    kernel: &mut Kernel<'q, 3>,
+    now: Instant,
+    poll: impl Fn(&mut Kernel<'q, 3>, Instant) -> Option<Instant>,
+) -> Option<Instant> {
+    let mut arm = None;
+    loop {
+        arm = poll(kernel, now).or(arm);
+        if !kernel.needs_poll() {
+            return arm;
+        }
+    }
 }
