@@ -14,7 +14,8 @@
 //!      still runs, in its session (its replies are discarded), until it is read and no line
 //!      of it is held — unless another host wants control first: then the rest is dropped;
 //!    - it was silent for the session's idle time-out (silence counts only while the
-//!      controller owes it nothing: no held line, homing cycle or heater wait): a
+//!      controller owes it nothing: no held line, homing cycle or heater wait, and no
+//!      reports it asked for every period, `M155 S` or `M27 S`): a
 //!      connection-oriented link closes it ([`PortLink::hang_up`]) and its session ends; a link
 //!      that cannot be closed (a terminal) only gives up control, and takes it back with its
 //!      next byte, in the same session, if no other host took control in between.
@@ -276,7 +277,7 @@ impl<M: AsRef<[u8]>> Arbiter<M> {
             read: 0,
         };
         let outcome = controller.poll(now, &mut link);
-        if link.read > 0 || controller.is_holding() {
+        if link.read > 0 || controller.is_holding() || controller.owes_reports() {
             p.session.on_input(now_ms);
         }
         outcome
@@ -631,6 +632,40 @@ mod tests {
         arbiter.poll(&mut ports, &mut c, Instant::from_ticks(2_000), 2);
         assert_eq!(text(&ports[1].link().tx), "busy\n");
         assert_eq!(ports[1].stats().sessions, 0);
+    }
+
+    /// A host that asked for periodic reports owes the controller no byte: it keeps control
+    /// and its reports through a silence longer than the idle time-out, as OctoPrint during
+    /// a print from the card.
+    #[test]
+    fn a_host_that_asked_for_reports_keeps_control_through_its_silence() {
+        let mut c = controller();
+        let mut ports = [false, false].map(|frames| {
+            Port::new(
+                Mem::default(),
+                LinkSession::new(1_000).with_idle_timeout(5_000),
+                frames,
+            )
+        });
+        let mut arbiter = Arbiter::<&[u8]>::new(4096, 4096);
+        ports[0].link_mut().sent(b"M27 S1\n");
+        arbiter.poll(&mut ports, &mut c, Instant::from_ticks(0), 0);
+        assert_eq!(arbiter.active(), Some(0));
+        for ms in (1..=20).map(|s| s * 1_000) {
+            arbiter.poll(&mut ports, &mut c, Instant::from_ticks(ms * 1_000), ms);
+        }
+        assert_eq!(arbiter.active(), Some(0));
+        assert_eq!(ports[0].stats().idle_timeouts, 0);
+        let reports = text(&ports[0].link().tx).matches("Not SD printing").count();
+        assert!(reports >= 19, "{}", text(&ports[0].link().tx));
+
+        // Without reports asked for, the same silence ends its control.
+        ports[0].link_mut().sent(b"M27 S0\n");
+        arbiter.poll(&mut ports, &mut c, Instant::from_ticks(21_000_000), 21_000);
+        for ms in (22..=30).map(|s| s * 1_000) {
+            arbiter.poll(&mut ports, &mut c, Instant::from_ticks(ms * 1_000), ms);
+        }
+        assert_eq!(ports[0].stats().idle_timeouts, 1);
     }
 
     #[test]

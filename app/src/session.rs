@@ -32,9 +32,10 @@
 //! that long loses control: [`LinkSession::poll_idle`] ends the session and the caller closes
 //! the client's connection. What keeps a client in control is the caller's to report with
 //! [`LinkSession::on_input`]: any byte received from it, and every moment the controller owes
-//! it an answer (a held line, a homing cycle, a heater wait), so that a client waiting for an
-//! answer is never dropped for its silence. A client that only watches must therefore poll
-//! (`M105`, `?`, a frame 04) more often than the time-out.
+//! it an answer (a held line, a homing cycle, a heater wait) or the reports it asked for every
+//! period (`M155 S`, `M27 S`), so that a client waiting for an answer is never dropped for its
+//! silence. Any other client that only watches must therefore poll (`M105`, `?`, a frame 04)
+//! more often than the time-out.
 //!
 //! ```
 //! use forja_app::session::{Admission, Admit, LinkSession};

@@ -178,7 +178,8 @@ struct Cli {
 
     /// With --listen: a controlling host that sends nothing for this many seconds of virtual
     /// time, while no answer is owed to it, loses control (a TCP client is closed). Any byte
-    /// keeps it (`M105`, `?`, a frame 04); a host that waits on the machine must poll.
+    /// keeps it (`M105`, `?`, a frame 04), and so do reports it asked for every period
+    /// (`M155 S`, `M27 S`); any other host that waits on the machine must poll.
     #[arg(
         long,
         value_name = "SECONDS",

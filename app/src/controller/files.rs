@@ -252,6 +252,11 @@ where
         Refusal::with(&FileRefusal(e), format_args!("{}", given.as_str()))
     }
 
+    /// Whether the host asked for the card's status every period (`M27 S` above 0).
+    pub(super) fn card_reporting(&self) -> bool {
+        self.card.report_ms > 0
+    }
+
     /// Carry out a file command from the link; its `ok` is the caller's.
     pub(super) fn file_command<W: Write>(&mut self, command: FileCommand, out: &mut W) {
         match command {

@@ -123,6 +123,11 @@ where
         let _ = out.write_all(bytes.get(..=text.len()).unwrap_or(&[]));
     }
 
+    /// Whether the host asked for temperature reports every period (`M155 S` above 0).
+    pub(super) fn auto_reporting(&self) -> bool {
+        self.host.auto_report_ms > 0
+    }
+
     /// `M155 S<seconds>`.
     pub(super) fn set_auto_report(&mut self, seconds: u8) {
         self.host.auto_report_ms = u32::from(seconds) * 1000;

@@ -1185,6 +1185,13 @@ where
         self.core.link.lines_held()
     }
 
+    /// Whether the host asked for reports every period (`M155 S`, `M27 S`): the controller
+    /// owes it those, so its silence is not a sign that it left (OctoPrint sends nothing
+    /// during a print from the card once the printer reports by itself).
+    pub fn owes_reports(&self) -> bool {
+        self.core.auto_reporting() || self.core.card_reporting()
+    }
+
     /// What the controller is doing now.
     pub fn status(&self) -> Status {
         let k = &self.core.kernel;
