@@ -1298,7 +1298,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// idle and has work (the board arms it; an instant already past fires at once), `None`
     /// otherwise.
     ///
-    /// Context: thread. Call it at least every half of `queue_lead_ms` while the machine
+    /// Context: thread. Call it again within [`Kernel::poll_within_ms`] while the machine
     /// moves, after each [`Kernel::execute`] that was taken, and again at once while
     /// [`Kernel::needs_poll`] says so. Its cost is bounded: one call prepares at most a few
     /// dozen step events (under 20,000 instructions on a Cortex-M4, `docs/performance.md`),
@@ -1347,6 +1347,16 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return None;
         }
         self.start_interrupt(now, false)
+    }
+
+    /// The longest the thread side may wait before the next [`Kernel::poll`] while the
+    /// machine moves, ms: half of the motion the step queue held after the last one, and at
+    /// most half of `queue_lead_ms` (the queue fills up before the lead when the steps are
+    /// fast, so that the motion it holds is shorter).
+    pub fn poll_within_ms(&self) -> u32 {
+        let lead_ms = u32::from(self.config().queue_lead_ms);
+        let queued_ms = u64::from(self.prep.queued_ticks()) * 1000 / u64::from(self.tick_hz);
+        (queued_ms.min(u64::from(lead_ms)) as u32 / 2).max(1)
     }
 
     /// Whether the last [`Kernel::poll`] stopped with steps left to prepare before the queue

@@ -18,8 +18,9 @@
 //! ```
 //!
 //! [`split`] creates both halves around a [`StepQueue`] that outlives them (a `static`, or a
-//! local in tests). The [`Kernel`] lives in a thread context; [`Kernel::poll`] must run at least
-//! every half `queue_lead_ms` while the machine moves, and again at once while
+//! local in tests). The [`Kernel`] lives in a thread context; [`Kernel::poll`] must run again
+//! within [`Kernel::poll_within_ms`] while the machine moves (at most half of
+//! `queue_lead_ms`, less when fast steps fill the queue first), and again at once while
 //! [`Kernel::needs_poll`] (one call prepares a bounded share of steps); it returns the instant
 //! to arm the step alarm at when the interrupt side is idle and has work. The
 //! [`StepGenerator`] lives in the step interrupt: each alarm, call

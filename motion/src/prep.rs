@@ -500,6 +500,8 @@ pub(crate) struct Prep<const N: usize> {
     rapid: bool,
     /// The spindle speed of the block in preparation, rpm.
     spindle_rpm: u32,
+    /// Ticks of motion queued ahead of the time of the last [`Prep::fill`], after it.
+    queued_ticks: u32,
     /// The largest distance of a step's tick from its exact time, ticks (debug builds).
     #[cfg(debug_assertions)]
     worst_error: f64,
@@ -530,6 +532,7 @@ impl<const N: usize> Prep<N> {
             line: 0,
             rapid: false,
             spindle_rpm: 0,
+            queued_ticks: 0,
             #[cfg(debug_assertions)]
             worst_error: 0.0,
         }
@@ -711,7 +714,15 @@ impl<const N: usize> Prep<N> {
             }
         };
         self.em.publish(tx);
+        let pending = self.em.pushed_ticks.wrapping_sub(consumed);
+        self.queued_ticks = pending - spent.min(pending);
         result
+    }
+
+    /// Ticks of motion the queue held ahead of the time of the last [`Prep::fill`], after it:
+    /// less than the lead when the queue filled up first (fast steps on several axes).
+    pub(crate) fn queued_ticks(&self) -> u32 {
+        self.queued_ticks
     }
 
     /// Re-plan the block in preparation if its exit speed or the hold changed since it was

@@ -666,3 +666,36 @@ fn a_ramp_beyond_the_step_clocks_range_is_timed_exactly() {
     );
     assert!(d.rate <= 1.01 && d.accel <= 1.01, "{d:?}");
 }
+
+/// The thread side may wait as long as `Kernel::poll_within_ms` says: half of the motion the
+/// step queue holds, less than half of the lead when fast steps fill the queue first. Polled
+/// that late every time, a fast move on two axes with a long lead never runs the queue dry.
+#[test]
+fn polled_as_late_as_the_kernel_allows_the_queue_never_runs_dry() {
+    let mut config = machine();
+    config.queue_lead_ms = 200;
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, config, HZ);
+    s.send("G1 X150 Y75 F6000").expect("ok");
+    let mut longest = 0;
+    let mut shortest = u32::MAX;
+    while !s.kernel.is_idle() {
+        let wait_ms = s.kernel.poll_within_ms();
+        longest = longest.max(wait_ms);
+        if s.positions()[0] > steps(10.0) && s.positions()[0] < steps(140.0) {
+            shortest = shortest.min(wait_ms);
+        }
+        let wait = u64::from(wait_ms) * u64::from(HZ) / 1000;
+        s.wiring.config_mut().poll_period_ticks = wait;
+        s.advance(wait);
+        assert!(
+            !matches!(s.kernel.state(), MachineState::Alarm(_)),
+            "{:?} after waiting {wait_ms} ms",
+            s.kernel.state()
+        );
+    }
+    // The 256 events of the queue hold a fraction of the 200 ms lead at full speed.
+    assert!(shortest < 50, "{shortest} ms");
+    assert!(longest <= 100, "{longest} ms");
+    assert_eq!(s.positions()[..2], [steps(150.0), steps(75.0)]);
+}

@@ -11,8 +11,9 @@
 //! It is sans-IO and portable: `no_std`, no allocation, no panics, no clock. The board calls
 //! [`Controller::poll`] from its thread context (a task or the main loop) with the time and the
 //! link (`embedded-io` `Read + ReadReady + Write`), arms the step alarm at what it returns, and
-//! calls it again at the latest at [`PollOutcome::wake_at`] — and at least every half
-//! `queue_lead_ms` while the machine moves.
+//! calls it again at the latest at [`PollOutcome::wake_at`], which is never later than the
+//! kernel allows while the machine moves (`Kernel::poll_within_ms`: half of the motion its step
+//! queue holds, at most half of `queue_lead_ms`).
 //!
 //! ```text
 //!  board thread                                    controller
@@ -990,7 +991,7 @@ where
     /// link and answer what it brings, as far as it can be handled now.
     ///
     /// Context: thread. Never blocks on the link (it reads only what `read_ready` announces).
-    /// Call it at least every half `queue_lead_ms` while the machine moves.
+    /// Call it again at the latest at the returned [`PollOutcome::wake_at`].
     pub fn poll<L: Read + ReadReady + Write>(&mut self, now: Instant, link: &mut L) -> PollOutcome {
         let core = &mut self.core;
         core.clock.update(now);
@@ -1390,7 +1391,7 @@ where
             || matches!(self.kernel.state(), MachineState::Homing)
             || self.link.lines_held()
         {
-            ms = ms.min(u32::from(self.kernel.config().queue_lead_ms / 2).max(1));
+            ms = ms.min(self.kernel.poll_within_ms());
         }
         if self.kernel.needs_poll() {
             ms = 0;

@@ -54,6 +54,10 @@ pub const HOST_UART_IRQ: Interrupt = Interrupt::USART1;
 /// The host UART's TX and RX pins.
 pub type HostUartPins = (PA9, PA10);
 
+/// How far ahead of the steps the kernel prepares them (its `queue_lead_ms`): the kernel's
+/// default.
+pub const QUEUE_LEAD_MS: u16 = 20;
+
 /// The step clock: TIM2 prescaled to 8 MHz (125 ns resolution, wraps every 537 s).
 pub const STEP_TICK_HZ: u32 = 8_000_000;
 

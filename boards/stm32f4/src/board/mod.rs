@@ -130,5 +130,7 @@ pub const fn machine() -> MachineConfig<AXES> {
     a.kind = AxisKind::Rotary;
     a.min_mm = -100_000.0;
     a.max_mm = 100_000.0;
-    MachineConfig::new([x, y, z, a])
+    let mut machine = MachineConfig::new([x, y, z, a]);
+    machine.queue_lead_ms = QUEUE_LEAD_MS;
+    machine
 }

@@ -52,6 +52,12 @@ pub const HOST_UART_IRQ: Interrupt = Interrupt::USART6;
 /// The host UART's TX and RX pins.
 pub type HostUartPins = (PC6, PC7);
 
+/// How far ahead of the steps the kernel prepares them (its `queue_lead_ms`): 100 ms. QEMU
+/// pauses the emulated core now and then for tens of milliseconds of the host's time (code it
+/// translates for the first time, the host's scheduling), which SysTick counts all the same; a
+/// board's core never pauses, and keeps the kernel's default of 20 ms.
+pub const QUEUE_LEAD_MS: u16 = 100;
+
 /// The step clock: SysTick at QEMU's 168 MHz core clock (wraps every 25.6 s).
 pub const STEP_TICK_HZ: u32 = 168_000_000;
 
