@@ -195,7 +195,11 @@ pub fn on_target() -> Result<(), String> {
 /// where the budgets hold.
 fn on_core(core: &Core) -> Result<Vec<String>, String> {
     let (build, command) = build(&core.image)?;
+    let target = build.target;
     crate::run_all(vec![
+        Step::call(format!("Rust target {target}"), move || {
+            firmware::ensure_target(target)
+        }),
         Step::command(
             format!(
                 "{} bench image ({EXAMPLE}, {}, release profile)",

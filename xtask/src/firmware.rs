@@ -385,28 +385,7 @@ fn installed(program: &str) -> bool {
 /// for the Xtensa chips, check that the `esp` toolchain is there (espup installs it).
 fn ensure_toolchain(variant: &Variant) -> Result<(), String> {
     match variant.toolchain {
-        Toolchain::Pinned => {
-            let installed = Command::new("rustup")
-                .args(["target", "list", "--installed"])
-                .current_dir(root())
-                .output()
-                .map(|o| String::from_utf8_lossy(&o.stdout).into_owned())
-                .unwrap_or_default();
-            if installed.lines().any(|t| t.trim() == variant.target) {
-                return Ok(());
-            }
-            eprintln!("adding the Rust target {} (rustup)", variant.target);
-            let status = Command::new("rustup")
-                .args(["target", "add", variant.target])
-                .current_dir(root())
-                .status()
-                .map_err(|e| format!("rustup: {e}"))?;
-            if status.success() {
-                Ok(())
-            } else {
-                Err(format!("rustup target add {} failed", variant.target))
-            }
-        }
+        Toolchain::Pinned => ensure_target(variant.target),
         Toolchain::Esp => {
             let present = Command::new("rustup")
                 .args(["run", "esp", "rustc", "--version"])
@@ -423,6 +402,30 @@ fn ensure_toolchain(variant: &Variant) -> Result<(), String> {
                 ))
             }
         }
+    }
+}
+
+/// Add the pinned toolchain's Rust `target` with rustup when it lacks it.
+pub fn ensure_target(target: &str) -> Result<(), String> {
+    let installed = Command::new("rustup")
+        .args(["target", "list", "--installed"])
+        .current_dir(root())
+        .output()
+        .map(|o| String::from_utf8_lossy(&o.stdout).into_owned())
+        .unwrap_or_default();
+    if installed.lines().any(|t| t.trim() == target) {
+        return Ok(());
+    }
+    eprintln!("adding the Rust target {target} (rustup)");
+    let status = Command::new("rustup")
+        .args(["target", "add", target])
+        .current_dir(root())
+        .status()
+        .map_err(|e| format!("rustup: {e}"))?;
+    if status.success() {
+        Ok(())
+    } else {
+        Err(format!("rustup target add {target} failed"))
     }
 }
 
