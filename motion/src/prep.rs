@@ -14,7 +14,9 @@
 //! the clocks' range is timed step by step in double precision.
 //!
 //! The per-axis step times are merged into one time-ordered stream of rising edges for the
-//! interrupt, which ends each pulse itself. A direction change is written after the axis's
+//! interrupt, which ends each pulse itself. Most steps take the fast path ([`Current::burst`]):
+//! a step that needs no adjustment (no direction change, no edge sharing a tick, no phase
+//! change) is written with one set of checks; the others take the general path. A direction change is written after the axis's
 //! last pulse has ended and at least `dir_setup` before its next rising edge; the step is
 //! delayed when there is not room (only ever at a junction where the axis reverses). Two
 //! rising edges of one axis are always a high and a low pulse width apart.
@@ -22,7 +24,7 @@
 use core::sync::atomic::Ordering;
 
 use forja_hal_abstraction::time::Instant;
-use libm::{ceil, floor, sqrt};
+use libm::{ceil, floor};
 
 use crate::planner::{Block, BlockKind, Planner};
 use crate::profile::{PHASES, Profile, Shape};
@@ -47,6 +49,13 @@ const PHASE_WORK: u32 = 24;
 /// What a step timed by a full square root (or in double precision) counts, in steps.
 const ROOT_WORK: u32 = 3;
 
+/// A speed from the planner's square of it: single precision, as the planner holds it (a
+/// square root in double precision would add digits the square does not have, for ten times
+/// the instructions in software).
+fn speed_of(square: f32) -> f64 {
+    f64::from(libm::sqrtf(square))
+}
+
 /// How an axis's steps are timed in its current phase.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Timing {
@@ -69,6 +78,8 @@ struct AxisSteps {
     phase_last: u32,
     /// Path length of one step (mm; 0 when the axis has none).
     step_mm: f64,
+    /// Its inverse, steps per mm of path (0 when the axis has none).
+    per_mm: f64,
     timing: Timing,
 }
 
@@ -88,6 +99,8 @@ struct Current<const N: usize> {
     neg: u8,
     mm: f64,
     accel: f64,
+    /// Ticks to change speed by 1 mm/s at the block's acceleration: `ticks_per_s / accel`.
+    ticks_per_speed: f64,
     nominal: f64,
     s_anchor: f64,
     /// Exact time of the anchor, ticks.
@@ -102,6 +115,10 @@ struct Current<const N: usize> {
     profile: Profile,
     exit_used: f32,
     hold_used: bool,
+    /// The largest distance of a step's tick from its exact time in the last
+    /// [`Current::burst`], ticks (debug builds).
+    #[cfg(debug_assertions)]
+    burst_error: f64,
 }
 
 impl<const N: usize> Current<N> {
@@ -110,13 +127,7 @@ impl<const N: usize> Current<N> {
         if hold {
             Profile::hold(rest, v0, self.accel)
         } else {
-            Profile::plan(
-                rest,
-                v0,
-                self.nominal,
-                sqrt(f64::from(exit_sqr)),
-                self.accel,
-            )
+            Profile::plan(rest, v0, self.nominal, speed_of(exit_sqr), self.accel)
         }
     }
 
@@ -178,17 +189,18 @@ impl<const N: usize> Current<N> {
             return;
         }
         let h = a.step_mm;
+        let per_mm = a.per_mm;
         // Step j is at h·(j − ½) − s_anchor along the profile.
-        let offset = self.s_anchor / h + 0.5;
+        let offset = self.s_anchor * per_mm + 0.5;
         while a.phase < PHASES {
             let ph = self.profile.phase(a.phase);
             let last = if a.phase + 1 < PHASES {
                 // The last step before the phase's end.
-                (ceil(ph.end / h + offset) - 1.0).min(f64::from(a.n))
+                (ceil(ph.end * per_mm + offset) - 1.0).min(f64::from(a.n))
             } else if self.profile.stops() {
                 // Within rounding of a hold's stopping point, a step is at it.
                 let end = ph.end * (1.0 + 1e-9) + 1e-12;
-                floor(end / h + offset).min(f64::from(a.n))
+                floor(end * per_mm + offset).min(f64::from(a.n))
             } else {
                 f64::from(a.n)
             };
@@ -208,17 +220,14 @@ impl<const N: usize> Current<N> {
         let base = floor(start);
         let rel = start - base;
         let base = base as u64;
-        let accel = self.profile.accel();
         let clock = match ph.shape {
-            Shape::Cruise => StepClock::cruise(
-                base,
-                rel + ticks_per_s * x / ph.v_start,
-                ticks_per_s * h / ph.v_start,
-                steps,
-            ),
+            Shape::Cruise => {
+                let ticks_per_mm = ticks_per_s / ph.v_start;
+                StepClock::cruise(base, rel + ticks_per_mm * x, ticks_per_mm * h, steps)
+            }
             shape => {
-                let c = ticks_per_s * ph.v_start / accel;
-                let k = 2.0 * ticks_per_s * ticks_per_s / accel;
+                let c = self.ticks_per_speed * ph.v_start;
+                let k = 2.0 * ticks_per_s * self.ticks_per_speed;
                 let up = shape == Shape::Up;
                 let (c, y) = if up {
                     (rel - c, c * c + k * x)
@@ -295,6 +304,216 @@ impl<const N: usize> Current<N> {
             }
         }
         best
+    }
+
+    /// Emit the steps that need none of the emitter's care: each step at its own tick, after
+    /// the last event (an edge at the same tick joins it on the general path), a full pulse
+    /// and as long low after its axis's last rising edge, in the direction its line already
+    /// has, not the last of its phase, by a step clock, and before `horizon`. Stops at the
+    /// first step that is not such (the general path takes it), at `max_work` or when the
+    /// queue's room is used. Returns the work done (0: nothing emitted).
+    ///
+    /// This is the inner loop of preparation: one axis stepping alone runs in
+    /// [`Current::run_alone`]; several go step by step in the order of their next steps.
+    #[inline(never)]
+    fn burst<const Q: usize>(
+        &mut self,
+        em: &mut Emitter<N>,
+        tx: &mut Producer<'_, N, Q>,
+        horizon: u64,
+        max_work: u32,
+        ticks_per_s: f64,
+    ) -> u32 {
+        let room = em.room.saturating_sub(SLOTS_PER_STEP + 2);
+        let limit = max_work.min(room.min(u32::MAX as usize) as u32);
+        if let Some(i) = self.only_axis {
+            return self.run_alone(i, em, tx, horizon, limit, ticks_per_s);
+        }
+        // Step by step, the axis whose step comes first: the axes are kept in the order of
+        // their next steps, and an axis that has stepped moves down past those due sooner
+        // (one comparison when it stays first).
+        let mut order = [0u8; N];
+        for k in 1..N {
+            // Insertion: the order of axes 0..k, then axis k in its place.
+            let due = self.next_tick.get(k).copied();
+            let mut p = k;
+            while let Some(&before) = order.get(p.wrapping_sub(1)) {
+                if self.next_tick.get(usize::from(before)).copied() <= due {
+                    break;
+                }
+                if let Some(slot) = order.get_mut(p) {
+                    *slot = before;
+                }
+                p -= 1;
+            }
+            if let Some(slot) = order.get_mut(p) {
+                *slot = k as u8;
+            }
+        }
+        let spacing = 2 * em.pulse;
+        let mut last = em.last_tick;
+        let mut work = 0u32;
+        let mut written = 0usize;
+        let mut last_axis = self.last_axis;
+        while work < limit {
+            let i = usize::from(order.first().copied().unwrap_or(0));
+            let t = self.next_tick.get(i).copied().unwrap_or(u64::MAX);
+            #[cfg(debug_assertions)]
+            let exact = self.exact_time(i, ticks_per_s).unwrap_or(f64::INFINITY);
+            let bit = 1u8 << i;
+            let (Some(a), Some(rose), Some(next)) = (
+                self.axes.get_mut(i),
+                em.rose_at.get_mut(i),
+                self.next_tick.get_mut(i),
+            ) else {
+                break;
+            };
+            let Timing::Clock(clock) = &mut a.timing else {
+                break;
+            };
+            let delta = t.wrapping_sub(last);
+            // As in `Current::run_alone`, and not the last step of its phase.
+            if t >= horizon
+                || delta.wrapping_sub(1) >= u64::from(MAX_DELTA)
+                || t - *rose < spacing
+                || a.j >= a.phase_last
+                || (em.dir_known & bit) == 0
+                || (em.dir_neg ^ self.neg) & bit != 0
+                || !tx.write(&Event {
+                    delta: delta as u32,
+                    rise: bit,
+                    ..Event::default()
+                })
+            {
+                break;
+            }
+            written += 1;
+            last = t;
+            *rose = t;
+            a.j += 1;
+            let (tick, rooted) = clock.advance();
+            *next = tick;
+            work += if rooted { 1 + ROOT_WORK } else { 1 };
+            last_axis = i as u8;
+            #[cfg(debug_assertions)]
+            {
+                self.burst_error = self.burst_error.max((t as f64 - exact).abs());
+            }
+            let mut p = 0;
+            while let Some(&k) = order.get(p + 1) {
+                if self
+                    .next_tick
+                    .get(usize::from(k))
+                    .is_none_or(|&due| due >= tick)
+                {
+                    break;
+                }
+                if let Some(slot) = order.get_mut(p) {
+                    *slot = k;
+                }
+                p += 1;
+            }
+            if let Some(slot) = order.get_mut(p) {
+                *slot = i as u8;
+            }
+        }
+        if written > 0 {
+            self.last_axis = last_axis;
+            em.pushed_ticks = em
+                .pushed_ticks
+                .wrapping_add(last.wrapping_sub(em.last_tick) as u32);
+            em.last_tick = last;
+            em.room = em.room.saturating_sub(written);
+            em.amendable = true;
+            em.last_rest = false;
+        }
+        work
+    }
+
+    /// [`Current::burst`] when axis `i` is the only one that steps: its steps before
+    /// `horizon`, within `max_work`, with the step clock's kind matched once for the run
+    /// ([`StepClock::walk`]) and its state in registers.
+    #[inline(always)]
+    fn run_alone<const Q: usize>(
+        &mut self,
+        i: usize,
+        em: &mut Emitter<N>,
+        tx: &mut Producer<'_, N, Q>,
+        horizon: u64,
+        max_work: u32,
+        ticks_per_s: f64,
+    ) -> u32 {
+        let _ = ticks_per_s;
+        let bit = 1u8 << i;
+        if (em.dir_known & bit) == 0 || (em.dir_neg ^ self.neg) & bit != 0 {
+            return 0;
+        }
+        let (Some(a), Some(rose), Some(next)) = (
+            self.axes.get_mut(i),
+            em.rose_at.get_mut(i),
+            self.next_tick.get_mut(i),
+        ) else {
+            return 0;
+        };
+        let Timing::Clock(clock) = &mut a.timing else {
+            return 0;
+        };
+        // Two rising edges of the axis are a full pulse and as long low apart.
+        let spacing = 2 * em.pulse;
+        let start = em.last_tick;
+        let mut last = start;
+        let mut rose_at = *rose;
+        #[cfg(debug_assertions)]
+        let (mut worst, mut j, step_mm) = (0.0f64, a.j, a.step_mm);
+        #[cfg(debug_assertions)]
+        let (profile, s_anchor, t_anchor) = (&self.profile, self.s_anchor, self.t_anchor);
+        let (steps, work) =
+            clock.walk(a.phase_last.saturating_sub(a.j), max_work, ROOT_WORK, |t| {
+                // After the last event and within one event's delay of it (one comparison
+                // each way, wrapping), and a pulse and as long low after the axis's last edge
+                // (never after the last event).
+                let delta = t.wrapping_sub(last);
+                if t >= horizon
+                    || delta.wrapping_sub(1) >= u64::from(MAX_DELTA)
+                    || t - rose_at < spacing
+                    || !tx.write(&Event {
+                        delta: delta as u32,
+                        rise: bit,
+                        ..Event::default()
+                    })
+                {
+                    return false;
+                }
+                #[cfg(debug_assertions)]
+                {
+                    let s = step_mm * (f64::from(j) - 0.5) - s_anchor;
+                    let exact = profile
+                        .time_at(s)
+                        .map_or(f64::INFINITY, |dt| t_anchor + dt * ticks_per_s);
+                    worst = worst.max((t as f64 - exact).abs());
+                    j += 1;
+                }
+                last = t;
+                rose_at = t;
+                true
+            });
+        if steps == 0 {
+            return 0;
+        }
+        #[cfg(debug_assertions)]
+        {
+            self.burst_error = self.burst_error.max(worst);
+        }
+        a.j += steps;
+        *next = clock.tick();
+        *rose = last;
+        self.last_axis = i as u8;
+        em.pushed_ticks = em.pushed_ticks.wrapping_add((last - start) as u32);
+        em.last_tick = last;
+        em.room = em.room.saturating_sub(steps as usize);
+        em.amendable = true;
+        em.last_rest = false;
+        work
     }
 
     fn done(&self) -> bool {
@@ -566,7 +785,7 @@ impl<const N: usize> Prep<N> {
     /// re-plan the rest of it from the last prepared step.
     pub(crate) fn set_nominal(&mut self, nominal_sqr: f32) {
         if let Some(cur) = self.cur.as_mut() {
-            cur.nominal = sqrt(f64::from(nominal_sqr));
+            cur.nominal = speed_of(nominal_sqr);
             // Never equal to the planner's exit: the next fill re-anchors.
             cur.exit_used = f32::NAN;
         }
@@ -684,6 +903,19 @@ impl<const N: usize> Prep<N> {
                 work += PHASE_WORK;
                 continue;
             }
+            #[cfg(debug_assertions)]
+            {
+                cur.burst_error = 0.0;
+            }
+            let burst = cur.burst(&mut self.em, tx, horizon, WORK_PER_FILL - work, tps);
+            if burst > 0 {
+                #[cfg(debug_assertions)]
+                {
+                    self.worst_error = self.worst_error.max(cur.burst_error);
+                }
+                work += burst;
+                continue;
+            }
             // The axis whose step comes first.
             let (i, tick) = cur.first_step();
             if tick != u64::MAX {
@@ -754,6 +986,7 @@ impl<const N: usize> Prep<N> {
                 phase: 0,
                 phase_last: 0,
                 step_mm: if n == 0 { 0.0 } else { mm / f64::from(n) },
+                per_mm: if n == 0 { 0.0 } else { f64::from(n) / mm },
                 timing: Timing::Exact,
             }
         });
@@ -772,7 +1005,8 @@ impl<const N: usize> Prep<N> {
             neg,
             mm,
             accel: f64::from(block.accel),
-            nominal: sqrt(f64::from(block.nominal_sqr)),
+            ticks_per_speed: self.ticks_per_s / f64::from(block.accel),
+            nominal: speed_of(block.nominal_sqr),
             s_anchor: 0.0,
             t_anchor: t0,
             last_axis: NO_AXIS,
@@ -781,6 +1015,8 @@ impl<const N: usize> Prep<N> {
             profile: Profile::plan(0.0, 0.0, 0.0, 0.0, 1.0),
             exit_used: exit_sqr,
             hold_used: self.hold,
+            #[cfg(debug_assertions)]
+            burst_error: 0.0,
         };
         self.line = block.line;
         self.rapid = block.speed.rapid;

@@ -56,9 +56,16 @@ impl Profile {
     pub(crate) fn plan(r: f64, v0: f64, vn: f64, ve: f64, a: f64) -> Self {
         let r = r.max(0.0);
         let two_a = 2.0 * a;
-        let ve = ve
-            .min(sqrt(v0 * v0 + two_a * r))
-            .max(sqrt((v0 * v0 - two_a * r).max(0.0)));
+        // The exit speed within what the block can reach from v0, compared squared: a square
+        // root (a few hundred instructions in software) only when it is out of reach.
+        let (v0_sq, ve_sq) = (v0 * v0, ve * ve);
+        let ve = if ve_sq > v0_sq + two_a * r {
+            sqrt(v0_sq + two_a * r)
+        } else if ve_sq < v0_sq - two_a * r {
+            sqrt(v0_sq - two_a * r)
+        } else {
+            ve
+        };
         let (d1, up1, v1, d3);
         if v0 > vn {
             let vc = vn.max(ve);
@@ -84,7 +91,14 @@ impl Profile {
             up1 = true;
         }
         let d2 = (r - d1 - d3).max(0.0);
-        let v3 = sqrt((v1 * v1 - two_a * d3).max(0.0));
+        // The end of the last phase is the exit speed, unless a phase was cut short: compared
+        // squared, within rounding, before a square root.
+        let v3_sq = (v1 * v1 - two_a * d3).max(0.0);
+        let v3 = if (v3_sq - ve * ve).abs() <= 1e-12 * (v1 * v1) {
+            ve
+        } else {
+            sqrt(v3_sq)
+        };
         Self::from_phases(v0, a, d1, up1, v1, d2, d3, v3, false)
     }
 
@@ -157,11 +171,6 @@ impl Profile {
                 shape: Shape::Down,
             },
         }
-    }
-
-    /// The acceleration of the ramps, mm/s².
-    pub(crate) fn accel(&self) -> f64 {
-        self.a
     }
 
     /// Whether the profile ends at rest inside the block (a completed hold): no point past

@@ -10,7 +10,9 @@
 //! square root in units of `2^−k` tick: the next `R` is predicted as the last one plus the
 //! last increment, then corrected unit by unit against `W` (one 32×32 multiplication each); a
 //! prediction off by more than [`MAX_NUDGES`] units (the first steps from rest, where the
-//! intervals shrink fastest) takes a full square root instead.
+//! intervals shrink fastest) takes one Newton step first (a 32-bit division), and a full
+//! square root only when that is out of reach. [`StepClock::walk`] runs a clock through many
+//! steps at once, for the loop that takes one axis's steps in a row.
 //!
 //! Accuracy: with `k` = [`RAMP_BITS`] = 4, `R` is within one unit (1/16 tick) below `√W`, the
 //! offset `c` is rounded to half a unit, and the per-step change of `W` to half a unit of `W`
@@ -72,8 +74,8 @@ impl StepClock {
         }
         Some(Self::Cruise {
             base,
-            time: round((first + 0.5) * CRUISE_UNIT) as u64,
-            interval: round(interval * CRUISE_UNIT) as u64,
+            time: round_up_half((first + 0.5) * CRUISE_UNIT),
+            interval: round_up_half(interval * CRUISE_UNIT),
         })
     }
 
@@ -104,8 +106,8 @@ impl StepClock {
             return None;
         }
         let scale = RAMP_UNIT * RAMP_UNIT;
-        let w = round(y * scale) as u64;
-        let dw = round(dy * scale) as u64;
+        let w = round_up_half(y * scale);
+        let dw = round_up_half(dy * scale);
         let r = isqrt(w);
         // The first increment, `√(w ± dw) − √w ≈ dw / 2√w`: a guess the first step corrects.
         let d = (dy * scale / (2.0 * f64::from(r) + 1.0)).min(f64::from(u32::MAX >> 1)) as u32;
@@ -155,8 +157,8 @@ impl StepClock {
                 } else {
                     (w.saturating_sub(*dw), r.saturating_sub(*d))
                 };
-                let next = nudge(guess, w_next);
-                rooted = next.abs_diff(guess) > MAX_NUDGES;
+                let next;
+                (next, rooted) = nudge(guess, w_next);
                 *d = next.abs_diff(*r);
                 *r = next;
                 *w = w_next;
@@ -166,12 +168,98 @@ impl StepClock {
     }
 }
 
-/// `⌊√w⌋` from a guess: corrected by single units, or computed anew when the guess is off
-/// by more than [`MAX_NUDGES`].
+impl StepClock {
+    /// Walk the steps from the current one while `take` accepts their ticks, at most
+    /// `max_steps` of them and until their work reaches `max_work` (a step counts 1, one
+    /// timed by a full square root `1 + root_work`). The clock stays at the first step not
+    /// taken. Returns the steps taken and their work.
+    ///
+    /// The loop of a run of one axis's steps: the clock's kind is matched once and its state
+    /// kept in registers, where [`StepClock::advance`] matches it at every step.
+    #[inline(always)]
+    pub(crate) fn walk(
+        &mut self,
+        max_steps: u32,
+        max_work: u32,
+        root_work: u32,
+        mut take: impl FnMut(u64) -> bool,
+    ) -> (u32, u32) {
+        let mut steps = 0;
+        let mut work = 0;
+        match self {
+            Self::Cruise {
+                base,
+                time,
+                interval,
+            } => {
+                let (base, interval) = (*base, *interval);
+                let mut t = *time;
+                while steps < max_steps && work < max_work && take(base + (t >> 32)) {
+                    t = t.wrapping_add(interval);
+                    steps += 1;
+                    work += 1;
+                }
+                *time = t;
+            }
+            Self::Ramp {
+                base,
+                w,
+                dw,
+                r,
+                d,
+                off,
+                up,
+            } => {
+                let (base, dw, off, up) = (*base, *dw, *off, *up);
+                let (mut w_now, mut r_now, mut d_now) = (*w, *r, *d);
+                while steps < max_steps && work < max_work {
+                    let units = if up {
+                        off.wrapping_add(r_now)
+                    } else {
+                        off.wrapping_sub(r_now)
+                    };
+                    if !take(base + u64::from(units >> RAMP_BITS)) {
+                        break;
+                    }
+                    let (w_next, guess) = if up {
+                        (w_now.wrapping_add(dw), r_now.wrapping_add(d_now))
+                    } else {
+                        (w_now.saturating_sub(dw), r_now.saturating_sub(d_now))
+                    };
+                    let (next, rooted) = nudge(guess, w_next);
+                    work += if rooted { 1 + root_work } else { 1 };
+                    d_now = next.abs_diff(r_now);
+                    r_now = next;
+                    w_now = w_next;
+                    steps += 1;
+                }
+                (*w, *r, *d) = (w_now, r_now, d_now);
+            }
+        }
+        (steps, work)
+    }
+}
+
+/// `⌊√w⌋` from a guess: corrected by single units, after one Newton step when the guess is
+/// off by more than [`MAX_NUDGES`] units (a 32-bit division), or computed anew when even
+/// that is out of reach.
+/// Returns the root, and whether it took a full square root.
 #[inline(always)]
-fn nudge(guess: u32, w: u64) -> u32 {
+fn nudge(guess: u32, w: u64) -> (u32, bool) {
     let mut r = guess;
     let mut sq = u64::from(r) * u64::from(r);
+    // Off by more than the unit corrections reach: one Newton step, r + (w − r²)/2r, when the
+    // error fits 32 bits (all but the first steps from rest).
+    let reach = u64::from(MAX_NUDGES) * (2 * u64::from(r) + u64::from(MAX_NUDGES));
+    if sq.abs_diff(w) > reach && r > 0 {
+        let error = w as i64 - sq as i64;
+        let (Ok(error), Ok(twice)) = (i32::try_from(error), i32::try_from(2 * u64::from(r))) else {
+            return (isqrt(w), true);
+        };
+        let step = error / twice;
+        r = r.wrapping_add_signed(step);
+        sq = u64::from(r) * u64::from(r);
+    }
     for _ in 0..MAX_NUDGES {
         if sq > w {
             // (r − 1)² = r² − 2r + 1
@@ -182,14 +270,21 @@ fn nudge(guess: u32, w: u64) -> u32 {
             sq += 2 * u64::from(r) + 1;
             r += 1;
         } else {
-            return r;
+            return (r, false);
         }
     }
     if sq <= w && w - sq <= 2 * u64::from(r) {
-        r
+        (r, false)
     } else {
-        isqrt(w)
+        (isqrt(w), true)
     }
+}
+
+/// `x ≥ 0` rounded to the nearest integer (halves up): an addition and a conversion, where
+/// `libm::round` takes a call of its own.
+#[inline(always)]
+fn round_up_half(x: f64) -> u64 {
+    (x + 0.5) as u64
 }
 
 /// `⌊√w⌋` for `w < 2^62`.
@@ -233,9 +328,13 @@ mod tests {
             let r = u64::from(isqrt(w));
             assert!(r * r <= w && (r + 1) * (r + 1) > w, "{w}");
         }
-        assert_eq!(nudge(10, 99), 9);
-        assert_eq!(nudge(1, 99), 9);
-        assert_eq!(nudge(9, 100), 10);
+        assert_eq!(nudge(10, 99), (9, false));
+        assert_eq!(nudge(1, 99).0, 9);
+        assert_eq!(nudge(9, 100), (10, false));
+        // Far off: a Newton step, then units.
+        assert_eq!(nudge(1990, 4_000_000), (2000, false));
+        assert_eq!(nudge(2010, 4_000_000), (2000, false));
+        assert_eq!(nudge(1000, 4_000_000), (2000, true));
     }
 
     #[test]

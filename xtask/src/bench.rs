@@ -139,6 +139,10 @@ const CORES: &[Core] = &[
 /// Most instructions per step event in the step interrupt.
 const STEP_EVENT_BUDGET: u64 = 200;
 
+/// The target for the whole kernel, interrupt and preparation, per step event (670k steps/s
+/// at 168 MHz): reported beside the figures, and not held until the kernel meets it.
+const WHOLE_KERNEL_TARGET: u64 = 250;
+
 /// Most instructions per planned 1 mm `G1` line (over 5,000 lines/s on a 168 MHz core).
 const LINE_BUDGET: u64 = 30_000;
 
@@ -401,6 +405,8 @@ struct Row<'a> {
     /// Instructions per unit that the "at <clock>" rate is computed from.
     for_rate: f64,
     budget: Option<u64>,
+    /// Whether `budget` is held (a figure over it fails the bench), or a target reported.
+    held: bool,
     /// Most instructions of one call, where that is held.
     call_budget: Option<u64>,
 }
@@ -429,6 +435,16 @@ fn table(core: &Core, title: &str, unit: &str, unit_name: &str, rows: &[Row<'_>]
         };
         let exceeded = r.budget.is_some_and(|b| r.per_unit > b as f64);
         let call_over = r.call_budget.filter(|&b| m.max > b);
+        if exceeded && !r.held && call_over.is_none() {
+            println!(
+                "{:<44} {:>9} {per_call:>22} {:>10} {budget:>8} {ratio:>6} {:>9}k/s  (target: not met)",
+                r.what,
+                thousands(m.calls),
+                format_per_unit(r.per_unit),
+                (core.clock_hz / r.for_rate / 1e3).round(),
+            );
+            continue;
+        }
         let exceeded = exceeded || call_over.is_some();
         println!(
             "{:<44} {:>9} {per_call:>22} {:>10} {budget:>8} {ratio:>6} {:>9}k/s{}",
@@ -497,6 +513,7 @@ fn report(counts: &Counts, core: &Core, build: &Build) -> Result<Vec<String>, St
     );
     let mut isr = Vec::new();
     let mut prep = Vec::new();
+    let mut whole = Vec::new();
     for &(phase, what) in PHASES {
         let steps = result(phase)?.step_events as f64;
         let i = marker(phase, "bench_isr")?;
@@ -507,6 +524,7 @@ fn report(counts: &Counts, core: &Core, build: &Build) -> Result<Vec<String>, St
             per_unit: i.total as f64 / steps,
             for_rate: i.total as f64 / steps,
             budget: Some(STEP_EVENT_BUDGET),
+            held: true,
             call_budget: None,
         });
         prep.push(Row {
@@ -515,7 +533,17 @@ fn report(counts: &Counts, core: &Core, build: &Build) -> Result<Vec<String>, St
             per_unit: p.total as f64 / steps,
             for_rate: (p.total + i.total) as f64 / steps,
             budget: None,
+            held: true,
             call_budget: Some(POLL_BUDGET),
+        });
+        whole.push(Row {
+            what,
+            calls: p,
+            per_unit: (p.total + i.total) as f64 / steps,
+            for_rate: (p.total + i.total) as f64 / steps,
+            budget: Some(WHOLE_KERNEL_TARGET),
+            held: false,
+            call_budget: None,
         });
     }
     let line = marker(3, "bench_line")?;
@@ -538,6 +566,7 @@ fn report(counts: &Counts, core: &Core, build: &Build) -> Result<Vec<String>, St
             per_unit: per_line,
             for_rate: per_line,
             budget: Some(LINE_BUDGET),
+            held: true,
             call_budget: None,
         }],
     ));
@@ -548,6 +577,13 @@ fn report(counts: &Counts, core: &Core, build: &Build) -> Result<Vec<String>, St
         "step event",
         &prep,
     ));
+    over.extend(table(
+        core,
+        "whole kernel: interrupt + preparation",
+        "/step ev.",
+        "step event",
+        &whole,
+    ));
     println!(
         "\nPer step event: the instructions of every call during the phase divided by its step \
          events\n(rising edges, all axes), pulse-end and direction calls included. A call counts \
@@ -556,8 +592,11 @@ fn report(counts: &Counts, core: &Core, build: &Build) -> Result<Vec<String>, St
          the core did nothing else;\nfor segment preparation, the step interrupt's instructions \
          added. Flash wait states and\nmulti-cycle instructions make the cycles more than the \
          instructions. Segment preparation's budget\nis for one call: {} instructions at most \
-         (the largest call is the \"max\" column).",
+         (the largest call is the \"max\" column).\nThe whole kernel's \
+         figure is against its target ({} instructions per step event), which is reported, not \
+         held;\nits calls are the preparation's.",
         thousands(POLL_BUDGET),
+        WHOLE_KERNEL_TARGET,
         at_clock = core.at_clock(),
     );
     if !core.note.is_empty() {
