@@ -178,10 +178,15 @@ pub struct MachineConfig<const N: usize> {
     pub jog_feed_mm_min: f32,
     /// Feed of `G1` before any `F` word, mm/min.
     pub default_feed_mm_min: f32,
-    /// How much motion the kernel keeps prepared in the step queue, ms. It bounds how long a
-    /// feed hold takes to start decelerating; the thread side must run at least this often.
+    /// How much motion the kernel keeps prepared in the step queue, ms
+    /// ([`DEFAULT_QUEUE_LEAD_MS`] by default). It bounds how long a feed hold takes to start
+    /// decelerating; the thread side must poll again within half of it, or sooner when the
+    /// queue fills up first (`Kernel::poll_within_ms`).
     pub queue_lead_ms: u16,
 }
+
+/// The [`MachineConfig::queue_lead_ms`] of a new configuration.
+pub const DEFAULT_QUEUE_LEAD_MS: u16 = 20;
 
 impl<const N: usize> MachineConfig<N> {
     /// Machine-wide defaults around the given axes: 0.01 mm junction deviation, 0.002 mm arc
@@ -196,7 +201,7 @@ impl<const N: usize> MachineConfig<N> {
             probe_switch: None,
             jog_feed_mm_min: 1000.0,
             default_feed_mm_min: 1000.0,
-            queue_lead_ms: 20,
+            queue_lead_ms: DEFAULT_QUEUE_LEAD_MS,
         }
     }
 

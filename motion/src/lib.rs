@@ -80,7 +80,10 @@ pub mod replay;
 mod step_clock;
 mod stepgen;
 
-pub use config::{AxisConfig, AxisKind, HomeDirection, HomingConfig, MachineConfig, SoftLimits};
+pub use config::{
+    AxisConfig, AxisKind, DEFAULT_QUEUE_LEAD_MS, HomeDirection, HomingConfig, MachineConfig,
+    SoftLimits,
+};
 pub use effect::{Effect, Sync};
 pub use error::{Alarm, CommandError, ConfigError};
 pub use estimate::Estimate;

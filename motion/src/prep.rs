@@ -419,13 +419,7 @@ impl<const N: usize> Current<N> {
         }
         if written > 0 {
             self.last_axis = last_axis;
-            em.pushed_ticks = em
-                .pushed_ticks
-                .wrapping_add(last.wrapping_sub(em.last_tick) as u32);
-            em.last_tick = last;
-            em.room = em.room.saturating_sub(written);
-            em.amendable = true;
-            em.last_rest = false;
+            em.wrote_run(last, written);
         }
         work
     }
@@ -455,16 +449,17 @@ impl<const N: usize> Current<N> {
         ) else {
             return 0;
         };
+        #[cfg(debug_assertions)]
+        let (mut worst, axis) = (0.0f64, *a);
+        #[cfg(debug_assertions)]
+        let mut j = axis.j;
         let Timing::Clock(clock) = &mut a.timing else {
             return 0;
         };
         // Two rising edges of the axis are a full pulse and as long low apart.
         let spacing = 2 * em.pulse;
-        let start = em.last_tick;
-        let mut last = start;
+        let mut last = em.last_tick;
         let mut rose_at = *rose;
-        #[cfg(debug_assertions)]
-        let (mut worst, mut j, step_mm) = (0.0f64, a.j, a.step_mm);
         #[cfg(debug_assertions)]
         let (profile, s_anchor, t_anchor) = (&self.profile, self.s_anchor, self.t_anchor);
         let (steps, work) =
@@ -486,9 +481,8 @@ impl<const N: usize> Current<N> {
                 }
                 #[cfg(debug_assertions)]
                 {
-                    let s = step_mm * (f64::from(j) - 0.5) - s_anchor;
                     let exact = profile
-                        .time_at(s)
+                        .time_at(axis.step_mm_at(j) - s_anchor)
                         .map_or(f64::INFINITY, |dt| t_anchor + dt * ticks_per_s);
                     worst = worst.max((t as f64 - exact).abs());
                     j += 1;
@@ -508,11 +502,7 @@ impl<const N: usize> Current<N> {
         *next = clock.tick();
         *rose = last;
         self.last_axis = i as u8;
-        em.pushed_ticks = em.pushed_ticks.wrapping_add((last - start) as u32);
-        em.last_tick = last;
-        em.room = em.room.saturating_sub(steps as usize);
-        em.amendable = true;
-        em.last_rest = false;
+        em.wrote_run(last, steps as usize);
         work
     }
 
@@ -548,6 +538,27 @@ impl<const N: usize> Emitter<N> {
     #[inline(always)]
     fn cursor(&self) -> u64 {
         self.last_tick
+    }
+
+    /// Ticks of the events written that are still ahead: those the interrupt has not consumed
+    /// (`consumed`, its count of ticks), less the `spent` ticks since its last event.
+    #[inline(always)]
+    fn ahead(&self, consumed: u32, spent: u32) -> u32 {
+        let pending = self.pushed_ticks.wrapping_sub(consumed);
+        pending - spent.min(pending)
+    }
+
+    /// The fast path ([`Current::burst`]) wrote `written` rising edges into the queue, the
+    /// last at tick `last`: count their ticks and room, and let an edge at `last` join them.
+    #[inline(always)]
+    fn wrote_run(&mut self, last: u64, written: usize) {
+        self.pushed_ticks = self
+            .pushed_ticks
+            .wrapping_add(last.wrapping_sub(self.last_tick) as u32);
+        self.last_tick = last;
+        self.room = self.room.saturating_sub(written);
+        self.amendable = true;
+        self.last_rest = false;
     }
 
     /// The rising edge of axis `i` (direction `neg`) at tick `t`, or as soon after it as
@@ -847,8 +858,7 @@ impl<const N: usize> Prep<N> {
         } else {
             0
         };
-        let pending = self.em.pushed_ticks.wrapping_sub(consumed);
-        let ahead = pending - spent.min(pending);
+        let ahead = self.em.ahead(consumed, spent);
         // Events go up to this tick: `lead_ticks` of motion ahead of now.
         let horizon = self.em.last_tick + u64::from(lead_ticks.saturating_sub(ahead));
         let tps = self.ticks_per_s;
@@ -946,8 +956,7 @@ impl<const N: usize> Prep<N> {
             }
         };
         self.em.publish(tx);
-        let pending = self.em.pushed_ticks.wrapping_sub(consumed);
-        self.queued_ticks = pending - spent.min(pending);
+        self.queued_ticks = self.em.ahead(consumed, spent);
         result
     }
 

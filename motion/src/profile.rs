@@ -58,11 +58,11 @@ impl Profile {
         let two_a = 2.0 * a;
         // The exit speed within what the block can reach from v0, compared squared: a square
         // root (a few hundred instructions in software) only when it is out of reach.
-        let (v0_sq, ve_sq) = (v0 * v0, ve * ve);
-        let ve = if ve_sq > v0_sq + two_a * r {
-            sqrt(v0_sq + two_a * r)
-        } else if ve_sq < v0_sq - two_a * r {
-            sqrt(v0_sq - two_a * r)
+        let (v0_sq, ve_sq, change) = (v0 * v0, ve * ve, two_a * r);
+        let ve = if ve_sq > v0_sq + change {
+            sqrt(v0_sq + change)
+        } else if ve_sq < v0_sq - change {
+            sqrt(v0_sq - change)
         } else {
             ve
         };

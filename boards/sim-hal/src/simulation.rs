@@ -246,6 +246,30 @@ pub enum RunError {
     },
 }
 
+/// How many times in a row something happened at one tick (an alarm, a poll again at once):
+/// what [`RunError::AlarmStorm`] and [`RunError::PollStorm`] count.
+struct InARow {
+    at: u64,
+    count: u32,
+}
+
+impl InARow {
+    /// None yet, at tick `at`.
+    fn at(at: u64) -> Self {
+        Self { at, count: 0 }
+    }
+
+    /// It happened at tick `t`: the count in a row at `t`, this one included.
+    fn count(&mut self, t: u64) -> u32 {
+        if self.at == t {
+            self.count += 1;
+        } else {
+            *self = Self { at: t, count: 1 };
+        }
+        self.count
+    }
+}
+
 impl fmt::Display for RunError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
@@ -378,8 +402,8 @@ impl Simulation {
             polls: 0,
             wall: std::time::Duration::ZERO,
         };
-        let mut storm = (start_ticks, 0u32);
-        let mut again = (start_ticks, 0u32);
+        let mut alarms_here = InARow::at(start_ticks);
+        let mut polls_here = InARow::at(start_ticks);
         let finish = |mut report: RunReport, stop| {
             report.stop = stop;
             report.end_ticks = m.now_ticks();
@@ -416,16 +440,12 @@ impl Simulation {
             m.advance_to(t);
             if alarm.is_some() {
                 m.take_alarm();
-                if storm.0 == t {
-                    storm.1 += 1;
-                    if storm.1 > self.config.max_alarms_per_tick {
-                        break Err(RunError::AlarmStorm {
-                            at_ticks: t,
-                            alarms: storm.1,
-                        });
-                    }
-                } else {
-                    storm = (t, 1);
+                let alarms = alarms_here.count(t);
+                if alarms > self.config.max_alarms_per_tick {
+                    break Err(RunError::AlarmStorm {
+                        at_ticks: t,
+                        alarms,
+                    });
                 }
                 report.alarms += 1;
                 let late = self.latency();
@@ -438,16 +458,9 @@ impl Simulation {
                 match firmware.poll(Instant::from_ticks(t as u32)) {
                     Flow::Stop => break Ok(finish(report, StopReason::Firmware)),
                     Flow::Again => {
-                        again = if again.0 == t {
-                            (t, again.1 + 1)
-                        } else {
-                            (t, 1)
-                        };
-                        if again.1 > self.config.max_polls_per_tick {
-                            break Err(RunError::PollStorm {
-                                at_ticks: t,
-                                polls: again.1,
-                            });
+                        let polls = polls_here.count(t);
+                        if polls > self.config.max_polls_per_tick {
+                            break Err(RunError::PollStorm { at_ticks: t, polls });
                         }
                         next_poll = t;
                     }

@@ -56,7 +56,7 @@ pub type HostUartPins = (PA9, PA10);
 
 /// How far ahead of the steps the kernel prepares them (its `queue_lead_ms`): the kernel's
 /// default.
-pub const QUEUE_LEAD_MS: u16 = 20;
+pub const QUEUE_LEAD_MS: u16 = forja_motion::DEFAULT_QUEUE_LEAD_MS;
 
 /// The step clock: TIM2 prescaled to 8 MHz (125 ns resolution, wraps every 537 s).
 pub const STEP_TICK_HZ: u32 = 8_000_000;
