@@ -381,10 +381,68 @@ fn wide_to_nm(v: Decimal, inches: bool) -> Option<Nm> {
     i64::try_from(q).ok()
 }
 
-/// Steps for a machine position in nm.
+/// Steps for a machine position in nm: `nm × steps_per_mm / 10⁶`, rounded half away from zero.
+///
+/// Computed exactly in integers over the float's exact value `m × 2^e` (a 24-bit `m`), which
+/// a 32-bit core does in a few dozen instructions where software double precision takes
+/// hundreds; a value the integers cannot hold (beyond any machine's travel) goes through
+/// double precision.
 pub(crate) fn nm_to_steps(nm: Nm, steps_per_mm: f32) -> i32 {
-    let s = libm::round(nm as f64 * f64::from(steps_per_mm) / NM_PER_MM);
-    s.clamp(f64::from(i32::MIN), f64::from(i32::MAX)) as i32
+    exact_nm_to_steps(nm, steps_per_mm).unwrap_or_else(|| {
+        let s = libm::round(nm as f64 * f64::from(steps_per_mm) / NM_PER_MM);
+        s.clamp(f64::from(i32::MIN), f64::from(i32::MAX)) as i32
+    })
+}
+
+/// [`nm_to_steps`] in integers, `None` when they cannot hold the product or the rate is not a
+/// positive normal float.
+fn exact_nm_to_steps(nm: Nm, steps_per_mm: f32) -> Option<i32> {
+    /// Nanometres per millimetre, as the divisor.
+    const NM: u64 = 1_000_000;
+    let bits = steps_per_mm.to_bits();
+    let biased = (bits >> 23) & 0xFF;
+    if bits >> 31 != 0 || biased == 0 || biased == 0xFF {
+        return None;
+    }
+    // steps_per_mm = m × 2^e exactly; trailing zeros moved into e keep the product small.
+    let raw = (bits & 0x7F_FFFF) | 0x80_0000;
+    let zeros = raw.trailing_zeros();
+    let m = u64::from(raw >> zeros);
+    let e = biased.cast_signed() - 150 + zeros.cast_signed();
+    let product = nm.unsigned_abs().checked_mul(m)?;
+    // round(p × 2^e / 10⁶) = floor((p × 2^e + 10⁶/2) / 10⁶), and for e < 0
+    // floor(floor((p + 10⁶/2 × 2^-e) / 2^-e) / 10⁶): nested floors of a non-negative value.
+    let shifted = if e >= 0 {
+        let up = product.checked_shl(e.cast_unsigned())?;
+        (up >> e.cast_unsigned() == product)
+            .then_some(up)?
+            .checked_add(NM / 2)?
+    } else {
+        let k = e.unsigned_abs();
+        if k >= 40 {
+            return None;
+        }
+        product.checked_add((NM / 2) << k)? >> k
+    };
+    if shifted >= (1u64 << 31) * NM {
+        return None;
+    }
+    let steps = millionths(shifted).cast_signed();
+    Some(if nm < 0 { -steps } else { steps })
+}
+
+/// `t / 10⁶` for a `t` below `2³¹ × 10⁶`, in two 32-bit divisions, where a 64-bit division is
+/// a library call of a hundred instructions or more on a 32-bit core: `10⁶ = 2⁶ × 15,625`,
+/// and the quotient by 15,625 (below 2¹⁴) is long division in two digits of base 2¹⁴.
+fn millionths(t: u64) -> u32 {
+    const ODD: u32 = 15_625;
+    // Below 2³¹ × 15,625 < 2⁴⁵: its top digit is below 2³¹.
+    let u = t >> 6;
+    let top = (u >> 14) as u32;
+    let (q1, r1) = (top / ODD, top % ODD);
+    // Below 15,625 × 2¹⁴ < 2²⁸.
+    let low = (r1 << 14) | (u as u32 & 0x3FFF);
+    (q1 << 14) + low / ODD
 }
 
 /// Nanometres for a step count.
@@ -2505,5 +2563,64 @@ mod tests {
         assert_eq!(to_nm(Decimal::new(-15, 1), true, b'X'), Ok(-38_100_000));
         assert_eq!(nm_to_steps(12_345_679, 80.0), 988);
         assert_eq!(steps_to_nm(988, 80.0), 12_350_000);
+    }
+
+    /// `nm × steps_per_mm / 10⁶` rounded half away from zero, in exact rational arithmetic.
+    fn reference_steps(nm: Nm, steps_per_mm: f32) -> i128 {
+        let bits = steps_per_mm.to_bits();
+        let m = i128::from((bits & 0x7F_FFFF) | 0x80_0000);
+        let e = ((bits >> 23) & 0xFF) as i32 - 150;
+        let (num, den) = if e >= 0 {
+            (i128::from(nm) * (m << e), 1_000_000i128)
+        } else {
+            (i128::from(nm) * m, 1_000_000i128 << -e)
+        };
+        let q = (num.abs() * 2 + den) / (den * 2);
+        if num < 0 { -q } else { q }
+    }
+
+    #[test]
+    fn millionths_divides_every_range() {
+        let mut x = 0x2545_F491_4F6C_DD1Du64;
+        for t in [0, 1, 999_999, 1_000_000, (1u64 << 31) * 1_000_000 - 1] {
+            assert_eq!(u64::from(millionths(t)), t / 1_000_000, "{t}");
+        }
+        for _ in 0..100_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            let t = x % ((1u64 << 31) * 1_000_000);
+            assert_eq!(u64::from(millionths(t)), t / 1_000_000, "{t}");
+        }
+    }
+
+    #[test]
+    fn steps_of_a_position_are_exact_at_half_steps_and_beyond_double_precision() {
+        // Half a step rounds away from zero, either way.
+        assert_eq!(nm_to_steps(6_250, 80.0), 1);
+        assert_eq!(nm_to_steps(-6_250, 80.0), -1);
+        assert_eq!(nm_to_steps(6_249, 80.0), 0);
+        assert_eq!(nm_to_steps(0, 93.7), 0);
+        // Beyond `i32` steps, clamped as before.
+        assert_eq!(nm_to_steps(MAX_NM, 100_000.0), i32::MAX);
+        assert_eq!(nm_to_steps(-MAX_NM, 100_000.0), i32::MIN);
+        let rates = [
+            80.0f32, 93.7, 400.0, 415.3, 3200.0, 0.5, 12.3456, 1e-3, 5_000.25,
+        ];
+        let mut x = 0x9E37_79B9_7F4A_7C15u64;
+        for i in 0..200_000u64 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            let nm = (x % (2 * MAX_NM as u64)) as i64 - MAX_NM;
+            let nm = if i % 2 == 0 { nm / 100_000 } else { nm };
+            let spm = rates[(i % rates.len() as u64) as usize];
+            let want = reference_steps(nm, spm).clamp(i32::MIN.into(), i32::MAX.into());
+            assert_eq!(
+                i128::from(nm_to_steps(nm, spm)),
+                want,
+                "{nm} nm at {spm} steps/mm"
+            );
+        }
     }
 }
