@@ -18,11 +18,38 @@ pub const MAX_SCALE: u8 = 18;
 /// Equality is on the written form: `1.0` and `1` are different values of this type (they
 /// re-encode differently); compare [`Decimal::as_integer`] or [`Decimal::round_to_scale`] for
 /// numeric equality.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+///
+/// Stored in 12 bytes at 4-byte alignment (the mantissa as two 32-bit halves), so that a
+/// [`crate::gcode::Word`] is 16 bytes and a parsed line's words copy in two thirds the time
+/// on a 32-bit core.
+#[derive(Clone, Copy, PartialEq, Eq, Hash)]
 pub struct Decimal {
-    mantissa: i64,
+    /// The mantissa's low 32 bits.
+    low: u32,
+    /// The mantissa's high 32 bits.
+    high: i32,
     scale: u8,
+}
+
+impl fmt::Debug for Decimal {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Decimal")
+            .field("mantissa", &self.mantissa())
+            .field("scale", &self.scale)
+            .finish()
+    }
+}
+
+#[cfg(feature = "defmt")]
+impl defmt::Format for Decimal {
+    fn format(&self, f: defmt::Formatter<'_>) {
+        defmt::write!(
+            f,
+            "Decimal {{ mantissa: {=i64}, scale: {=u8} }}",
+            self.mantissa(),
+            self.scale
+        );
+    }
 }
 
 /// Why [`parse_prefix`] stopped.
@@ -45,7 +72,11 @@ impl Decimal {
 
     /// `mantissa / 10^scale`.
     pub const fn new(mantissa: i64, scale: u8) -> Self {
-        Self { mantissa, scale }
+        Self {
+            low: mantissa as u32,
+            high: (mantissa >> 32) as i32,
+            scale,
+        }
     }
 
     /// An integer, written without a decimal point.
@@ -55,7 +86,7 @@ impl Decimal {
 
     /// The digits as an integer (the value times `10^scale`).
     pub const fn mantissa(self) -> i64 {
-        self.mantissa
+        ((self.high as i64) << 32) | self.low as i64
     }
 
     /// How many digits follow the decimal point.
@@ -65,7 +96,7 @@ impl Decimal {
 
     /// The nearest `f32` (within one unit in the last place).
     pub fn to_f32(self) -> f32 {
-        let mut value = self.mantissa as f32;
+        let mut value = self.mantissa() as f32;
         let mut scale = self.scale;
         while scale > 0 {
             let step = scale.min(10);
@@ -78,7 +109,7 @@ impl Decimal {
     /// The nearest `f64` (exact division when the mantissa is below 2^53 and the scale at most
     /// 22).
     pub fn to_f64(self) -> f64 {
-        let mut value = self.mantissa as f64;
+        let mut value = self.mantissa() as f64;
         let mut scale = self.scale;
         while scale > 0 {
             let step = scale.min(22);
@@ -92,10 +123,10 @@ impl Decimal {
     /// `"1.5"` gives `None`.
     pub fn as_integer(self) -> Option<i64> {
         match pow10(self.scale) {
-            Some(p) if self.mantissa % p == 0 => Some(self.mantissa / p),
+            Some(p) if self.mantissa() % p == 0 => Some(self.mantissa() / p),
             Some(_) => None,
             // 10^scale exceeds any mantissa: only zero is an integer.
-            None => (self.mantissa == 0).then_some(0),
+            None => (self.mantissa() == 0).then_some(0),
         }
     }
 
@@ -109,14 +140,14 @@ impl Decimal {
     pub fn round_to_scale(self, scale: u8) -> Option<i64> {
         if scale >= self.scale {
             let factor = pow10(scale - self.scale)?;
-            return self.mantissa.checked_mul(factor);
+            return self.mantissa().checked_mul(factor);
         }
         let Some(divisor) = pow10(self.scale - scale) else {
             // Dividing by more than 10^18 leaves less than one half unit.
             return Some(0);
         };
-        let quotient = self.mantissa / divisor;
-        let remainder = self.mantissa % divisor;
+        let quotient = self.mantissa() / divisor;
+        let remainder = self.mantissa() % divisor;
         let half = divisor / 2;
         Some(if remainder.unsigned_abs() >= half.unsigned_abs() {
             quotient + remainder.signum()
@@ -160,8 +191,8 @@ impl Decimal {
         }
         let scale = 7u8.saturating_sub(whole_digits).min(6);
         let mut d = Self::from_f32(value, scale)?;
-        while d.scale > 0 && d.mantissa % 10 == 0 {
-            d = Self::new(d.mantissa / 10, d.scale - 1);
+        while d.scale > 0 && d.mantissa() % 10 == 0 {
+            d = Self::new(d.mantissa() / 10, d.scale - 1);
         }
         Some(d)
     }
@@ -177,24 +208,24 @@ impl Decimal {
 
     /// Whether the value is below zero.
     pub const fn is_negative(self) -> bool {
-        self.mantissa < 0
+        self.mantissa() < 0
     }
 
     /// Write the digits, refusing what [`Decimal::parse`] would not read back: a scale over
     /// [`MAX_SCALE`] or the mantissa `i64::MIN`.
     pub(crate) fn write_checked<S: Sink>(self, out: &mut S) -> Result<(), EncodeError> {
-        if self.scale > MAX_SCALE || self.mantissa == i64::MIN {
+        if self.scale > MAX_SCALE || self.mantissa() == i64::MIN {
             return Err(EncodeError::OutOfRange);
         }
         self.write(out)
     }
 
     pub(crate) fn write<S: Sink>(self, out: &mut S) -> Result<(), EncodeError> {
-        if self.mantissa < 0 {
+        if self.mantissa() < 0 {
             out.put(b'-')?;
         }
         let mut digits = [0u8; 20];
-        let n = crate::write::digits_of(self.mantissa.unsigned_abs(), &mut digits);
+        let n = crate::write::digits_of(self.mantissa().unsigned_abs(), &mut digits);
         let digits = digits.get(digits.len() - n..).unwrap_or(&[]);
         let scale = usize::from(self.scale);
         if scale == 0 {
@@ -238,6 +269,31 @@ const POW10_F64: [f64; 23] = [
     1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
 ];
 
+/// `magnitude` followed by the `count` digits of `chunk` (at most nine), or
+/// [`NumberError::OutOfRange`] beyond `i64`.
+fn join_digits(magnitude: i64, chunk: u32, count: usize) -> Result<i64, NumberError> {
+    const POW10: [i64; 10] = [
+        1,
+        10,
+        100,
+        1_000,
+        10_000,
+        100_000,
+        1_000_000,
+        10_000_000,
+        100_000_000,
+        1_000_000_000,
+    ];
+    if magnitude == 0 {
+        return Ok(i64::from(chunk));
+    }
+    POW10
+        .get(count)
+        .and_then(|p| magnitude.checked_mul(*p))
+        .and_then(|m| m.checked_add(i64::from(chunk)))
+        .ok_or(NumberError::OutOfRange)
+}
+
 /// Reads `[+-]digits[.digits]` (at least one digit) from the start of `text`; returns the value
 /// and how many bytes it took.
 pub(crate) fn parse_prefix(text: &[u8]) -> Result<(Decimal, usize), NumberError> {
@@ -254,15 +310,22 @@ pub(crate) fn parse_prefix(text: &[u8]) -> Result<(Decimal, usize), NumberError>
         _ => false,
     };
     let mut magnitude: i64 = 0;
+    // Digits gather in 32 bits, nine at a time (below 10⁹), and join the 64-bit magnitude
+    // with an overflow check once per nine: a 64-bit checked multiplication per digit costs
+    // tens of instructions on a 32-bit core.
+    let mut chunk: u32 = 0;
+    let mut chunk_digits = 0usize;
     let mut digits = 0usize;
     let mut scale: Option<u8> = None;
     while let Some(&b) = text.get(i) {
         match b {
             b'0'..=b'9' => {
-                magnitude = magnitude
-                    .checked_mul(10)
-                    .and_then(|m| m.checked_add(i64::from(b - b'0')))
-                    .ok_or(NumberError::OutOfRange)?;
+                chunk = chunk * 10 + u32::from(b - b'0');
+                chunk_digits += 1;
+                if chunk_digits == 9 {
+                    magnitude = join_digits(magnitude, chunk, 9)?;
+                    (chunk, chunk_digits) = (0, 0);
+                }
                 digits += 1;
                 if let Some(s) = scale.as_mut() {
                     *s += 1;
@@ -279,6 +342,7 @@ pub(crate) fn parse_prefix(text: &[u8]) -> Result<(Decimal, usize), NumberError>
     if digits == 0 {
         return Err(NumberError::NoDigits);
     }
+    let magnitude = join_digits(magnitude, chunk, chunk_digits)?;
     let mantissa = if negative { -magnitude } else { magnitude };
     Ok((Decimal::new(mantissa, scale.unwrap_or(0)), i))
 }

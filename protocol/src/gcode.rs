@@ -175,7 +175,27 @@ impl<'a> Line<'a> {
     /// - `N` must be the first word; an `N` word further on (`M110 N0`) is a parameter and is
     ///   kept in [`words`](Self::words).
     /// - After one of [`TEXT_COMMANDS`] the rest of the line (up to `*` or `;`) is its text.
+    #[inline]
     pub fn parse(bytes: &'a [u8]) -> Result<Line<'a>, LineError> {
+        // The words go straight into the caller's line: a line built here and returned would
+        // be copied whole on the way out.
+        let mut words = Words::new();
+        let (number, text, crc) = Self::parse_into(bytes, &mut words)?;
+        Ok(Line {
+            number,
+            words,
+            text,
+            crc,
+        })
+    }
+
+    /// [`Line::parse`] of everything but the words' storage: the words into `words`, the rest
+    /// returned (the line number, the text, whether the line carries the CRC-16).
+    #[allow(clippy::type_complexity)]
+    fn parse_into(
+        bytes: &'a [u8],
+        words: &mut Words,
+    ) -> Result<(Option<i64>, Option<&'a [u8]>, bool), LineError> {
         let bytes = trim_terminators(bytes);
         if bytes.len() > MAX_LINE_LEN {
             return Err(LineError::TooLong);
@@ -212,18 +232,11 @@ impl<'a> Line<'a> {
             _ => {}
         }
         let line = number.and_then(|n| u32::try_from(n).ok());
-        // The words go straight into the line returned: no copy of the whole array.
-        let mut out = Line {
-            number,
-            words: Words::new(),
-            text: None,
-            crc: matches!(marker, Some((_, Field::Crc(_)))),
-        };
-        out.text = parse_body(rest, line, &mut out.words)?;
-        if number == Some(-1) && !out.words.first().is_some_and(|w| w.is(b'M', 110)) {
+        let text = parse_body(rest, line, words)?;
+        if number == Some(-1) && !words.first().is_some_and(|w| w.is(b'M', 110)) {
             return Err(LineError::BadLineNumber);
         }
-        Ok(out)
+        Ok((number, text, matches!(marker, Some((_, Field::Crc(_))))))
     }
 
     /// A line from its parts, to be [encoded](Self::encode) (a host sending a program).
