@@ -544,7 +544,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
         let mut next = self.interp;
         let action = next.interpret(line, &self.config, &self.coords)?;
-        self.act(action, next)
+        self.act(action, &next)
     }
 
     /// A line with both a spindle or coolant command and motion (`G0 X0 Y0 S16000 M3`, as CAM
@@ -578,10 +578,10 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return Err(CommandError::ModalConflict);
         }
         self.check_travel(&motion)?;
-        match self.act(Action::Effect(effect), next)? {
+        match self.act(Action::Effect(effect), &next)? {
             Reply::Effect(e) => {
                 // At rest: the motion is taken (checked above, the planner empty).
-                let _ = self.act(motion, after)?;
+                let _ = self.act(motion, &after)?;
                 Ok(Reply::Effect(e))
             }
             other => Ok(other),
@@ -624,7 +624,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             feed_mm_min: None,
             ramp: false,
         };
-        self.act(action, next)
+        self.act(action, &next)
     }
 
     /// Carry out `action`, interpreted from a line: `next` is the interpreter's state after
@@ -632,21 +632,21 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     fn act<'l>(
         &mut self,
         action: Action<'l, N>,
-        next: Interpreter<N>,
+        next: &Interpreter<N>,
     ) -> Result<Reply<'l, N>, CommandError> {
         // Always accepted: emergency stop, reports and immediate effects.
         match action {
             Action::Stop(StopKind::Emergency) => {
-                self.interp = next;
+                self.interp = *next;
                 self.emergency_stop();
                 return Ok(Reply::Effect(Effect::Stopped(StopKind::Emergency)));
             }
             Action::Report => {
-                self.interp = next;
+                self.interp = *next;
                 return Ok(Reply::Position(self.position()));
             }
             Action::Effect(e) if e.sync() == crate::Sync::Now => {
-                self.interp = next;
+                self.interp = *next;
                 return Ok(Reply::Effect(e));
             }
             _ => {}
@@ -805,7 +805,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             Action::Report => Reply::Position(self.position()),
         };
         // Keep the modal state the line set (a move's target is its new position).
-        self.interp = next;
+        self.interp = *next;
         Ok(reply)
     }
 

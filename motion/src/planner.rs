@@ -547,59 +547,56 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         self.len += 1;
     }
 
-    fn get(&self, i: usize) -> Block<N> {
-        self.blocks.get(i).copied().unwrap_or(Block::EMPTY)
-    }
-
-    fn entry_mut(&mut self, i: usize) -> Option<&mut f32> {
-        self.blocks.get_mut(i).map(|b| &mut b.entry_sqr)
-    }
-
     /// grbl's `planner_recalculate`: reverse pass down to `planned`, forward pass from it.
+    /// Works on the blocks in place: a block copied out per step of a pass would cost more
+    /// than the pass's arithmetic.
     fn recalculate(&mut self) {
         let mut idx = prev(self.head, B);
         if idx == self.planned {
             return;
         }
         // The newest block ends at rest.
-        let newest = self.get(idx);
+        let Some(newest) = self.blocks.get_mut(idx) else {
+            return;
+        };
         let mut next_entry = newest.max_entry_sqr.min(2.0 * newest.accel * newest.mm);
-        if let Some(e) = self.entry_mut(idx) {
-            *e = next_entry;
-        }
+        newest.entry_sqr = next_entry;
         idx = prev(idx, B);
         while idx != self.planned {
-            let cur = self.get(idx);
+            let Some(cur) = self.blocks.get_mut(idx) else {
+                return;
+            };
             if cur.entry_sqr != cur.max_entry_sqr {
                 let e = (next_entry + 2.0 * cur.accel * cur.mm).min(cur.max_entry_sqr);
-                if let Some(x) = self.entry_mut(idx) {
-                    *x = e;
-                }
+                cur.entry_sqr = e;
                 next_entry = e;
             } else {
                 next_entry = cur.entry_sqr;
             }
             idx = prev(idx, B);
         }
-        // Forward pass.
-        let mut cur = self.get(self.planned);
+        // Forward pass: the previous block's entry², acceleration and length.
+        let Some(first) = self.blocks.get(self.planned) else {
+            return;
+        };
+        let mut cur = (first.entry_sqr, first.accel, first.mm);
         let mut idx = next(self.planned, B);
         while idx != self.head {
-            let mut nxt = self.get(idx);
-            if cur.entry_sqr < nxt.entry_sqr {
-                let e = cur.entry_sqr + 2.0 * cur.accel * cur.mm;
+            let Some(nxt) = self.blocks.get_mut(idx) else {
+                return;
+            };
+            let (entry_sqr, accel, mm) = cur;
+            if entry_sqr < nxt.entry_sqr {
+                let e = entry_sqr + 2.0 * accel * mm;
                 if e < nxt.entry_sqr {
                     nxt.entry_sqr = e;
-                    if let Some(x) = self.entry_mut(idx) {
-                        *x = e;
-                    }
                     self.planned = idx;
                 }
             }
             if nxt.entry_sqr == nxt.max_entry_sqr {
                 self.planned = idx;
             }
-            cur = nxt;
+            cur = (nxt.entry_sqr, nxt.accel, nxt.mm);
             idx = next(idx, B);
         }
     }
