@@ -543,8 +543,11 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return self.execute_in_order(first, &then);
         }
         let mut next = self.interp;
-        let action = next.interpret(line, &self.config, &self.coords)?;
-        self.act(action, &next)
+        // The action is read where `interpret` left it: moved out, it would be copied whole.
+        match next.interpret(line, &self.config, &self.coords) {
+            Ok(ref action) => self.act(action, &next),
+            Err(e) => Err(e),
+        }
     }
 
     /// A line with both a spindle or coolant command and motion (`G0 X0 Y0 S16000 M3`, as CAM
@@ -578,10 +581,10 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return Err(CommandError::ModalConflict);
         }
         self.check_travel(&motion)?;
-        match self.act(Action::Effect(effect), &next)? {
+        match self.act(&Action::Effect(effect), &next)? {
             Reply::Effect(e) => {
                 // At rest: the motion is taken (checked above, the planner empty).
-                let _ = self.act(motion, &after)?;
+                let _ = self.act(&motion, &after)?;
                 Ok(Reply::Effect(e))
             }
             other => Ok(other),
@@ -624,18 +627,18 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             feed_mm_min: None,
             ramp: false,
         };
-        self.act(action, &next)
+        self.act(&action, &next)
     }
 
     /// Carry out `action`, interpreted from a line: `next` is the interpreter's state after
     /// that line, kept when the action is taken. A refused action changes nothing.
     fn act<'l>(
         &mut self,
-        action: Action<'l, N>,
+        action: &Action<'l, N>,
         next: &Interpreter<N>,
     ) -> Result<Reply<'l, N>, CommandError> {
         // Always accepted: emergency stop, reports and immediate effects.
-        match action {
+        match *action {
             Action::Stop(StopKind::Emergency) => {
                 self.interp = *next;
                 self.emergency_stop();
@@ -671,15 +674,17 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             self.drain_arc();
             return Ok(Reply::Busy);
         }
-        self.check_travel(&action)?;
+        self.check_travel(action)?;
         let idle = self.is_idle();
         self.block_rpm = next.spindle_rpm();
-        let reply = match action {
-            Action::None => Reply::Ok,
+        // What the action answers besides `ok`: an effect for the caller to carry out. Only that is
+        // kept until the state is committed (a whole reply would be copied on the way out).
+        let effect = match *action {
+            Action::None => None,
             Action::SetCoordinates { slot, values } => {
                 self.coords.set(slot, values);
                 self.coords_changed |= 1 << slot.index();
-                Reply::Ok
+                None
             }
             Action::Move {
                 target,
@@ -697,7 +702,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                     0,
                     next.exact_stop,
                 );
-                Reply::Ok
+                None
             }
             Action::Arc {
                 cutter,
@@ -712,7 +717,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                     exact_stop: next.exact_stop,
                 });
                 self.drain_arc();
-                Reply::Ok
+                None
             }
             Action::Drill { cycle, feed_mm_min } => {
                 self.drill = Some(PendingDrill {
@@ -721,32 +726,32 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                     feed_scale: next.feed_scale(),
                 });
                 self.drain_arc();
-                Reply::Ok
+                None
             }
             Action::Dwell { ms } => {
                 if self.planner.is_full() {
                     return Ok(Reply::Busy);
                 }
                 let _ = self.planner.push_dwell(ms, self.line_tag);
-                Reply::Ok
+                None
             }
             Action::Home { mask } => {
                 if !idle {
                     return Ok(Reply::Busy);
                 }
                 self.start_homing(mask);
-                Reply::Ok
+                None
             }
             Action::SetStepsPerMm(values) => {
                 if !idle {
                     return Ok(Reply::Busy);
                 }
                 self.set_steps_per_mm(&values)?;
-                Reply::Ok
+                None
             }
             Action::SetLimits(change) => {
                 self.set_limits(&change)?;
-                Reply::Ok
+                None
             }
             Action::Effect(e) => {
                 if !idle {
@@ -759,28 +764,28 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 {
                     self.homed &= !axes;
                 }
-                Reply::Effect(e)
+                Some(e)
             }
             Action::Stop(kind) => {
                 if !idle {
                     return Ok(Reply::Busy);
                 }
                 self.halted = true;
-                Reply::Effect(Effect::Stopped(kind))
+                Some(Effect::Stopped(kind))
             }
             Action::Pause => {
                 if !idle {
                     return Ok(Reply::Busy);
                 }
                 self.paused = true;
-                Reply::Effect(Effect::Paused)
+                Some(Effect::Paused)
             }
             Action::ToolChange(tool) => {
                 if !idle {
                     return Ok(Reply::Busy);
                 }
                 self.paused = true;
-                Reply::Effect(Effect::ToolChange(tool))
+                Some(Effect::ToolChange(tool))
             }
             Action::Probe {
                 target,
@@ -792,7 +797,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                     return Ok(Reply::Busy);
                 }
                 self.start_probe(&target, feed_mm_min, away, must_trip);
-                Reply::Ok
+                None
             }
             Action::Via { via, target } => {
                 if B.saturating_sub(self.planner.len()) < 2 {
@@ -800,13 +805,17 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 }
                 self.queue_move(&via, None, next.feed_scale(), false, 0, false);
                 self.queue_move(&target, None, next.feed_scale(), false, 0, false);
-                Reply::Ok
+                None
             }
-            Action::Report => Reply::Position(self.position()),
+            // Taken before these checks (see the top); answered the same way here.
+            Action::Report => {
+                self.interp = *next;
+                return Ok(Reply::Position(self.position()));
+            }
         };
         // Keep the modal state the line set (a move's target is its new position).
         self.interp = *next;
-        Ok(reply)
+        Ok(effect.map_or(Reply::Ok, Reply::Effect))
     }
 
     /// Jog (frame message 01): move axis `letter` by `count × step_mm`, relative, at the jog
