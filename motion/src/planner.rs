@@ -467,7 +467,8 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             return true;
         }
         let length = sqrtf(len_sqr);
-        let feed_len = if feed_len_sqr > 0.0 {
+        // Without extrusion the two sums are the same to the bit: one square root.
+        let feed_len = if feed_len_sqr > 0.0 && feed_len_sqr != len_sqr {
             sqrtf(feed_len_sqr)
         } else {
             length
