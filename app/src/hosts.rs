@@ -25,11 +25,14 @@
 //!    unsent reply; line 1 is expected. On a port with frames the host is greeted with frame
 //!    54 and kept alive with frame 55 every interval of its session; the first host of a port
 //!    without frames receives `start`.
-//! 4. Input that arrives on any other port is never run: it is discarded, and the host, if one
-//!    is there, is sent the busy message ([`Arbiter::set_busy_message`], by default the
+//! 4. While a host is in control, input that arrives on any other port is never run: it is
+//!    discarded, and the host, if one is there, is sent the busy message ([`Arbiter::set_busy_message`], by default the
 //!    controller's [`busy_refusal`]) once per turn. An `M112` line among it is carried out
 //!    all the same: an emergency stop acts from any host, as realtime commands do from every
-//!    connection of FluidNC and grblHAL. The fault goes to the controlling host.
+//!    connection of FluidNC and grblHAL. The fault goes to the controlling host. With no
+//!    host in control no input is discarded: input that lands after the turn looked for it
+//!    (a terminal's host back from its silence as it gave up control) takes control at the
+//!    next turn.
 //! 5. The controller reads at most the read budget ([`Arbiter::new`]) of the controlling
 //!    port: a flood never keeps the thread side from the kernel, and the link holds the rest
 //!    back.
@@ -356,9 +359,15 @@ where
                 break;
             }
         }
+        // With nobody in control nobody's input is refused: input that came after the look
+        // above (a host back from its silence as control was given up) takes control at the
+        // next turn.
+        let Some(active) = self.arbiter.active else {
+            return;
+        };
         let mut stop = false;
         for (i, p) in ports.iter_mut().enumerate() {
-            if self.arbiter.active == Some(i) {
+            if active == i {
                 // The port's input goes to the controller now.
                 p.refused.reset();
                 continue;
@@ -381,7 +390,7 @@ where
         }
         if stop {
             // The fault goes to the controlling host, whose waiting lines are answered.
-            match self.arbiter.active.and_then(|i| ports.get_mut(i)) {
+            match ports.get_mut(active) {
                 Some(p) => self.controller.emergency_stop(&mut p.link),
                 None => self.controller.emergency_stop(&mut Silent),
             }
@@ -520,6 +529,9 @@ mod tests {
         tx: Vec<u8>,
         gone: bool,
         connections: u64,
+        /// Bytes that arrive just after the next look at whether input waits (as a UART's
+        /// interrupt fills its buffer between two reads of the thread side).
+        arriving: Vec<u8>,
     }
 
     impl Mem {
@@ -544,7 +556,9 @@ mod tests {
 
     impl ReadReady for Mem {
         fn read_ready(&mut self) -> Result<bool, Self::Error> {
-            Ok(!self.rx.is_empty())
+            let ready = !self.rx.is_empty();
+            self.rx.extend(self.arriving.drain(..));
+            Ok(ready)
         }
     }
 
@@ -666,6 +680,38 @@ mod tests {
             arbiter.poll(&mut ports, &mut c, Instant::from_ticks(ms * 1_000), ms);
         }
         assert_eq!(ports[0].stats().idle_timeouts, 1);
+    }
+
+    /// A terminal whose host fell silent gives up control; what the host sends next takes it
+    /// back, even when it lands in the very turn control was given up, after the look for
+    /// a host that wants control: with nobody in control, nobody's input is refused.
+    #[test]
+    fn a_terminal_back_from_its_silence_takes_control_back_with_its_first_line() {
+        let mut c = controller();
+        let mut ports = [false, false].map(|frames| {
+            Port::new(
+                Mem::default(),
+                LinkSession::new(1_000).with_idle_timeout(5_000),
+                frames,
+            )
+        });
+        let mut arbiter = Arbiter::<&[u8]>::new(4096, 4096);
+        ports[0].link_mut().sent(b"M105\n");
+        arbiter.poll(&mut ports, &mut c, Instant::from_ticks(0), 0);
+        assert_eq!(arbiter.active(), Some(0));
+        for ms in (1..=4).map(|s| s * 1_000) {
+            arbiter.poll(&mut ports, &mut c, Instant::from_ticks(ms * 1_000), ms);
+        }
+        assert_eq!(arbiter.active(), Some(0));
+        // The silence ends control at 6 s, as the host's next line comes in.
+        ports[0].link_mut().arriving.extend_from_slice(b"G92 X5\n");
+        arbiter.poll(&mut ports, &mut c, Instant::from_ticks(6_000_000), 6_000);
+        assert_eq!(ports[0].stats().idle_timeouts, 1);
+        arbiter.poll(&mut ports, &mut c, Instant::from_ticks(6_001_000), 6_001);
+        assert_eq!(arbiter.active(), Some(0));
+        let stats = ports[0].stats();
+        assert_eq!((stats.refused_bytes, stats.busy_replies), (0, 0));
+        assert_eq!(c.kernel().position().work_mm[0], 5.0, "the G92 line ran");
     }
 
     #[test]
