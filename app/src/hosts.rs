@@ -648,11 +648,11 @@ mod tests {
         assert_eq!(ports[1].stats().sessions, 0);
     }
 
-    /// A host that asked for periodic reports owes the controller no byte: it keeps control
-    /// and its reports through a silence longer than the idle time-out, as OctoPrint during
-    /// a print from the card.
-    #[test]
-    fn a_host_that_asked_for_reports_keeps_control_through_its_silence() {
+    /// A controller, two terminal ports whose sessions time out after 5 s of silence, and an
+    /// arbiter that gave the first port control with `first_line` at 0 ms.
+    fn in_control_with_idle_timeout(
+        first_line: &[u8],
+    ) -> (Ctl, [Port<Mem>; 2], Arbiter<&'static [u8]>) {
         let mut c = controller();
         let mut ports = [false, false].map(|frames| {
             Port::new(
@@ -662,9 +662,18 @@ mod tests {
             )
         });
         let mut arbiter = Arbiter::<&[u8]>::new(4096, 4096);
-        ports[0].link_mut().sent(b"M27 S1\n");
+        ports[0].link_mut().sent(first_line);
         arbiter.poll(&mut ports, &mut c, Instant::from_ticks(0), 0);
         assert_eq!(arbiter.active(), Some(0));
+        (c, ports, arbiter)
+    }
+
+    /// A host that asked for periodic reports owes the controller no byte: it keeps control
+    /// and its reports through a silence longer than the idle time-out, as OctoPrint during
+    /// a print from the card.
+    #[test]
+    fn a_host_that_asked_for_reports_keeps_control_through_its_silence() {
+        let (mut c, mut ports, mut arbiter) = in_control_with_idle_timeout(b"M27 S1\n");
         for ms in (1..=20).map(|s| s * 1_000) {
             arbiter.poll(&mut ports, &mut c, Instant::from_ticks(ms * 1_000), ms);
         }
@@ -687,18 +696,7 @@ mod tests {
     /// a host that wants control: with nobody in control, nobody's input is refused.
     #[test]
     fn a_terminal_back_from_its_silence_takes_control_back_with_its_first_line() {
-        let mut c = controller();
-        let mut ports = [false, false].map(|frames| {
-            Port::new(
-                Mem::default(),
-                LinkSession::new(1_000).with_idle_timeout(5_000),
-                frames,
-            )
-        });
-        let mut arbiter = Arbiter::<&[u8]>::new(4096, 4096);
-        ports[0].link_mut().sent(b"M105\n");
-        arbiter.poll(&mut ports, &mut c, Instant::from_ticks(0), 0);
-        assert_eq!(arbiter.active(), Some(0));
+        let (mut c, mut ports, mut arbiter) = in_control_with_idle_timeout(b"M105\n");
         for ms in (1..=4).map(|s| s * 1_000) {
             arbiter.poll(&mut ports, &mut c, Instant::from_ticks(ms * 1_000), ms);
         }
