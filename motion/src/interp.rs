@@ -334,40 +334,38 @@ const POW10: [i64; 19] = {
 };
 
 /// A number in nm from a decimal in the current unit, rounded to the nearest nm (halves away
-/// from zero). Integer arithmetic in `i64` alone: a multiplication when the decimal has at
-/// most six digits after the point (five in inches), else one division.
+/// from zero), exact, in 64-bit integers: a multiplication when the decimal has at most six
+/// digits after the point (five in inches), else a division into whole nm and the rest. A
+/// value beyond [`MAX_NM`] is refused, as is one whose rest the integers cannot hold (only
+/// beyond [`forja_protocol::decimal::MAX_SCALE`] digits, which no line carries).
 fn to_nm(v: Decimal, inches: bool, letter: u8) -> Result<Nm, CommandError> {
     let bad = CommandError::BadValue { letter };
     // nm per unit = factor × 10^exponent: 10^6 for a mm, 254 × 10^5 for an inch.
-    let (factor, exponent) = if inches { (254, 5) } else { (1, 6) };
-    let scale = i32::from(v.scale());
-    let q = match v.mantissa().checked_mul(factor) {
-        Some(m) if scale <= exponent => {
-            let up = POW10.get((exponent - scale) as usize).copied().ok_or(bad)?;
-            m.checked_mul(up).ok_or(bad)?
-        }
-        Some(m) => {
-            let den = POW10.get((scale - exponent) as usize).copied().ok_or(bad)?;
-            let half = den / 2;
-            match if m >= 0 {
-                m.checked_add(half)
-            } else {
-                m.checked_sub(half)
-            } {
-                Some(r) => r / den,
-                None => wide_to_nm(v, inches).ok_or(bad)?,
-            }
-        }
-        // Eighteen digits in inches: the product leaves `i64`.
-        None => wide_to_nm(v, inches).ok_or(bad)?,
+    let (factor, exponent) = if inches { (254u64, 5u8) } else { (1, 6) };
+    let magnitude = v.mantissa().unsigned_abs();
+    let pow10 = |k: u8| POW10.get(usize::from(k)).map(|p| p.unsigned_abs());
+    let nm = if v.scale() <= exponent {
+        pow10(exponent - v.scale()).and_then(|up| magnitude.checked_mul(factor * up))
+    } else {
+        // Whole nm and the rest, which rounds half up: the rest times the factor is below
+        // 10^13 × 254 for any decimal of a line.
+        pow10(v.scale() - exponent).and_then(|den| {
+            let whole = (magnitude / den).checked_mul(factor)?;
+            let rest = (magnitude % den).checked_mul(factor)?;
+            whole.checked_add((rest + den / 2) / den)
+        })
     };
-    if q.abs() > MAX_NM {
-        return Err(bad);
+    match nm {
+        Some(nm) if nm <= MAX_NM.unsigned_abs() => {
+            let nm = nm.cast_signed();
+            Ok(if v.is_negative() { -nm } else { nm })
+        }
+        _ => Err(bad),
     }
-    Ok(q)
 }
 
-/// [`to_nm`] in `i128`, for the decimals whose product leaves `i64`.
+/// [`to_nm`] in `i128`, the reference its tests compare with.
+#[cfg(test)]
 fn wide_to_nm(v: Decimal, inches: bool) -> Option<Nm> {
     let per_unit: i128 = if inches { 25_400_000 } else { 1_000_000 };
     let num = i128::from(v.mantissa()) * per_unit;
@@ -2552,6 +2550,28 @@ mod tests {
                 assert_eq!(to_nm(v, inches, b'X').ok(), wide, "{text} inches {inches}");
             }
         }
+        // Every scale a line can carry, mantissas of every size, halves of a nm included.
+        let mut x = 0x853C_49E6_748F_EA9Bu64;
+        for i in 0..200_000u64 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            let digits = (i % 19) as u32;
+            let mantissa = (x % 10u64.pow(digits).max(2)) as i64;
+            let mantissa = if i % 3 == 0 { -mantissa } else { mantissa };
+            let scale = ((x >> 40) % 19) as u8;
+            let v = Decimal::new(mantissa, scale);
+            for inches in [false, true] {
+                let wide = wide_to_nm(v, inches).filter(|q| q.abs() <= MAX_NM);
+                assert_eq!(to_nm(v, inches, b'X').ok(), wide, "{v:?} inches {inches}");
+            }
+        }
+        assert_eq!(to_nm(Decimal::new(5, 7), false, b'X'), Ok(1));
+        assert_eq!(to_nm(Decimal::new(-5, 7), false, b'X'), Ok(-1));
+        assert_eq!(
+            to_nm(Decimal::new(i64::MAX, 18), true, b'X'),
+            Ok(234_273_650)
+        );
     }
 
     #[test]
