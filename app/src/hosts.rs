@@ -26,8 +26,9 @@
 //!    54 and kept alive with frame 55 every interval of its session; the first host of a port
 //!    without frames receives `start`.
 //! 4. While a host is in control, input that arrives on any other port is never run: it is
-//!    discarded, and the host, if one is there, is sent the busy message ([`Arbiter::set_busy_message`], by default the
-//!    controller's [`busy_refusal`]) once per turn. An `M112` line among it is carried out
+//!    discarded, and the host, if one is there, is sent the busy message
+//!    ([`Arbiter::set_busy_message`], by default the controller's [`busy_refusal`]) once per
+//!    turn. An `M112` line among it is carried out
 //!    all the same: an emergency stop acts from any host, as realtime commands do from every
 //!    connection of FluidNC and grblHAL. The fault goes to the controlling host. With no
 //!    host in control no input is discarded: input that lands after the turn looked for it
@@ -668,15 +669,25 @@ mod tests {
         (c, ports, arbiter)
     }
 
+    /// One turn at each whole second of `seconds` (the step clock at 1 MHz).
+    fn poll_each_second(
+        arbiter: &mut Arbiter<&'static [u8]>,
+        ports: &mut [Port<Mem>],
+        c: &mut Ctl,
+        seconds: core::ops::RangeInclusive<u32>,
+    ) {
+        for ms in seconds.map(|s| s * 1_000) {
+            arbiter.poll(ports, c, Instant::from_ticks(ms * 1_000), ms);
+        }
+    }
+
     /// A host that asked for periodic reports owes the controller no byte: it keeps control
     /// and its reports through a silence longer than the idle time-out, as OctoPrint during
     /// a print from the card.
     #[test]
     fn a_host_that_asked_for_reports_keeps_control_through_its_silence() {
         let (mut c, mut ports, mut arbiter) = in_control_with_idle_timeout(b"M27 S1\n");
-        for ms in (1..=20).map(|s| s * 1_000) {
-            arbiter.poll(&mut ports, &mut c, Instant::from_ticks(ms * 1_000), ms);
-        }
+        poll_each_second(&mut arbiter, &mut ports, &mut c, 1..=20);
         assert_eq!(arbiter.active(), Some(0));
         assert_eq!(ports[0].stats().idle_timeouts, 0);
         let reports = text(&ports[0].link().tx).matches("Not SD printing").count();
@@ -685,9 +696,7 @@ mod tests {
         // Without reports asked for, the same silence ends its control.
         ports[0].link_mut().sent(b"M27 S0\n");
         arbiter.poll(&mut ports, &mut c, Instant::from_ticks(21_000_000), 21_000);
-        for ms in (22..=30).map(|s| s * 1_000) {
-            arbiter.poll(&mut ports, &mut c, Instant::from_ticks(ms * 1_000), ms);
-        }
+        poll_each_second(&mut arbiter, &mut ports, &mut c, 22..=30);
         assert_eq!(ports[0].stats().idle_timeouts, 1);
     }
 
@@ -697,9 +706,7 @@ mod tests {
     #[test]
     fn a_terminal_back_from_its_silence_takes_control_back_with_its_first_line() {
         let (mut c, mut ports, mut arbiter) = in_control_with_idle_timeout(b"M105\n");
-        for ms in (1..=4).map(|s| s * 1_000) {
-            arbiter.poll(&mut ports, &mut c, Instant::from_ticks(ms * 1_000), ms);
-        }
+        poll_each_second(&mut arbiter, &mut ports, &mut c, 1..=4);
         assert_eq!(arbiter.active(), Some(0));
         // The silence ends control at 6 s, as the host's next line comes in.
         ports[0].link_mut().arriving.extend_from_slice(b"G92 X5\n");

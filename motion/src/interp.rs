@@ -65,7 +65,7 @@
 //! reported position and the motor goes on from where it is (Marlin's `e_factor`). Both are
 //! integer percentages from 1 to [`MAX_PERCENT`], 100 at power-on and after a reset.
 
-use forja_protocol::gcode::{Decimal, Line};
+use forja_protocol::gcode::{Decimal, Line, pow10};
 
 use crate::arc::{ArcCenter, ArcCutter, Nm};
 use crate::config::{AxisKind, MachineConfig};
@@ -322,28 +322,17 @@ pub(crate) struct Interpreter<const N: usize> {
     flow_percent: [u16; N],
 }
 
-/// Powers of ten that fit an `i64`.
-const POW10: [i64; 19] = {
-    let mut p = [1i64; 19];
-    let mut i = 1;
-    while i < 19 {
-        p[i] = p[i - 1] * 10;
-        i += 1;
-    }
-    p
-};
-
 /// A number in nm from a decimal in the current unit, rounded to the nearest nm (halves away
 /// from zero), exact, in 64-bit integers: a multiplication when the decimal has at most six
 /// digits after the point (five in inches), else a division into whole nm and the rest. A
 /// value beyond [`MAX_NM`] is refused, as is one whose rest the integers cannot hold (only
-/// beyond [`forja_protocol::decimal::MAX_SCALE`] digits, which no line carries).
+/// beyond [`forja_protocol::gcode::MAX_SCALE`] digits, which no line carries).
 fn to_nm(v: Decimal, inches: bool, letter: u8) -> Result<Nm, CommandError> {
     let bad = CommandError::BadValue { letter };
     // nm per unit = factor × 10^exponent: 10^6 for a mm, 254 × 10^5 for an inch.
     let (factor, exponent) = if inches { (254u64, 5u8) } else { (1, 6) };
     let magnitude = v.mantissa().unsigned_abs();
-    let pow10 = |k: u8| POW10.get(usize::from(k)).map(|p| p.unsigned_abs());
+    let pow10 = |k: u8| pow10(k).map(i64::unsigned_abs);
     let nm = if v.scale() <= exponent {
         pow10(exponent - v.scale()).and_then(|up| magnitude.checked_mul(factor * up))
     } else {
@@ -2553,9 +2542,7 @@ mod tests {
         // Every scale a line can carry, mantissas of every size, halves of a nm included.
         let mut x = 0x853C_49E6_748F_EA9Bu64;
         for i in 0..200_000u64 {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
+            xorshift(&mut x);
             let digits = (i % 19) as u32;
             let mantissa = (x % 10u64.pow(digits).max(2)) as i64;
             let mantissa = if i % 3 == 0 { -mantissa } else { mantissa };
@@ -2585,6 +2572,13 @@ mod tests {
         assert_eq!(steps_to_nm(988, 80.0), 12_350_000);
     }
 
+    /// The next state of a xorshift64 generator: the tests' random inputs, the same at every run.
+    fn xorshift(x: &mut u64) {
+        *x ^= *x << 13;
+        *x ^= *x >> 7;
+        *x ^= *x << 17;
+    }
+
     /// `nm × steps_per_mm / 10⁶` rounded half away from zero, in exact rational arithmetic.
     fn reference_steps(nm: Nm, steps_per_mm: f32) -> i128 {
         let bits = steps_per_mm.to_bits();
@@ -2606,9 +2600,7 @@ mod tests {
             assert_eq!(u64::from(millionths(t)), t / 1_000_000, "{t}");
         }
         for _ in 0..100_000 {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
+            xorshift(&mut x);
             let t = x % ((1u64 << 31) * 1_000_000);
             assert_eq!(u64::from(millionths(t)), t / 1_000_000, "{t}");
         }
@@ -2629,9 +2621,7 @@ mod tests {
         ];
         let mut x = 0x9E37_79B9_7F4A_7C15u64;
         for i in 0..200_000u64 {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
+            xorshift(&mut x);
             let nm = (x % (2 * MAX_NM as u64)) as i64 - MAX_NM;
             let nm = if i % 2 == 0 { nm / 100_000 } else { nm };
             let spm = rates[(i % rates.len() as u64) as usize];

@@ -61,9 +61,24 @@ pub(crate) enum NumberError {
     OutOfRange,
 }
 
-/// `10^exp` for `exp <= 18`.
-const fn pow10(exp: u8) -> Option<i64> {
-    10i64.checked_pow(exp as u32)
+/// The powers of ten an `i64` holds, `10^0..=10^18`.
+// Evaluated by the compiler: an index out of range would fail the build, not panic.
+#[allow(clippy::indexing_slicing)]
+const POWERS_OF_TEN: [i64; 19] = {
+    let mut p = [1i64; 19];
+    let mut i = 1;
+    while i < 19 {
+        p[i] = p[i - 1] * 10;
+        i += 1;
+    }
+    p
+};
+
+/// `10^exp`, or `None` beyond `i64` (`exp` over 18): the scale of a [`Decimal`] as a divisor
+/// or factor, in one load from a table, where a computed power is a loop of checked 64-bit
+/// multiplications on a 32-bit core.
+pub fn pow10(exp: u8) -> Option<i64> {
+    POWERS_OF_TEN.get(usize::from(exp)).copied()
 }
 
 impl Decimal {
@@ -271,25 +286,12 @@ const POW10_F64: [f64; 23] = [
 
 /// `magnitude` followed by the `count` digits of `chunk` (at most nine), or
 /// [`NumberError::OutOfRange`] beyond `i64`.
-fn join_digits(magnitude: i64, chunk: u32, count: usize) -> Result<i64, NumberError> {
-    const POW10: [i64; 10] = [
-        1,
-        10,
-        100,
-        1_000,
-        10_000,
-        100_000,
-        1_000_000,
-        10_000_000,
-        100_000_000,
-        1_000_000_000,
-    ];
+fn join_digits(magnitude: i64, chunk: u32, count: u8) -> Result<i64, NumberError> {
     if magnitude == 0 {
         return Ok(i64::from(chunk));
     }
-    POW10
-        .get(count)
-        .and_then(|p| magnitude.checked_mul(*p))
+    pow10(count)
+        .and_then(|p| magnitude.checked_mul(p))
         .and_then(|m| m.checked_add(i64::from(chunk)))
         .ok_or(NumberError::OutOfRange)
 }
@@ -314,7 +316,7 @@ pub(crate) fn parse_prefix(text: &[u8]) -> Result<(Decimal, usize), NumberError>
     // with an overflow check once per nine: a 64-bit checked multiplication per digit costs
     // tens of instructions on a 32-bit core.
     let mut chunk: u32 = 0;
-    let mut chunk_digits = 0usize;
+    let mut chunk_digits = 0u8;
     let mut digits = 0usize;
     let mut scale: Option<u8> = None;
     while let Some(&b) = text.get(i) {

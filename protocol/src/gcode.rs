@@ -20,7 +20,7 @@
 
 use heapless::Vec;
 
-pub use crate::decimal::{Decimal, MAX_SCALE};
+pub use crate::decimal::{Decimal, MAX_SCALE, pow10};
 use crate::decimal::{NumberError, parse_prefix};
 pub use crate::error::{EncodeError, LineError};
 use crate::write::{Cursor, Sink, Xor};
@@ -177,8 +177,8 @@ impl<'a> Line<'a> {
     /// - After one of [`TEXT_COMMANDS`] the rest of the line (up to `*` or `;`) is its text.
     #[inline]
     pub fn parse(bytes: &'a [u8]) -> Result<Line<'a>, LineError> {
-        // The words go straight into the caller's line: a line built here and returned would
-        // be copied whole on the way out.
+        // Inlined, the result is the caller's own binding and the words move once, into it: a
+        // line built inside the parser and returned was copied whole twice on the way out.
         let mut words = Words::new();
         let (number, text, crc) = Self::parse_into(bytes, &mut words)?;
         Ok(Line {
