@@ -41,6 +41,9 @@ def main():
     job = gcoder.LightGCode(lines)
     if not core.startprint(job):
         fail("startprint refused the job", core)
+    # printcore's print thread restarts its send thread as it ends, after `printing` is
+    # already false: disconnecting before it ends joins a thread not yet started.
+    print_thread = core.print_thread
     while core.printing:
         if time.time() > deadline:
             fail(f"the job did not finish: line {core.queueindex} of {len(job)}", core)
@@ -50,6 +53,9 @@ def main():
         if time.time() > deadline:
             fail("the closing M110 was not answered", core)
         time.sleep(0.02)
+    print_thread.join(max(deadline - time.time(), 0.0))
+    if print_thread.is_alive():
+        fail("printcore's print thread did not end", core)
     sent = len([c for c in written if "M105" not in c and "M110" not in c])
     core.disconnect()
     print(f"printrun: done, {sent} lines written, {len(resends)} resend requests", flush=True)
