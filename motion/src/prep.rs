@@ -462,8 +462,14 @@ impl<const N: usize> Current<N> {
         let mut rose_at = *rose;
         #[cfg(debug_assertions)]
         let (profile, s_anchor, t_anchor) = (&self.profile, self.s_anchor, self.t_anchor);
-        let (steps, work) =
-            clock.walk(a.phase_last.saturating_sub(a.j), max_work, ROOT_WORK, |t| {
+        // The closure is inlined into both of the walk's loops, also where the board
+        // optimises for size.
+        let (steps, work) = clock.walk(
+            a.phase_last.saturating_sub(a.j),
+            max_work,
+            ROOT_WORK,
+            #[inline(always)]
+            |t| {
                 // After the last event and within one event's delay of it (one comparison
                 // each way, wrapping), and a pulse and as long low after the axis's last edge
                 // (never after the last event).
@@ -490,7 +496,8 @@ impl<const N: usize> Current<N> {
                 last = t;
                 rose_at = t;
                 true
-            });
+            },
+        );
         if steps == 0 {
             return 0;
         }
