@@ -1731,6 +1731,7 @@ impl<const N: usize> Interpreter<N> {
 mod tests {
     use super::*;
     use crate::config::AxisConfig;
+    use crate::testing::xorshift;
     const MM: Nm = 1_000_000;
 
     fn cfg() -> MachineConfig<4> {
@@ -2570,13 +2571,6 @@ mod tests {
         assert_eq!(to_nm(Decimal::new(-15, 1), true, b'X'), Ok(-38_100_000));
         assert_eq!(nm_to_steps(12_345_679, 80.0), 988);
         assert_eq!(steps_to_nm(988, 80.0), 12_350_000);
-    }
-
-    /// The next state of a xorshift64 generator: the tests' random inputs, the same at every run.
-    fn xorshift(x: &mut u64) {
-        *x ^= *x << 13;
-        *x ^= *x >> 7;
-        *x ^= *x << 17;
     }
 
     /// `nm × steps_per_mm / 10⁶` rounded half away from zero, in exact rational arithmetic.

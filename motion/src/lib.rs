@@ -79,6 +79,9 @@ mod queue;
 pub mod replay;
 mod step_clock;
 mod stepgen;
+#[cfg(test)]
+mod testing;
+mod trig;
 
 pub use config::{
     AxisConfig, AxisKind, DEFAULT_QUEUE_LEAD_MS, HomeDirection, HomingConfig, MachineConfig,
