@@ -49,6 +49,18 @@ fn to_nm(mm: f64) -> Nm {
     libm::round(mm * 1e6) as Nm
 }
 
+/// `d × k / n` rounded toward zero, exact, for `k < n`: the distance an axis moving with the arc
+/// (a helix) has gone at chord `k` of `n`. In 64-bit integers (an `i128` division costs a
+/// thousand bytes of code on a 32-bit core): `d = q·n + r` gives `q·k + r·k / n`, where
+/// `r·k < n²` fits for any `n` below 2³².
+fn part_of(d: Nm, k: u32, n: u32) -> Nm {
+    let (k, n) = (u64::from(k), u64::from(n.max(1)));
+    let magnitude = d.unsigned_abs();
+    let part = magnitude / n * k + magnitude % n * k / n;
+    let part = part.cast_signed();
+    if d < 0 { -part } else { part }
+}
+
 impl<const N: usize> ArcCutter<N> {
     /// Plan an arc from `start` to `end` (machine nm) in the plane of axes `ax`, clockwise
     /// when `cw`.
@@ -182,7 +194,7 @@ impl<const N: usize> ArcCutter<N> {
             } else if i == self.ax.1 {
                 to_nm(self.center_mm.1 + self.radius_mm * sin)
             } else {
-                s + ((i128::from(e - s) * i128::from(k)) / i128::from(self.segments)) as Nm
+                s + part_of(e - s, k, self.segments)
             };
         }
         p
@@ -375,6 +387,24 @@ mod tests {
             chords > 100_000 && off_by_one * 1000 < chords,
             "{off_by_one} of {chords}"
         );
+    }
+
+    #[test]
+    fn a_helix_axis_moves_by_the_exact_fraction_of_its_distance() {
+        let mut x = 0x0bad_cafe_f00d_1234u64;
+        for _ in 0..100_000 {
+            let r = crate::testing::xorshift(&mut x);
+            let d = (r >> 1).cast_signed() >> (r % 48);
+            let d = if r & 1 == 0 { d } else { -d };
+            let n = (crate::testing::xorshift(&mut x) % u64::from(MAX_SEGMENTS)) as u32 + 1;
+            let k = (crate::testing::xorshift(&mut x) % u64::from(n)) as u32;
+            let exact = i128::from(d) * i128::from(k) / i128::from(n);
+            assert_eq!(i128::from(part_of(d, k, n)), exact, "{d} × {k} / {n}");
+        }
+        for d in [i64::MAX, i64::MIN, i64::MIN + 1] {
+            let exact = i128::from(d) * 65_534 / 65_535;
+            assert_eq!(i128::from(part_of(d, 65_534, 65_535)), exact);
+        }
     }
 
     #[test]

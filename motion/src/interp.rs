@@ -327,7 +327,7 @@ pub(crate) struct Interpreter<const N: usize> {
 /// digits after the point (five in inches), else a division into whole nm and the rest. A
 /// value beyond [`MAX_NM`] is refused, as is one whose rest the integers cannot hold (only
 /// beyond [`forja_protocol::gcode::MAX_SCALE`] digits, which no line carries).
-fn to_nm(v: Decimal, inches: bool, letter: u8) -> Result<Nm, CommandError> {
+pub(crate) fn to_nm(v: Decimal, inches: bool, letter: u8) -> Result<Nm, CommandError> {
     let bad = CommandError::BadValue { letter };
     // nm per unit = factor × 10^exponent: 10^6 for a mm, 254 × 10^5 for an inch.
     let (factor, exponent) = if inches { (254u64, 5u8) } else { (1, 6) };
@@ -561,15 +561,19 @@ fn only_words(line: &Line<'_>, allowed: &[u8]) -> Result<(), CommandError> {
     }
 }
 
-/// `nm × percent / 100`, rounded to the nearest nanometre (halves away from zero).
+/// `nm × percent / 100`, rounded to the nearest nanometre (halves away from zero), saturating.
+/// In 64-bit integers (an `i128` division costs a thousand bytes of code on a 32-bit core):
+/// whole hundreds of nm scale exactly, and the rest (below 100) is rounded.
 fn scale_nm(nm: Nm, percent: u16) -> Nm {
-    let q = i128::from(nm) * i128::from(percent);
-    let r = if q >= 0 {
-        (q + 50) / 100
-    } else {
-        (q - 50) / 100
-    };
-    i64::try_from(r).unwrap_or(if r < 0 { i64::MIN } else { i64::MAX })
+    let p = i64::from(percent);
+    // Both parts have the sign of `nm`, so rounding the rest rounds the sum.
+    let (hundreds, rest) = (nm / 100, nm % 100 * p);
+    let rest = (rest + if rest < 0 { -50 } else { 50 }) / 100;
+    hundreds
+        .checked_mul(p)
+        .map_or(if nm < 0 { i64::MIN } else { i64::MAX }, |whole| {
+            whole.saturating_add(rest)
+        })
 }
 
 impl<const N: usize> Interpreter<N> {
@@ -2625,6 +2629,31 @@ mod tests {
                 want,
                 "{nm} nm at {spm} steps/mm"
             );
+        }
+    }
+
+    #[test]
+    fn a_flow_percentage_scales_to_the_nearest_nanometre_and_saturates() {
+        let reference = |nm: Nm, p: u16| {
+            let q = i128::from(nm) * i128::from(p);
+            let r = if q >= 0 {
+                (q + 50) / 100
+            } else {
+                (q - 50) / 100
+            };
+            i64::try_from(r).unwrap_or(if r < 0 { i64::MIN } else { i64::MAX })
+        };
+        let mut x = 0x5eed_0ff1_0e00_u64;
+        for _ in 0..200_000 {
+            let r = xorshift(&mut x);
+            let nm = r.cast_signed() >> (r % 64);
+            let p = (xorshift(&mut x) % 1_001) as u16;
+            assert_eq!(scale_nm(nm, p), reference(nm, p), "{nm} × {p} %");
+        }
+        for nm in [i64::MAX, i64::MIN, 50, -50, 49, -49, 150, -150, 1, -1] {
+            for p in [0, 1, 50, 99, 100, 101, 999, 1000, u16::MAX] {
+                assert_eq!(scale_nm(nm, p), reference(nm, p), "{nm} × {p} %");
+            }
         }
     }
 }

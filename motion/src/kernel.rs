@@ -14,7 +14,7 @@ use crate::drill::{DrillCycle, DrillStep};
 use crate::effect::{Effect, StopKind};
 use crate::error::{Alarm, CommandError, ConfigError};
 use crate::interp::{
-    Action, Interpreter, LimitChange, NM_PER_MM, mm_to_nm, nm_to_steps, steps_to_nm,
+    Action, Interpreter, LimitChange, NM_PER_MM, mm_to_nm, nm_to_steps, steps_to_nm, to_nm,
 };
 use crate::planner::{MoveRequest, PathLimits, Planner};
 use crate::prep::{Fill, Prep};
@@ -818,8 +818,9 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         Ok(effect.map_or(Reply::Ok, Reply::Effect))
     }
 
-    /// Jog (frame message 01): move axis `letter` by `count × step_mm`, relative, at the jog
-    /// feed rate. Soft limits apply as to any move.
+    /// Jog (frame message 01): move axis `letter` by `count` steps of `step_mm` (rounded to the
+    /// nanometre, as every position), relative, at the jog feed rate. Soft limits apply as to
+    /// any move.
     pub fn jog(
         &mut self,
         letter: u8,
@@ -840,11 +841,10 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         if self.homing.is_some() || self.arc.is_some() || self.flush.is_some() || self.hold {
             return Err(CommandError::NotIdle);
         }
-        let den = 10i128
-            .checked_pow(u32::from(step_mm.scale()))
+        // The step to the nanometre, as every position, then `count` of them.
+        let nm = to_nm(step_mm, false, b'S')?
+            .checked_mul(i64::from(count))
             .ok_or(CommandError::BadValue { letter: b'S' })?;
-        let nm = i128::from(step_mm.mantissa()) * i128::from(count) * 1_000_000 / den;
-        let nm = i64::try_from(nm).map_err(|_| CommandError::BadValue { letter: b'S' })?;
         let mut target = self.interp.pos;
         target[axis] = target[axis].saturating_add(nm);
         self.check_move(&target, &target)?;
