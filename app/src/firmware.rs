@@ -114,7 +114,7 @@ where
     let (kernel, steps) =
         forja_motion::split(queue, loaded.machine().clone(), tick_hz, config.timing)?;
     let controller =
-        Controller::new(kernel, program, peripherals, config).with_settings(loaded, settings);
+        Controller::with_settings(kernel, program, peripherals, config, loaded, settings);
     Ok((
         steps,
         Firmware {

@@ -853,6 +853,49 @@ where
         config: ControllerConfig,
     ) -> Self {
         let settings = Settings::new(kernel.config().clone());
+        Controller::assemble(kernel, program, peripherals, config, settings, NoStorage)
+    }
+}
+
+impl<'q, const N: usize, const B: usize, const Q: usize, P, X, S> Controller<'q, N, B, Q, P, X, S>
+where
+    P: ProgramStore,
+    X: Peripherals<N>,
+    S: RecordStorage,
+{
+    /// A controller over `kernel`, keeping the program in `program`, driving `peripherals`,
+    /// with `settings` (normally from [`Settings::load`], the kernel having been built from
+    /// [`Settings::machine`]) kept in `storage`: frame 00 writes go there, and the stored path
+    /// limits and coordinate systems apply at once.
+    pub fn with_settings(
+        kernel: Kernel<'q, N, B, Q>,
+        program: P,
+        peripherals: X,
+        config: ControllerConfig,
+        settings: Settings<N>,
+        storage: S,
+    ) -> Self {
+        let mut kernel = kernel;
+        let mut storage = storage;
+        // The stored path limits (`M204`, `M205 S T`): the kernel was built from the
+        // machine configuration alone, and is idle.
+        let machine = kernel.config().clone();
+        let _ = kernel.set_planner_settings(&machine, settings.path_limits());
+        let coords = grbl::load_coordinates(&mut storage, kernel.coordinates());
+        kernel.set_coordinates(coords);
+        Self::assemble(kernel, program, peripherals, config, settings, storage)
+    }
+
+    /// The controller of these parts, as they are: the one place a `Core` is built (a
+    /// controller is large, and each construction of it is code).
+    fn assemble(
+        kernel: Kernel<'q, N, B, Q>,
+        program: P,
+        peripherals: X,
+        config: ControllerConfig,
+        settings: Settings<N>,
+        storage: S,
+    ) -> Self {
         let clock = MsClock::new(kernel.tick_hz());
         Self {
             decoder: Decoder::new(),
@@ -862,7 +905,7 @@ where
                 job: Job::new(),
                 program,
                 devices: Devices::new(peripherals),
-                storage: NoStorage,
+                storage,
                 settings,
                 config,
                 link: Link::new(),
@@ -879,59 +922,6 @@ where
                 check: None,
                 taken: false,
                 stats: Stats::default(),
-            },
-        }
-    }
-}
-
-impl<'q, const N: usize, const B: usize, const Q: usize, P, X, S> Controller<'q, N, B, Q, P, X, S>
-where
-    P: ProgramStore,
-    X: Peripherals<N>,
-    S: RecordStorage,
-{
-    /// The same controller with `settings` (normally from [`Settings::load`], the kernel having
-    /// been built from [`Settings::machine`]) kept in `storage`: frame 00 writes go there.
-    pub fn with_settings<S2: RecordStorage>(
-        self,
-        settings: Settings<N>,
-        storage: S2,
-    ) -> Controller<'q, N, B, Q, P, X, S2> {
-        let mut c = self.core;
-        // The stored path limits (`M204`, `M205 S T`): the kernel was built from the
-        // machine configuration alone, and is idle.
-        let machine = c.kernel.config().clone();
-        let _ = c
-            .kernel
-            .set_planner_settings(&machine, settings.path_limits());
-        let mut storage = storage;
-        let coords = grbl::load_coordinates(&mut storage, c.kernel.coordinates());
-        c.kernel.set_coordinates(coords);
-        Controller {
-            decoder: self.decoder,
-            input: self.input,
-            core: Core {
-                kernel: c.kernel,
-                job: c.job,
-                program: c.program,
-                devices: c.devices,
-                storage,
-                settings,
-                config: c.config,
-                link: c.link,
-                clock: c.clock,
-                now: c.now,
-                reported_alarm: c.reported_alarm,
-                thermal: c.thermal,
-                job_heat: c.job_heat,
-                host: c.host,
-                next_peripherals_ms: c.next_peripherals_ms,
-                load_total: c.load_total,
-                card: c.card,
-                coords_unsaved: c.coords_unsaved,
-                check: c.check,
-                taken: c.taken,
-                stats: c.stats,
             },
         }
     }

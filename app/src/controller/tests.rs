@@ -380,7 +380,7 @@ impl<P: ProgramStore> Bench<P> {
         cfg.extruders = 1;
         cfg.heater_tolerance_mc = 1_000;
         let (settings, _) = Settings::load(config, &mut storage);
-        let ctl = Controller::new(kernel, program, fake, cfg).with_settings(settings, storage);
+        let ctl = Controller::with_settings(kernel, program, fake, cfg, settings, storage);
         let mut b = Self {
             ctl,
             wiring,
