@@ -852,8 +852,10 @@ where
         peripherals: X,
         config: ControllerConfig,
     ) -> Self {
+        // Nothing is stored: the stored limits and coordinates `with_settings` applies are the
+        // kernel's own.
         let settings = Settings::new(kernel.config().clone());
-        Controller::assemble(kernel, program, peripherals, config, settings, NoStorage)
+        Controller::with_settings(kernel, program, peripherals, config, settings, NoStorage)
     }
 }
 
@@ -883,19 +885,6 @@ where
         let _ = kernel.set_planner_settings(&machine, settings.path_limits());
         let coords = grbl::load_coordinates(&mut storage, kernel.coordinates());
         kernel.set_coordinates(coords);
-        Self::assemble(kernel, program, peripherals, config, settings, storage)
-    }
-
-    /// The controller of these parts, as they are: the one place a `Core` is built (a
-    /// controller is large, and each construction of it is code).
-    fn assemble(
-        kernel: Kernel<'q, N, B, Q>,
-        program: P,
-        peripherals: X,
-        config: ControllerConfig,
-        settings: Settings<N>,
-        storage: S,
-    ) -> Self {
         let clock = MsClock::new(kernel.tick_hz());
         Self {
             decoder: Decoder::new(),
