@@ -103,7 +103,7 @@ impl SpeedParts {
             (false, true) => rapid,
             (false, false) => feed,
         };
-        (self.wanted * scale).max(self.floor).min(self.cap)
+        least(most(self.wanted * scale, self.floor), self.cap)
     }
 }
 
@@ -342,7 +342,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
                     b.nominal_sqr
                 };
                 b.max_entry_sqr = match before {
-                    Some(p) => b.speed.junction_sqr.min(p).min(own),
+                    Some(p) => least(least(b.speed.junction_sqr, p), own),
                     None => 0.0,
                 };
             }
@@ -454,11 +454,15 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         let mut feed_len_sqr = 0f32;
         let mut extrudes = false;
         for (i, (m, a)) in mm.iter_mut().zip(config.axes.iter()).enumerate() {
+            // An axis that does not move adds nothing (and costs no division).
             let s = req.steps.get(i).copied().unwrap_or(0);
+            if s == 0 {
+                continue;
+            }
             *m = s as f32 / a.steps_per_mm;
             len_sqr += *m * *m;
             if a.kind == AxisKind::Extruder {
-                extrudes |= s != 0;
+                extrudes = true;
             } else {
                 feed_len_sqr += *m * *m;
             }
@@ -475,17 +479,21 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         };
         let kind = MoveKind::of(extrudes, feed_len_sqr > 0.0);
         let cap = self.limits.accel_mm_s2(kind);
+        // The limits along the path: an axis's limit over its share of the length,
+        // `limit / (|mm| / length)`, with one division per moving axis and one for the unit.
+        let per_length = 1.0 / length;
         let mut unit = [0f32; N];
         let mut accel = cap;
-        let mut rate = f32::INFINITY;
+        let mut rate_mm_min = f32::INFINITY;
         for ((u, m), a) in unit.iter_mut().zip(mm.iter()).zip(config.axes.iter()) {
-            *u = *m / length;
-            let au = u.abs();
-            if au > 0.0 {
-                accel = accel.min(a.accel_mm_s2 / au);
-                rate = rate.min(a.max_rate_mm_s() / au);
+            *u = *m * per_length;
+            if *m != 0.0 {
+                let lengths = length / m.abs();
+                accel = least(accel, a.accel_mm_s2 * lengths);
+                rate_mm_min = least(rate_mm_min, a.max_rate_mm_min * lengths);
             }
         }
+        let rate = rate_mm_min / 60.0;
         // A feed is along the axes that are not extruders; the speed is along the whole path.
         let wanted = match req.feed_mm_min {
             Some(f) => f * req.feed_scale / 60.0 * length / feed_len,
@@ -518,7 +526,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             (_, Some(p)) => {
                 // A feed ramp may enter above its own feed, never above what its axes allow.
                 let own = if req.ramp { rate * rate } else { nominal_sqr };
-                junction_sqr.min(p.nominal_sqr).min(own)
+                least(least(junction_sqr, p.nominal_sqr), own)
             }
         };
         let block = Block {
@@ -560,7 +568,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         let Some(newest) = self.blocks.get_mut(idx) else {
             return;
         };
-        let mut next_entry = newest.max_entry_sqr.min(2.0 * newest.accel * newest.mm);
+        let mut next_entry = least(newest.max_entry_sqr, 2.0 * newest.accel * newest.mm);
         newest.entry_sqr = next_entry;
         idx = prev(idx, B);
         while idx != self.planned {
@@ -568,7 +576,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
                 return;
             };
             if cur.entry_sqr != cur.max_entry_sqr {
-                let e = (next_entry + 2.0 * cur.accel * cur.mm).min(cur.max_entry_sqr);
+                let e = least(next_entry + 2.0 * cur.accel * cur.mm, cur.max_entry_sqr);
                 cur.entry_sqr = e;
                 next_entry = e;
             } else {
@@ -603,6 +611,20 @@ impl<const N: usize, const B: usize> Planner<N, B> {
     }
 }
 
+/// The smaller of two of the planner's values, which are never NaN: one comparison, where
+/// `f32::min` calls `fminf` (for NaN's rules) on cores without a minimum instruction (the
+/// Cortex-M4's FPU has none, RISC-V's software floats neither). With `b` NaN, `a`.
+#[inline(always)]
+fn least(a: f32, b: f32) -> f32 {
+    if b < a { b } else { a }
+}
+
+/// The larger of two of the planner's values, as [`least`].
+#[inline(always)]
+fn most(a: f32, b: f32) -> f32 {
+    if b > a { b } else { a }
+}
+
 /// Junction deviation (grbl): the corner speed at which a virtual arc, tangent to both moves and
 /// `junction_deviation_mm` from the corner, is taken at the acceleration the axes allow along
 /// the change of direction, and at most `cap_mm_s2` (the [`PathLimits`] acceleration of the
@@ -634,9 +656,9 @@ pub(crate) fn junction_speed_sqr<const N: usize>(
     let delta_len = sqrtf(delta_len_sqr);
     let mut accel = cap_mm_s2;
     for (d, a) in delta.iter().zip(config.axes.iter()) {
-        let du = (d / delta_len).abs();
-        if du > 0.0 {
-            accel = accel.min(a.accel_mm_s2 / du);
+        // The axis's limit over its share of the change, `|d| / delta_len`.
+        if *d != 0.0 {
+            accel = least(accel, a.accel_mm_s2 * (delta_len / d.abs()));
         }
     }
     let sin_half = sqrtf(0.5 * (1.0 - cos_theta));
