@@ -978,14 +978,17 @@ impl<const N: usize> Interpreter<N> {
     /// The target machine position of the axis words on the line. An extruder under a flow
     /// override (`M221`) moves by its commanded distance × flow while its work position
     /// advances by the commanded distance: its `G92` offset takes the difference, here (the
-    /// caller works on a copy of the state and drops it when the line is refused).
+    /// caller works on a copy of the state and drops it when the line is refused). Written
+    /// into `target` rather than returned: a position moved through a `Result` is copied twice,
+    /// which costs on a core that copies with `memcpy`.
     fn target(
         &mut self,
         line: &Line<'_>,
         config: &MachineConfig<N>,
         machine_coords: bool,
-    ) -> Result<[Nm; N], CommandError> {
-        let mut target = self.pos;
+        target: &mut [Nm; N],
+    ) -> Result<(), CommandError> {
+        *target = self.pos;
         let z = config.axis_index(b'Z');
         for (i, a) in config.axes.iter().enumerate() {
             if let Some(v) = line.get(a.letter) {
@@ -1026,7 +1029,7 @@ impl<const N: usize> Interpreter<N> {
                 return Err(CommandError::UnknownAxis { letter: w.letter });
             }
         }
-        Ok(target)
+        Ok(())
     }
 
     /// One hole of the drilling cycle `kind` (the motion mode), at the X and Y of the line's
@@ -1050,7 +1053,8 @@ impl<const N: usize> Interpreter<N> {
         {
             return Err(CommandError::BadValue { letter: b'L' });
         }
-        let hole = self.target(line, config, false)?;
+        let mut hole = [0; N];
+        self.target(line, config, false, &mut hole)?;
         let mut words = self.cycle;
         if let Some(r) = line.get(b'R') {
             words.retract = Some(to_nm(r, self.inches, b'R')?);
@@ -1131,7 +1135,8 @@ impl<const N: usize> Interpreter<N> {
             Motion::Cancelled => return Err(CommandError::NoMotionMode),
             _ => {}
         }
-        let target = self.target(line, config, machine_coords)?;
+        let mut target = [0; N];
+        self.target(line, config, machine_coords, &mut target)?;
         let ramp = line.has(b'F') && !self.inverse_time;
         // `G93`: every feed move carries its `F`, moves per minute.
         let per_minute = match line.get(b'F') {
@@ -1276,7 +1281,8 @@ impl<const N: usize> Interpreter<N> {
             }
             (b'G', 28 | 30) if self.grbl => {
                 only_axis_words(line, config, b"")?;
-                let via = self.target(line, config, false)?;
+                let mut via = [0; N];
+                self.target(line, config, false, &mut via)?;
                 let stored = if n == 28 { coords.g28 } else { coords.g30 };
                 let named = config.axes.iter().any(|a| line.has(a.letter));
                 let mut target = via;

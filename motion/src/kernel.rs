@@ -1210,7 +1210,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// right whether homed or not: longer on an axis than that axis's whole travel, or ending
     /// beyond what is counted in `i32` steps and reported ([`MAX_POSITION_MM`]).
     fn check_reach(&self, lo: &[Nm; N], hi: &[Nm; N]) -> Result<(), CommandError> {
-        let from = self.interp.pos;
+        let from = &self.interp.pos;
         for (i, b) in self.bounds.iter().enumerate() {
             let low = lo[i].min(from[i]);
             let high = hi[i].max(from[i]);
