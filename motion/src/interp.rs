@@ -78,8 +78,9 @@ use crate::planner::PathLimits;
 /// Nanometres per millimetre: positions are kept in integer nanometres.
 pub const NM_PER_MM: f64 = 1e6;
 
-/// `mm` in nanometres, rounded. Off the per-line path (limits, homing), and about a hundred
-/// bytes of software double precision and saturation: one copy.
+/// `mm` in nanometres, rounded. Not on the per-line path (it converts limits and homing
+/// distances); out of line, its hundred bytes of software double precision and saturation are
+/// in the image once.
 #[inline(never)]
 pub(crate) fn mm_to_nm(mm: f32) -> Nm {
     libm::round(f64::from(mm) * NM_PER_MM) as Nm

@@ -612,8 +612,8 @@ impl<const N: usize, const B: usize> Planner<N, B> {
 }
 
 /// The smaller of two of the planner's values, which are never NaN: one comparison, where
-/// `f32::min` calls `fminf` (for NaN's rules) on cores without a minimum instruction (the
-/// Cortex-M4's FPU has none, RISC-V's software floats neither). With `b` NaN, `a`.
+/// `f32::min` calls `fminf` for NaN's rules on the boards' cores (the Cortex-M4's FPU has no
+/// minimum instruction, and RISC-V's floats are software). With `b` NaN, `a`.
 #[inline(always)]
 fn least(a: f32, b: f32) -> f32 {
     if b < a { b } else { a }

@@ -870,15 +870,13 @@ where
     /// [`Settings::machine`]) kept in `storage`: frame 00 writes go there, and the stored path
     /// limits and coordinate systems apply at once.
     pub fn with_settings(
-        kernel: Kernel<'q, N, B, Q>,
+        mut kernel: Kernel<'q, N, B, Q>,
         program: P,
         peripherals: X,
         config: ControllerConfig,
         settings: Settings<N>,
-        storage: S,
+        mut storage: S,
     ) -> Self {
-        let mut kernel = kernel;
-        let mut storage = storage;
         // The stored path limits (`M204`, `M205 S T`): the kernel was built from the
         // machine configuration alone, and is idle.
         let machine = kernel.config().clone();
