@@ -816,13 +816,11 @@ impl Job {
                 .read(index, &mut local)
                 .map_err(|_| JobError::Syntax { line: index })?;
             let text = local.get(..len).unwrap_or(&[]);
-            let line = match Line::parse(text) {
-                Ok(l) => l,
-                Err(_) => {
-                    self.state = JobState::Idle;
-                    return Err(JobError::Syntax { line: index });
-                }
-            };
+            let mut line = Line::empty();
+            if line.parse_in(text).is_err() {
+                self.state = JobState::Idle;
+                return Err(JobError::Syntax { line: index });
+            }
             kernel.set_line_tag(u32::from(index));
             match kernel.execute(&line) {
                 Ok(Reply::Busy) => return Ok(None),
@@ -893,14 +891,12 @@ impl Job {
                 dst.copy_from_slice(text);
             }
             let byte = run.next_byte;
-            let line = match Line::parse(local.get(..len).unwrap_or(&[])) {
-                Ok(l) => l,
-                Err(_) => {
-                    self.state = JobState::Idle;
-                    self.end_printing();
-                    return Err(JobError::Syntax { line: line_no });
-                }
-            };
+            let mut line = Line::empty();
+            if line.parse_in(local.get(..len).unwrap_or(&[])).is_err() {
+                self.state = JobState::Idle;
+                self.end_printing();
+                return Err(JobError::Syntax { line: line_no });
+            }
             let take = |run: &mut FileRun| {
                 run.consume(used, lines);
                 run.skipping = skip_rest;
@@ -1033,7 +1029,8 @@ pub fn estimate_seconds<P: ProgramStore, const N: usize, const B: usize, const Q
         let len = store
             .read(index, &mut buf)
             .map_err(|_| JobError::Syntax { line: index })?;
-        let line = Line::parse(buf.get(..len).unwrap_or(&[]))
+        let mut line = Line::empty();
+        line.parse_in(buf.get(..len).unwrap_or(&[]))
             .map_err(|_| JobError::Syntax { line: index })?;
         if !estimate.line(&line) {
             break;

@@ -219,6 +219,8 @@ impl MoveKind {
 #[derive(Debug, Clone, Copy)]
 struct Previous<const N: usize> {
     unit: [f32; N],
+    /// The axes it moves (their bits): the others' `unit` is 0.
+    moving: u8,
     nominal_sqr: f32,
 }
 
@@ -453,12 +455,14 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         let mut len_sqr = 0f32;
         let mut feed_len_sqr = 0f32;
         let mut extrudes = false;
+        // The axes that move: the others add nothing and cost nothing below.
+        let mut moving = 0u8;
         for (i, (m, a)) in mm.iter_mut().zip(config.axes.iter()).enumerate() {
-            // An axis that does not move adds nothing (and costs no division).
             let s = req.steps.get(i).copied().unwrap_or(0);
             if s == 0 {
                 continue;
             }
+            moving |= 1 << i;
             *m = s as f32 / a.steps_per_mm;
             len_sqr += *m * *m;
             if a.kind == AxisKind::Extruder {
@@ -467,17 +471,18 @@ impl<const N: usize, const B: usize> Planner<N, B> {
                 feed_len_sqr += *m * *m;
             }
         }
-        if len_sqr <= 0.0 {
+        if moving == 0 {
             return true;
         }
         let length = sqrtf(len_sqr);
         // Without extrusion the two sums are the same to the bit: one square root.
-        let feed_len = if feed_len_sqr > 0.0 && feed_len_sqr != len_sqr {
+        let moves_axes = feed_len_sqr > 0.0;
+        let feed_len = if extrudes && moves_axes {
             sqrtf(feed_len_sqr)
         } else {
             length
         };
-        let kind = MoveKind::of(extrudes, feed_len_sqr > 0.0);
+        let kind = MoveKind::of(extrudes, moves_axes);
         let cap = self.limits.accel_mm_s2(kind);
         // The limits along the path: an axis's limit over its share of the length,
         // `limit / (|mm| / length)`, with one division per moving axis and one for the unit.
@@ -485,9 +490,14 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         let mut unit = [0f32; N];
         let mut accel = cap;
         let mut rate_mm_min = f32::INFINITY;
-        for ((u, m), a) in unit.iter_mut().zip(mm.iter()).zip(config.axes.iter()) {
-            *u = *m * per_length;
-            if *m != 0.0 {
+        for (i, ((u, m), a)) in unit
+            .iter_mut()
+            .zip(mm.iter())
+            .zip(config.axes.iter())
+            .enumerate()
+        {
+            if moving & (1 << i) != 0 {
+                *u = *m * per_length;
                 let lengths = length / m.abs();
                 accel = least(accel, a.accel_mm_s2 * lengths);
                 rate_mm_min = least(rate_mm_min, a.max_rate_mm_min * lengths);
@@ -495,23 +505,27 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         }
         let rate = rate_mm_min / 60.0;
         // A feed is along the axes that are not extruders; the speed is along the whole path.
+        // The feed along the whole path: the same unless extruders move with other axes.
+        let along_path = |feed: f32| {
+            if extrudes && moves_axes {
+                feed * length / feed_len
+            } else {
+                feed
+            }
+        };
         let wanted = match req.feed_mm_min {
-            Some(f) => f * req.feed_scale / 60.0 * length / feed_len,
+            Some(f) => along_path(f * req.feed_scale / 60.0),
             None => rate * req.feed_scale,
         };
         let floor = self.limits.min_feed_mm_s(kind);
         let junction_sqr = match (self.len, self.previous) {
             (0, _) | (_, None) => 0.0,
             _ if req.exact_stop => 0.0,
-            (_, Some(p)) => junction_speed_sqr(&p.unit, &unit, config, cap),
+            (_, Some(p)) => junction_speed_sqr(&p.unit, &unit, p.moving | moving, config, cap),
         };
         let speed = SpeedParts {
             wanted,
-            floor: if floor > 0.0 {
-                floor * length / feed_len
-            } else {
-                0.0
-            },
+            floor: if floor > 0.0 { along_path(floor) } else { 0.0 },
             cap: rate,
             junction_sqr,
             rapid: req.feed_mm_min.is_none(),
@@ -543,7 +557,11 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             spindle_rpm: req.spindle_rpm,
         };
         self.insert(block);
-        self.previous = Some(Previous { unit, nominal_sqr });
+        self.previous = Some(Previous {
+            unit,
+            moving,
+            nominal_sqr,
+        });
         self.recalculate();
         true
     }
@@ -611,27 +629,33 @@ impl<const N: usize, const B: usize> Planner<N, B> {
     }
 }
 
-/// The smaller of two of the planner's values, which are never NaN: one comparison, where
-/// `f32::min` calls `fminf` for NaN's rules on the boards' cores (the Cortex-M4's FPU has no
-/// minimum instruction, and RISC-V's floats are software). With `b` NaN, `a`.
+/// The smaller of two of the planner's values, which are never negative nor NaN (lengths,
+/// speeds, their squares, accelerations, infinity for no limit): one integer comparison of
+/// their bits, which order such values as their numbers do. `f32::min` calls `fminf` for
+/// NaN's rules, and a float comparison is a call of its own on RISC-V, whose floats are
+/// software. With `b` NaN (above infinity), `a`.
 #[inline(always)]
 fn least(a: f32, b: f32) -> f32 {
-    if b < a { b } else { a }
+    debug_assert!(a.is_sign_positive() && b.is_sign_positive(), "{a} {b}");
+    if b.to_bits() < a.to_bits() { b } else { a }
 }
 
 /// The larger of two of the planner's values, as [`least`].
 #[inline(always)]
 fn most(a: f32, b: f32) -> f32 {
-    if b > a { b } else { a }
+    debug_assert!(a.is_sign_positive() && b.is_sign_positive(), "{a} {b}");
+    if b.to_bits() > a.to_bits() { b } else { a }
 }
 
 /// Junction deviation (grbl): the corner speed at which a virtual arc, tangent to both moves and
 /// `junction_deviation_mm` from the corner, is taken at the acceleration the axes allow along
 /// the change of direction, and at most `cap_mm_s2` (the [`PathLimits`] acceleration of the
-/// new move's kind). Returns the square of the speed.
+/// new move's kind). `moving` has the bits of the axes either move moves: the others' units
+/// are 0 and are skipped. Returns the square of the speed.
 pub(crate) fn junction_speed_sqr<const N: usize>(
     prev_unit: &[f32; N],
     unit: &[f32; N],
+    moving: u8,
     config: &MachineConfig<N>,
     cap_mm_s2: f32,
 ) -> f32 {
@@ -639,6 +663,9 @@ pub(crate) fn junction_speed_sqr<const N: usize>(
     let mut delta = [0f32; N];
     let mut delta_len_sqr = 0f32;
     for i in 0..N {
+        if moving & (1 << i) == 0 {
+            continue;
+        }
         let (p, u) = (prev_unit[i], unit[i]);
         cos_theta -= p * u;
         let d = u - p;
@@ -657,7 +684,7 @@ pub(crate) fn junction_speed_sqr<const N: usize>(
     let mut accel = cap_mm_s2;
     for (d, a) in delta.iter().zip(config.axes.iter()) {
         // The axis's limit over its share of the change, `|d| / delta_len`.
-        if *d != 0.0 {
+        if d.to_bits() << 1 != 0 {
             accel = least(accel, a.accel_mm_s2 * (delta_len / d.abs()));
         }
     }

@@ -175,18 +175,49 @@ impl<'a> Line<'a> {
     /// - `N` must be the first word; an `N` word further on (`M110 N0`) is a parameter and is
     ///   kept in [`words`](Self::words).
     /// - After one of [`TEXT_COMMANDS`] the rest of the line (up to `*` or `;`) is its text.
+    ///
+    /// Returns the line by value, which copies its words once on the way out (a few hundred
+    /// bytes); [`Line::parse_in`] parses into storage the caller already has.
     #[inline]
     pub fn parse(bytes: &'a [u8]) -> Result<Line<'a>, LineError> {
-        // Inlined, the result is the caller's own binding and the words move once, into it: a
-        // line built inside the parser and returned was copied whole twice on the way out.
-        let mut words = Words::new();
-        let (number, text, crc) = Self::parse_into(bytes, &mut words)?;
-        Ok(Line {
-            number,
-            words,
-            text,
-            crc,
-        })
+        let mut line = Line::empty();
+        line.parse_in(bytes)?;
+        Ok(line)
+    }
+
+    /// A line with no number, no words and no text: the storage [`Line::parse_in`] fills.
+    pub const fn empty() -> Self {
+        Line {
+            number: None,
+            words: Vec::new(),
+            text: None,
+            crc: false,
+        }
+    }
+
+    /// [`Line::parse`] into this line, whatever it held: the words are written in place, with
+    /// no copy of the line. On an error the line is left [empty](Line::empty).
+    ///
+    /// This is the parse of the paths that take every line of a program (the controller's
+    /// lines, the jobs), where the copy `parse` makes would be a tenth of planning a move.
+    pub fn parse_in(&mut self, bytes: &'a [u8]) -> Result<(), LineError> {
+        self.words.clear();
+        match Self::parse_into(bytes, &mut self.words) {
+            Ok((number, text, crc)) => {
+                self.number = number;
+                self.text = text;
+                self.crc = crc;
+                Ok(())
+            }
+            Err(e) => {
+                // Field by field: assigning `Line::empty()` would write the words' storage.
+                self.words.clear();
+                self.number = None;
+                self.text = None;
+                self.crc = false;
+                Err(e)
+            }
+        }
     }
 
     /// [`Line::parse`] of everything but the words' storage: the words into `words`, the rest

@@ -514,6 +514,35 @@ proptest! {
         prop_assert_eq!(run(&input, &sizes), expected);
     }
 
+    /// A line parsed in place, over whatever it held, is the line `parse` returns; on an error
+    /// it is the same error and the line is left empty.
+    #[test]
+    fn parsing_in_place_is_parsing(
+        before in prop::collection::vec(any::<u8>(), 0..100),
+        bytes in prop::collection::vec(any::<u8>(), 0..120),
+        (number, words, text) in line_parts(),
+    ) {
+        // A line with words, text and a number in it first, when these parts make one.
+        let mut held = Vec::new();
+        if let Ok(line) = Line::from_parts(number, &words, text.as_deref().map(str::as_bytes))
+            && let Ok(encoded) = encode_line(&line)
+        {
+            held = encoded;
+        }
+        for input in [&bytes, &held] {
+            let mut line = Line::parse(&held).unwrap_or_else(|_| Line::empty());
+            let _ = line.parse_in(&before);
+            match (Line::parse(input), line.parse_in(input)) {
+                (Ok(expected), Ok(())) => prop_assert_eq!(&line, &expected),
+                (Err(expected), Err(e)) => {
+                    prop_assert_eq!(e, expected);
+                    prop_assert_eq!(&line, &Line::empty());
+                }
+                (a, b) => prop_assert!(false, "parse {:?}, parse_in {:?}", a, b),
+            }
+        }
+    }
+
     #[test]
     fn decoders_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
         let _ = Line::parse(&bytes);

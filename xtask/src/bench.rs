@@ -561,7 +561,7 @@ fn report(counts: &Counts, core: &Core, build: &Build) -> Result<Vec<String>, St
     );
     over.extend(table(
         core,
-        "planning: Line::parse + Kernel::execute",
+        "planning: Line::parse_in + Kernel::execute",
         "/line",
         "line",
         &[Row {

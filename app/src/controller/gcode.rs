@@ -400,11 +400,13 @@ where
         if let Some(n) = number {
             self.kernel.set_line_tag(n);
         }
-        let line = match Line::parse(bytes) {
-            Ok(line) => line,
+        // Parsed in place: every line of a program comes this way.
+        let mut line = Line::empty();
+        match line.parse_in(bytes) {
+            Ok(()) => {}
             Err(e) if self.speaks_grbl() => return self.refuse(&Refusal::new(&e), out),
             Err(e) => return self.on_line_error(&e, out),
-        };
+        }
         // A grbl sender numbers no line: `N` is the line's number for `Ln:`, never checked.
         if self.speaks_grbl() {
             if self.grbl_check(&line, out) {
@@ -538,8 +540,9 @@ where
                 Some(Held::Line) => {
                     let lb = self.link.held_line;
                     self.link.held = None;
-                    match Line::parse(lb.bytes()) {
-                        Ok(line) => self.execute_line(&line, lb.bytes(), out),
+                    let mut line = Line::empty();
+                    match line.parse_in(lb.bytes()) {
+                        Ok(()) => self.execute_line(&line, lb.bytes(), out),
                         Err(e) => self.refuse(&Refusal::new(&e), out),
                     }
                     if self.link.held.is_some() {

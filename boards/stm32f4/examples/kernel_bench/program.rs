@@ -13,7 +13,7 @@
 //! |---|---|
 //! | [`bench_isr`] | `StepGenerator::on_alarm`: one interrupt's worth of step events, pins and switch samples included |
 //! | [`bench_prep`] | `Kernel::poll`: segment preparation (thread side) |
-//! | [`bench_line`] | `Line::parse` and `Kernel::execute` of one G-code line: parse, interpret, plan |
+//! | [`bench_line`] | `Line::parse_in` and `Kernel::execute` of one G-code line: parse, interpret, plan |
 //!
 //! The program runs three phases, each announced by [`bench_phase`] and closed by
 //! [`bench_result`] with its counts of step events and lines:
@@ -160,8 +160,9 @@ fn bench_prep(kernel: &mut Thread, now: Instant) -> Option<Instant> {
 #[unsafe(no_mangle)]
 #[inline(never)]
 fn bench_line(kernel: &mut Thread, text: &[u8]) -> bool {
-    match Line::parse(text) {
-        Ok(line) => !matches!(kernel.execute(&line), Ok(Reply::Busy)),
+    let mut line = Line::empty();
+    match line.parse_in(text) {
+        Ok(()) => !matches!(kernel.execute(&line), Ok(Reply::Busy)),
         Err(_) => true,
     }
 }
