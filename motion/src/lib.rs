@@ -63,6 +63,7 @@
 extern crate std;
 
 mod arc;
+mod bound;
 pub mod config;
 pub mod coords;
 mod drill;

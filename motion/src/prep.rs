@@ -26,6 +26,7 @@ use core::sync::atomic::Ordering;
 use forja_hal_abstraction::time::Instant;
 use libm::{ceil, floor};
 
+use crate::bound::{at_least, at_most};
 use crate::planner::{Block, BlockKind, Planner};
 use crate::profile::{PHASES, Profile, Shape};
 use crate::queue::{Event, MAX_DELTA, Producer};
@@ -122,6 +123,37 @@ struct Current<const N: usize> {
 }
 
 impl<const N: usize> Current<N> {
+    /// No block: what [`Prep`] holds until it loads one ([`Prep::load`] writes every field).
+    fn unloaded() -> Self {
+        Current {
+            axes: [AxisSteps {
+                n: 0,
+                j: 1,
+                phase: PHASES,
+                phase_last: 0,
+                step_mm: 0.0,
+                per_mm: 0.0,
+                timing: Timing::Exact,
+            }; N],
+            next_tick: [u64::MAX; N],
+            neg: 0,
+            mm: 0.0,
+            accel: 1.0,
+            ticks_per_speed: 0.0,
+            nominal: 0.0,
+            s_anchor: 0.0,
+            t_anchor: 0.0,
+            last_axis: NO_AXIS,
+            only_axis: None,
+            unset: 0,
+            profile: Profile::plan(0.0, 0.0, 0.0, 0.0, 1.0),
+            exit_used: 0.0,
+            hold_used: false,
+            #[cfg(debug_assertions)]
+            burst_error: 0.0,
+        }
+    }
+
     fn profile_for(&self, v0: f64, exit_sqr: f32, hold: bool) -> Profile {
         let rest = self.mm - self.s_anchor;
         if hold {
@@ -150,7 +182,9 @@ impl<const N: usize> Current<N> {
     }
 
     /// Re-plan the rest of the block from the last emitted step (the axes' clocks are set up
-    /// again by the next calls of `fill`, see [`Current::unset`]).
+    /// again by the next calls of `fill`, see [`Current::unset`]). Once a plan change: out of
+    /// `fill`'s loop.
+    #[inline(never)]
     fn reanchor(&mut self, exit_sqr: f32, hold: bool, ticks_per_s: f64) {
         let (s, t) = self.last_point(ticks_per_s);
         let v = self.profile.speed_at(s - self.s_anchor);
@@ -196,11 +230,11 @@ impl<const N: usize> Current<N> {
             let ph = self.profile.phase(a.phase);
             let last = if a.phase + 1 < PHASES {
                 // The last step before the phase's end.
-                (ceil(ph.end * per_mm + offset) - 1.0).min(f64::from(a.n))
+                at_most(ceil(ph.end * per_mm + offset) - 1.0, f64::from(a.n))
             } else if self.profile.stops() {
                 // Within rounding of a hold's stopping point, a step is at it.
                 let end = ph.end * (1.0 + 1e-9) + 1e-12;
-                floor(end * per_mm + offset).min(f64::from(a.n))
+                at_most(floor(end * per_mm + offset), f64::from(a.n))
             } else {
                 f64::from(a.n)
             };
@@ -214,7 +248,7 @@ impl<const N: usize> Current<N> {
             return;
         }
         let ph = self.profile.phase(a.phase);
-        let x = (a.step_mm_at(a.j) - self.s_anchor - ph.start).max(0.0);
+        let x = at_least(a.step_mm_at(a.j) - self.s_anchor - ph.start, 0.0);
         let steps = a.phase_last - a.j + 1;
         let start = self.t_anchor + ph.t_start * ticks_per_s;
         let base = floor(start);
@@ -232,7 +266,7 @@ impl<const N: usize> Current<N> {
                 let (c, y) = if up {
                     (rel - c, c * c + k * x)
                 } else {
-                    (rel + c, (c * c - k * x).max(0.0))
+                    (rel + c, at_least(c * c - k * x, 0.0))
                 };
                 StepClock::ramp(base, c, y, k * h, up, steps)
             }
@@ -726,7 +760,10 @@ pub(crate) enum Fill {
 pub(crate) struct Prep<const N: usize> {
     ticks_per_s: f64,
     em: Emitter<N>,
-    cur: Option<Current<N>>,
+    /// The block in preparation, when `loaded`: kept in place between blocks, so that loading
+    /// one writes its fields instead of moving a whole new `Current` in.
+    cur: Current<N>,
+    loaded: bool,
     dwell_left: u64,
     t_plan: f64,
     v_carry: f64,
@@ -760,7 +797,8 @@ impl<const N: usize> Prep<N> {
                 dir_neg: 0,
                 dir_known: 0,
             },
-            cur: None,
+            cur: Current::unloaded(),
+            loaded: false,
             dwell_left: 0,
             t_plan: 0.0,
             v_carry: 0.0,
@@ -782,13 +820,13 @@ impl<const N: usize> Prep<N> {
         em.amendable = false;
         em.dir_known = 0;
         em.last_rest = true;
-        self.cur = None;
+        self.loaded = false;
         self.dwell_left = 0;
         self.v_carry = 0.0;
         self.hold = false;
         self.held = false;
         // Continue the timeline after everything pushed.
-        self.t_plan = self.t_plan.max(self.em.last_tick as f64);
+        self.t_plan = at_least(self.t_plan, self.em.last_tick as f64);
     }
 
     /// Ask for (or release) a feed hold.
@@ -802,7 +840,8 @@ impl<const N: usize> Prep<N> {
     /// A realtime override changed the nominal speed of the block in preparation (squared):
     /// re-plan the rest of it from the last prepared step.
     pub(crate) fn set_nominal(&mut self, nominal_sqr: f32) {
-        if let Some(cur) = self.cur.as_mut() {
+        if self.loaded {
+            let cur = &mut self.cur;
             cur.nominal = speed_of(nominal_sqr);
             // Never equal to the planner's exit: the next fill re-anchors.
             cur.exit_used = f32::NAN;
@@ -813,7 +852,10 @@ impl<const N: usize> Prep<N> {
     /// 0 at rest: the speed now, `queue_lead_ms` ahead), that speed as a fraction of the
     /// block's nominal speed, whether the block is a rapid, and its spindle speed (rpm).
     pub(crate) fn motion(&self) -> Option<(f64, f64, bool, u32)> {
-        let cur = self.cur.as_ref()?;
+        if !self.loaded {
+            return None;
+        }
+        let cur = &self.cur;
         let v = cur.profile.speed_at(cur.last_s() - cur.s_anchor);
         let fraction = if cur.nominal > 0.0 {
             v / cur.nominal
@@ -830,7 +872,7 @@ impl<const N: usize> Prep<N> {
 
     /// Whether a block is being prepared.
     pub(crate) fn is_busy(&self) -> bool {
-        self.cur.is_some() || self.dwell_left > 0
+        self.loaded || self.dwell_left > 0
     }
 
     /// The source line of the block being prepared, or of the last one.
@@ -892,27 +934,29 @@ impl<const N: usize> Prep<N> {
                 self.t_plan = t as f64;
                 continue;
             }
-            let Some(cur) = self.cur.as_mut() else {
-                let Some(block) = planner.tail().copied() else {
+            if !self.loaded {
+                // Read in the planner: a copy of the block would cost more than its reading.
+                let Some(block) = planner.tail() else {
                     self.em.finish_rest(tx);
                     self.v_carry = 0.0;
-                    self.t_plan = self.t_plan.max(self.em.last_tick as f64);
+                    self.t_plan = at_least(self.t_plan, self.em.last_tick as f64);
                     break Fill::Drained;
                 };
                 match block.kind {
                     BlockKind::Dwell(ms) => {
                         self.dwell_left = libm::round(f64::from(ms) * tps / 1000.0) as u64;
-                        self.t_plan = self.t_plan.max(self.em.cursor() as f64);
+                        self.t_plan = at_least(self.t_plan, self.em.cursor() as f64);
                         self.line = block.line;
                         planner.retire_tail();
                     }
                     BlockKind::Move => {
-                        self.load(&block, planner.tail_exit_sqr());
+                        self.load(block, planner.tail_exit_sqr());
                         work += PROFILE_WORK;
                     }
                 }
                 continue;
-            };
+            }
+            let cur = &mut self.cur;
             if cur.unset != 0 {
                 let i = cur.unset.trailing_zeros() as usize;
                 cur.unset &= !(1 << i);
@@ -947,7 +991,7 @@ impl<const N: usize> Prep<N> {
                 // Block done: the next one starts where this profile ends.
                 self.t_plan = cur.t_anchor + cur.profile.duration() * tps;
                 self.v_carry = cur.profile.exit_speed();
-                self.cur = None;
+                self.loaded = false;
                 planner.retire_tail();
             } else {
                 // A hold came to rest inside the block: anchor there, at zero speed.
@@ -978,25 +1022,32 @@ impl<const N: usize> Prep<N> {
     fn check_plan<const B: usize>(&mut self, planner: &Planner<N, B>) -> u32 {
         let exit_sqr = planner.tail_exit_sqr();
         let hold = self.hold;
-        match self.cur.as_mut() {
-            Some(cur) if cur.exit_used != exit_sqr || cur.hold_used != hold => {
-                cur.reanchor(exit_sqr, hold, self.ticks_per_s);
-                PROFILE_WORK
-            }
-            _ => 0,
+        let cur = &mut self.cur;
+        if self.loaded && (cur.exit_used != exit_sqr || cur.hold_used != hold) {
+            cur.reanchor(exit_sqr, hold, self.ticks_per_s);
+            PROFILE_WORK
+        } else {
+            0
         }
     }
 
+    /// Start preparing `block`, which ends at `exit_sqr` (its exit speed squared): its
+    /// fields written into the `Current` kept in place. Once a block: out of `fill`'s loop.
+    #[inline(never)]
     fn load(&mut self, block: &Block<N>, exit_sqr: f32) {
         let mm = f64::from(block.mm);
+        let cur = &mut self.cur;
         let mut neg = 0u8;
-        let axes = core::array::from_fn(|i| {
-            let s = block.steps.get(i).copied().unwrap_or(0);
-            if s < 0 {
+        let mut moving = 0u8;
+        for (i, (a, s)) in cur.axes.iter_mut().zip(block.steps.iter()).enumerate() {
+            if *s < 0 {
                 neg |= 1 << i;
             }
             let n = s.unsigned_abs();
-            AxisSteps {
+            if n > 0 {
+                moving |= 1 << i;
+            }
+            *a = AxisSteps {
                 n,
                 j: 1,
                 phase: 0,
@@ -1004,41 +1055,31 @@ impl<const N: usize> Prep<N> {
                 step_mm: if n == 0 { 0.0 } else { mm / f64::from(n) },
                 per_mm: if n == 0 { 0.0 } else { f64::from(n) / mm },
                 timing: Timing::Exact,
-            }
-        });
-        let t0 = self.t_plan;
-        let mut moving = axes
-            .iter()
-            .enumerate()
-            .filter(|(_, a): &(usize, &AxisSteps)| a.n > 0);
-        let only_axis = match (moving.next(), moving.next()) {
-            (Some((i, _)), None) => Some(i),
-            _ => None,
-        };
-        let mut cur = Current {
-            axes,
-            next_tick: [u64::MAX; N],
-            neg,
-            mm,
-            accel: f64::from(block.accel),
-            ticks_per_speed: self.ticks_per_s / f64::from(block.accel),
-            nominal: speed_of(block.nominal_sqr),
-            s_anchor: 0.0,
-            t_anchor: t0,
-            last_axis: NO_AXIS,
-            only_axis,
-            unset: 0,
-            profile: Profile::plan(0.0, 0.0, 0.0, 0.0, 1.0),
-            exit_used: exit_sqr,
-            hold_used: self.hold,
-            #[cfg(debug_assertions)]
-            burst_error: 0.0,
-        };
+            };
+        }
+        cur.next_tick = [u64::MAX; N];
+        cur.neg = neg;
+        cur.mm = mm;
+        cur.accel = f64::from(block.accel);
+        cur.ticks_per_speed = self.ticks_per_s / f64::from(block.accel);
+        cur.nominal = speed_of(block.nominal_sqr);
+        cur.s_anchor = 0.0;
+        cur.t_anchor = self.t_plan;
+        cur.last_axis = NO_AXIS;
+        // One axis alone: a single bit.
+        cur.only_axis = (moving != 0 && moving & moving.wrapping_sub(1) == 0)
+            .then(|| moving.trailing_zeros() as usize);
+        cur.exit_used = exit_sqr;
+        cur.hold_used = self.hold;
+        #[cfg(debug_assertions)]
+        {
+            cur.burst_error = 0.0;
+        }
+        cur.profile = cur.profile_for(self.v_carry, exit_sqr, self.hold);
+        cur.unset = moving;
+        self.loaded = true;
         self.line = block.line;
         self.rapid = block.speed.rapid;
         self.spindle_rpm = block.spindle_rpm;
-        cur.profile = cur.profile_for(self.v_carry, exit_sqr, self.hold);
-        cur.unset = cur.steps_left();
-        self.cur = Some(cur);
     }
 }

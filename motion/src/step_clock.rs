@@ -24,6 +24,8 @@
 
 use libm::{round, sqrt};
 
+use crate::bound::at_most;
+
 /// Fraction bits of a ramp's times: `R` counts sixteenths of a tick.
 const RAMP_BITS: u32 = 4;
 /// `2^RAMP_BITS`.
@@ -91,11 +93,14 @@ impl StepClock {
         } else {
             y
         };
-        let tau_limit = (2_147_483_648.0 / RAMP_UNIT).min(if up {
-            CRUISE_UNIT / RAMP_UNIT - 2.0 - c
+        let tau_limit = if up {
+            at_most(
+                2_147_483_648.0 / RAMP_UNIT,
+                CRUISE_UNIT / RAMP_UNIT - 2.0 - c,
+            )
         } else {
-            f64::INFINITY
-        });
+            2_147_483_648.0 / RAMP_UNIT
+        };
         let fits = y >= 0.0
             && dy >= 0.0
             && tau_limit > 0.0
@@ -110,7 +115,10 @@ impl StepClock {
         let dw = round_up_half(dy * scale);
         let r = isqrt(w);
         // The first increment, `√(w ± dw) − √w ≈ dw / 2√w`: a guess the first step corrects.
-        let d = (dy * scale / (2.0 * f64::from(r) + 1.0)).min(f64::from(u32::MAX >> 1)) as u32;
+        let d = at_most(
+            dy * scale / (2.0 * f64::from(r) + 1.0),
+            f64::from(u32::MAX >> 1),
+        ) as u32;
         // Wrapping: `off ± r` is a time since `base` in [0, 2^32) units, whatever `off`'s sign.
         let off = round((c + 0.5) * RAMP_UNIT) as i64 as u32;
         Some(Self::Ramp {
