@@ -702,7 +702,10 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                     0,
                     next.exact_stop,
                 );
-                None
+                // The most common line, answered here: the answer below moves the optional
+                // effect into the reply whatever it holds (a copy of 21 bytes, byte by byte).
+                self.interp = *next;
+                return Ok(Reply::Ok);
             }
             Action::Arc {
                 cutter,
