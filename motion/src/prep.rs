@@ -496,10 +496,25 @@ impl<const N: usize> Current<N> {
         let mut rose_at = *rose;
         #[cfg(debug_assertions)]
         let (profile, s_anchor, t_anchor) = (&self.profile, self.s_anchor, self.t_anchor);
-        // The closure is inlined into both of the walk's loops, also where the board
-        // optimises for size.
-        let (steps, work) = clock.walk(
-            a.phase_last.saturating_sub(a.j),
+        // The exact time of step `j` of the axis, ticks (the error is measured in debug builds).
+        #[cfg(debug_assertions)]
+        let exact_at = |j: u32| {
+            profile
+                .time_at(axis.step_mm_at(j) - s_anchor)
+                .map_or(f64::INFINITY, |dt| t_anchor + dt * ticks_per_s)
+        };
+        let left = a.phase_last.saturating_sub(a.j);
+        // A cruise whose steps are always at least `spacing` apart and at most one event's
+        // delay: after its first step, which is checked against the last event and the axis's
+        // last edge, each of its steps is after the one before by one of its gaps, and only the
+        // horizon is checked.
+        let steady = clock
+            .cruise_gaps()
+            .is_some_and(|(fewest, most)| fewest >= spacing.max(1) && most <= u64::from(MAX_DELTA));
+        // The closures are inlined into the walk's loops, also where the board optimises for
+        // size.
+        let (mut steps, mut work) = clock.walk(
+            if steady { left.min(1) } else { left },
             max_work,
             ROOT_WORK,
             #[inline(always)]
@@ -521,10 +536,7 @@ impl<const N: usize> Current<N> {
                 }
                 #[cfg(debug_assertions)]
                 {
-                    let exact = profile
-                        .time_at(axis.step_mm_at(j) - s_anchor)
-                        .map_or(f64::INFINITY, |dt| t_anchor + dt * ticks_per_s);
-                    worst = worst.max((t as f64 - exact).abs());
+                    worst = worst.max((t as f64 - exact_at(j)).abs());
                     j += 1;
                 }
                 last = t;
@@ -532,6 +544,35 @@ impl<const N: usize> Current<N> {
                 true
             },
         );
+        if steady && steps == 1 && left > 1 {
+            let (more, more_work) = clock.walk(
+                left - 1,
+                max_work.saturating_sub(work),
+                ROOT_WORK,
+                #[inline(always)]
+                |t| {
+                    if t >= horizon
+                        || !tx.write(&Event {
+                            delta: t.wrapping_sub(last) as u32,
+                            rise: bit,
+                            ..Event::default()
+                        })
+                    {
+                        return false;
+                    }
+                    #[cfg(debug_assertions)]
+                    {
+                        debug_assert!(t - last >= spacing && t - last <= u64::from(MAX_DELTA));
+                        worst = worst.max((t as f64 - exact_at(j)).abs());
+                        j += 1;
+                    }
+                    last = t;
+                    true
+                },
+            );
+            steps += more;
+            work += more_work;
+        }
         if steps == 0 {
             return 0;
         }
@@ -776,6 +817,9 @@ pub(crate) struct Prep<const N: usize> {
     spindle_rpm: u32,
     /// Ticks of motion queued ahead of the time of the last [`Prep::fill`], after it.
     queued_ticks: u32,
+    /// Topping the queue up to its lead: set when it holds less than half of the lead (or
+    /// nothing has started), cleared once it holds the lead or is full.
+    refilling: bool,
     /// The largest distance of a step's tick from its exact time, ticks (debug builds).
     #[cfg(debug_assertions)]
     worst_error: f64,
@@ -808,6 +852,7 @@ impl<const N: usize> Prep<N> {
             rapid: false,
             spindle_rpm: 0,
             queued_ticks: 0,
+            refilling: true,
             #[cfg(debug_assertions)]
             worst_error: 0.0,
         }
@@ -825,6 +870,7 @@ impl<const N: usize> Prep<N> {
         self.v_carry = 0.0;
         self.hold = false;
         self.held = false;
+        self.refilling = true;
         // Continue the timeline after everything pushed.
         self.t_plan = at_least(self.t_plan, self.em.last_tick as f64);
     }
@@ -908,6 +954,16 @@ impl<const N: usize> Prep<N> {
             0
         };
         let ahead = self.em.ahead(consumed, spent);
+        // Topped up to the lead, the queue runs down to half of it before the next top-up: a
+        // call in between prepares nothing and costs little, and each top-up prepares many
+        // steps for one call's set-up. The queue never holds more than the lead (a feed hold
+        // still starts decelerating within it), and the board polls again within half of what
+        // it holds, so it never runs dry.
+        if !self.refilling && running && ahead >= lead_ticks / 2 {
+            self.queued_ticks = ahead;
+            return Fill::Pending;
+        }
+        self.refilling = true;
         // Events go up to this tick: `lead_ticks` of motion ahead of now.
         let horizon = self.em.last_tick + u64::from(lead_ticks.saturating_sub(ahead));
         let tps = self.ticks_per_s;
@@ -920,10 +976,13 @@ impl<const N: usize> Prep<N> {
             if self.em.room < SLOTS_PER_STEP + 2 {
                 self.em.room = tx.free();
                 if self.em.room < SLOTS_PER_STEP + 2 {
+                    // Full before the lead (fast steps): topped up all the same.
+                    self.refilling = false;
                     break Fill::Pending;
                 }
             }
             if self.em.cursor() >= horizon {
+                self.refilling = false;
                 break Fill::Pending;
             }
             if self.dwell_left > 0 {

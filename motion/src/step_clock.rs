@@ -177,6 +177,15 @@ impl StepClock {
 }
 
 impl StepClock {
+    /// A cruise's fewest and most ticks from one step to the next (its interval rounded down
+    /// and up); `None` for a ramp.
+    pub(crate) fn cruise_gaps(&self) -> Option<(u64, u64)> {
+        match *self {
+            Self::Cruise { interval, .. } => Some((interval >> 32, (interval >> 32) + 1)),
+            Self::Ramp { .. } => None,
+        }
+    }
+
     /// Walk the steps from the current one while `take` accepts their ticks, at most
     /// `max_steps` of them and until their work reaches `max_work` (a step counts 1, one
     /// timed by a full square root `1 + root_work`). The clock stays at the first step not

@@ -699,3 +699,40 @@ fn polled_as_late_as_the_kernel_allows_the_queue_never_runs_dry() {
     assert!(longest <= 100, "{longest} ms");
     assert_eq!(s.positions()[..2], [steps(150.0), steps(75.0)]);
 }
+
+/// Preparation tops the queue up to the lead, then lets it run down to half of the lead
+/// before the next top-up: polled every millisecond through a long cruise, the motion the
+/// queue holds after a poll goes down from the lead to half of it and back, never below half
+/// and never above the lead (it would stay at the lead if every poll topped it up).
+#[test]
+fn the_queue_runs_down_to_half_its_lead_between_top_ups() {
+    let config = machine();
+    let lead_ms = u32::from(config.queue_lead_ms);
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, config, HZ);
+    s.wiring.config_mut().poll_period_ticks = u64::from(HZ) / 1000;
+    // 1,000 mm/min on X: 1,333 steps a second, so the 256 events never fill before the lead.
+    s.send("G1 X150 F1000").expect("ok");
+    let mut waits = Vec::new();
+    while !s.kernel.is_idle() {
+        s.advance(u64::from(HZ) / 1000);
+        assert!(
+            !matches!(s.kernel.state(), MachineState::Alarm(_)),
+            "{:?}",
+            s.kernel.state()
+        );
+        // The cruise: past the first and before the last 10 mm.
+        if s.positions()[0] > steps(10.0) && s.positions()[0] < steps(140.0) {
+            waits.push(s.kernel.poll_within_ms());
+        }
+    }
+    assert_eq!(s.positions()[0], steps(150.0));
+    // `poll_within_ms` is half of what the queue holds, in whole ms.
+    let (least, most) = (waits.iter().min().copied(), waits.iter().max().copied());
+    assert_eq!(
+        (least, most),
+        (Some(lead_ms / 4), Some(lead_ms / 2)),
+        "{} polls",
+        waits.len()
+    );
+}
