@@ -227,6 +227,12 @@ impl<const N: usize> Current<N> {
         // Step j is at h·(j − ½) − s_anchor along the profile.
         let offset = self.s_anchor * per_mm + 0.5;
         while a.phase < PHASES {
+            // An empty phase before the last holds no step: passed over without its bounds
+            // (a multiplication, an addition and a `ceil` in software double precision).
+            if a.phase + 1 < PHASES && self.profile.is_empty(a.phase) {
+                a.phase += 1;
+                continue;
+            }
             let ph = self.profile.phase(a.phase);
             let last = if a.phase + 1 < PHASES {
                 // The last step before the phase's end.

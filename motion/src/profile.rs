@@ -174,6 +174,18 @@ impl Profile {
         }
     }
 
+    /// Whether phase `p` (0 to 2) has no length: it holds no step, and finding the steps of
+    /// the phases around it does not need its bounds. One integer comparison (a length is
+    /// never negative).
+    pub(crate) fn is_empty(&self, p: usize) -> bool {
+        let length = match p {
+            0 => self.d1,
+            1 => self.d2,
+            _ => self.d3,
+        };
+        length.to_bits() << 1 == 0
+    }
+
     /// Whether the profile ends at rest inside the block (a completed hold): no point past
     /// [`Profile::length`] (give or take rounding) is reached.
     pub(crate) fn stops(&self) -> bool {
