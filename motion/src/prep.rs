@@ -15,8 +15,11 @@
 //!
 //! The per-axis step times are merged into one time-ordered stream of rising edges for the
 //! interrupt, which ends each pulse itself. Most steps take the fast path ([`Current::burst`]):
-//! a step that needs no adjustment (no direction change, no edge sharing a tick, no phase
-//! change) is written with one set of checks; the others take the general path. A direction change is written after the axis's
+//! a step that needs no adjustment (no direction change, no edge sharing the tick of an event
+//! written before the run, no phase change) is written with one set of checks; the others take
+//! the general path. The queue is topped up to `queue_lead_ms` of motion (or until it is
+//! full), then left to run down to half of it before the next top-up, so that a top-up
+//! prepares many steps for the set-up of one call. A direction change is written after the axis's
 //! last pulse has ended and at least `dir_setup` before its next rising edge; the step is
 //! delayed when there is not room (only ever at a junction where the axis reverses). Two
 //! rising edges of one axis are always a high and a low pulse width apart.
@@ -89,6 +92,36 @@ impl AxisSteps {
     fn step_mm_at(&self, j: u32) -> f64 {
         self.step_mm * (f64::from(j) - 0.5)
     }
+}
+
+/// One axis in [`Current::run_cruises`]: its cruise clock's state, kept apart from the others'
+/// while the clocks are merged.
+#[derive(Debug, Clone, Copy)]
+struct Lane {
+    /// The tick of its next step (`u64::MAX`: none left in the block).
+    next: u64,
+    /// The cruise's time and interval (32.32 fixed point) and the tick it counts from.
+    time: u64,
+    interval: u64,
+    base: u64,
+    /// The tick of its last rising edge.
+    rose: u64,
+    /// The steps it may take before the last of its phase, and those it has taken.
+    left: u32,
+    taken: u32,
+}
+
+impl Lane {
+    /// An axis with no step left.
+    const DONE: Self = Self {
+        next: u64::MAX,
+        time: 0,
+        interval: 0,
+        base: 0,
+        rose: 0,
+        left: 0,
+        taken: 0,
+    };
 }
 
 /// The block being prepared.
@@ -354,7 +387,8 @@ impl<const N: usize> Current<N> {
     /// queue's room is used. Returns the work done (0: nothing emitted).
     ///
     /// This is the inner loop of preparation: one axis stepping alone runs in
-    /// [`Current::run_alone`]; several go step by step in the order of their next steps.
+    /// [`Current::run_alone`], several that all cruise in [`Current::run_cruises`]; the others
+    /// go step by step in the order of their next steps.
     #[inline(never)]
     fn burst<const Q: usize>(
         &mut self,
@@ -369,27 +403,13 @@ impl<const N: usize> Current<N> {
         if let Some(i) = self.only_axis {
             return self.run_alone(i, em, tx, horizon, limit, ticks_per_s);
         }
+        if let Some(work) = self.run_cruises(em, tx, horizon, limit, ticks_per_s) {
+            return work;
+        }
         // Step by step, the axis whose step comes first: the axes are kept in the order of
         // their next steps, and an axis that has stepped moves down past those due sooner
         // (one comparison when it stays first).
-        let mut order = [0u8; N];
-        for k in 1..N {
-            // Insertion: the order of axes 0..k, then axis k in its place.
-            let due = self.next_tick.get(k).copied();
-            let mut p = k;
-            while let Some(&before) = order.get(p.wrapping_sub(1)) {
-                if self.next_tick.get(usize::from(before)).copied() <= due {
-                    break;
-                }
-                if let Some(slot) = order.get_mut(p) {
-                    *slot = before;
-                }
-                p -= 1;
-            }
-            if let Some(slot) = order.get_mut(p) {
-                *slot = k as u8;
-            }
-        }
+        let mut order = by_next_step::<N>(|k| self.next_tick.get(k).copied());
         let spacing = 2 * em.pulse;
         let mut last = em.last_tick;
         let mut work = 0u32;
@@ -439,29 +459,151 @@ impl<const N: usize> Current<N> {
             {
                 self.burst_error = self.burst_error.max((t as f64 - exact).abs());
             }
-            let mut p = 0;
-            while let Some(&k) = order.get(p + 1) {
-                if self
-                    .next_tick
-                    .get(usize::from(k))
-                    .is_none_or(|&due| due >= tick)
-                {
-                    break;
-                }
-                if let Some(slot) = order.get_mut(p) {
-                    *slot = k;
-                }
-                p += 1;
-            }
-            if let Some(slot) = order.get_mut(p) {
-                *slot = i as u8;
-            }
+            sink_first(&mut order, tick, |k| self.next_tick.get(k).copied());
         }
         if written > 0 {
             self.last_axis = last_axis;
             em.wrote_run(last, written);
         }
         work
+    }
+
+    /// [`Current::burst`] when every axis with steps left cruises with steady gaps (see
+    /// [`Current::run_alone`]), its direction line set and its last edge a pulse and as long
+    /// low before its next step: the axes' clocks are merged with their state in a local
+    /// copy, each step checked only against the horizon, the last event (an edge at the same
+    /// tick joins it on the general path) and the end of its axis's phase. `None` when the
+    /// axes are not all such (the step-by-step loop takes them). Out of line: its loop's
+    /// registers stay its own.
+    #[inline(never)]
+    fn run_cruises<const Q: usize>(
+        &mut self,
+        em: &mut Emitter<N>,
+        tx: &mut Producer<'_, N, Q>,
+        horizon: u64,
+        max_work: u32,
+        ticks_per_s: f64,
+    ) -> Option<u32> {
+        let _ = ticks_per_s;
+        // The first step needs the general path (an edge at the last event's tick, the last
+        // step of its phase, the horizon): found before the set-up, which would be wasted.
+        let (first, at) = self.first_step();
+        if at == em.last_tick
+            || at >= horizon
+            || self.axes.get(first).is_none_or(|a| a.j >= a.phase_last)
+        {
+            return Some(0);
+        }
+        let spacing = 2 * em.pulse;
+        let mut lanes = [Lane::DONE; N];
+        for (i, (a, lane)) in self.axes.iter().zip(lanes.iter_mut()).enumerate() {
+            if a.j > a.n {
+                continue;
+            }
+            let bit = 1u8 << i;
+            let Timing::Clock(StepClock::Cruise {
+                base,
+                time,
+                interval,
+            }) = a.timing
+            else {
+                return None;
+            };
+            let steady =
+                (interval >> 32) >= spacing.max(1) && (interval >> 32) < u64::from(MAX_DELTA);
+            let next = base + (time >> 32);
+            let rose = em.rose_at.get(i).copied().unwrap_or(0);
+            if !steady
+                || (em.dir_known & bit) == 0
+                || (em.dir_neg ^ self.neg) & bit != 0
+                || next.wrapping_sub(rose) < spacing
+            {
+                return None;
+            }
+            *lane = Lane {
+                next,
+                time,
+                interval,
+                base,
+                rose,
+                left: a.phase_last.saturating_sub(a.j),
+                taken: 0,
+            };
+        }
+        let mut order = by_next_step::<N>(|k| lanes.get(k).map(|l| l.next));
+        let mut last = em.last_tick;
+        // Steps taken (the work), and the events they were written in.
+        let mut steps = 0u32;
+        let mut written = 0usize;
+        let mut last_axis = self.last_axis;
+        while steps < max_work {
+            // The axis whose step comes first.
+            let i = usize::from(order.first().copied().unwrap_or(0));
+            let Some(lane) = lanes.get_mut(i) else {
+                break;
+            };
+            let t = lane.next;
+            if t >= horizon || lane.left == 0 {
+                break;
+            }
+            let delta = t.wrapping_sub(last);
+            let edge = Event {
+                delta: delta as u32,
+                rise: 1 << i,
+                ..Event::default()
+            };
+            // At the tick of an event this walk wrote (two axes stepping together, as on a
+            // diagonal), the edge joins it; an earlier event is the general path's to join.
+            if delta == 0 && written > 0 {
+                if !tx.amend_last(&edge) {
+                    break;
+                }
+            } else if delta.wrapping_sub(1) >= u64::from(MAX_DELTA) || !tx.write(&edge) {
+                break;
+            } else {
+                written += 1;
+            }
+            #[cfg(debug_assertions)]
+            if let Some(a) = self.axes.get(i) {
+                let exact = self
+                    .profile
+                    .time_at(a.step_mm_at(a.j + lane.taken) - self.s_anchor)
+                    .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s);
+                self.burst_error = self.burst_error.max((t as f64 - exact).abs());
+            }
+            last = t;
+            last_axis = i as u8;
+            steps += 1;
+            lane.rose = t;
+            lane.left -= 1;
+            lane.taken += 1;
+            lane.time = lane.time.wrapping_add(lane.interval);
+            let tick = lane.base + (lane.time >> 32);
+            lane.next = tick;
+            sink_first(&mut order, tick, |k| lanes.get(k).map(|l| l.next));
+        }
+        if steps > 0 {
+            for (((a, lane), next), rose) in self
+                .axes
+                .iter_mut()
+                .zip(lanes.iter())
+                .zip(self.next_tick.iter_mut())
+                .zip(em.rose_at.iter_mut())
+            {
+                if lane.taken == 0 {
+                    continue;
+                }
+                if let Timing::Clock(StepClock::Cruise { time, .. }) = &mut a.timing {
+                    *time = lane.time;
+                }
+                a.j += lane.taken;
+                *next = lane.next;
+                *rose = lane.rose;
+            }
+            self.last_axis = last_axis;
+            em.wrote_run(last, written);
+        }
+        Some(steps)
     }
 
     /// [`Current::burst`] when axis `i` is the only one that steps: its steps before
@@ -596,6 +738,54 @@ impl<const N: usize> Current<N> {
 
     fn done(&self) -> bool {
         self.axes.iter().all(|a| a.j > a.n)
+    }
+}
+
+/// The axes `0..N` in the order of their next steps' ticks (`next_of(axis)`), by insertion:
+/// of two at the same tick, the lower axis first.
+#[inline(always)]
+fn by_next_step<const N: usize>(next_of: impl Fn(usize) -> Option<u64>) -> [u8; N] {
+    let mut order = [0u8; N];
+    for k in 0..N {
+        let due = next_of(k);
+        let mut p = k;
+        while let Some(&before) = order.get(p.wrapping_sub(1)) {
+            if next_of(usize::from(before)) <= due {
+                break;
+            }
+            if let Some(slot) = order.get_mut(p) {
+                *slot = before;
+            }
+            p -= 1;
+        }
+        if let Some(slot) = order.get_mut(p) {
+            *slot = k as u8;
+        }
+    }
+    order
+}
+
+/// The first axis of `order` has stepped and its next step is at `tick`: it moves down past
+/// the axes due sooner (one comparison when it stays first).
+#[inline(always)]
+fn sink_first<const N: usize>(
+    order: &mut [u8; N],
+    tick: u64,
+    next_of: impl Fn(usize) -> Option<u64>,
+) {
+    let first = order.first().copied().unwrap_or(0);
+    let mut p = 0;
+    while let Some(&k) = order.get(p + 1) {
+        if next_of(usize::from(k)).is_none_or(|due| due >= tick) {
+            break;
+        }
+        if let Some(slot) = order.get_mut(p) {
+            *slot = k;
+        }
+        p += 1;
+    }
+    if let Some(slot) = order.get_mut(p) {
+        *slot = first;
     }
 }
 

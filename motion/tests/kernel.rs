@@ -736,3 +736,34 @@ fn the_queue_runs_down_to_half_its_lead_between_top_ups() {
         waits.len()
     );
 }
+
+/// On a diagonal both axes step at the same ticks through the cruise: each pair of edges is
+/// one event, every pulse keeps its width and spacing, every step is within a tick of its
+/// exact time, and the positions end exact.
+#[test]
+fn a_diagonal_steps_both_axes_together() {
+    let config = machine();
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, config.clone(), HZ);
+    s.wiring.machine.set_tracing(true);
+    s.send("G1 X60 Y60 F3000").expect("ok");
+    assert!(s.run_until_idle(10 * u64::from(HZ)));
+    let r = s.record();
+    assert_eq!(r.position, [steps(60.0), steps(60.0), 0]);
+    assert!(r.violations.is_empty(), "{:?}", r.violations);
+    let together = r.steps[0]
+        .iter()
+        .zip(r.steps[1].iter())
+        .filter(|(x, y)| x.tick == y.tick)
+        .count();
+    assert!(
+        together > r.steps[0].len() * 9 / 10,
+        "{together} of {}",
+        r.steps[0].len()
+    );
+    #[cfg(debug_assertions)]
+    {
+        let e = s.kernel.worst_step_error_ticks();
+        assert!(e <= 1.0, "a step {e} ticks from its exact time");
+    }
+}
