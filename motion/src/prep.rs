@@ -501,16 +501,17 @@ impl<const N: usize> Current<N> {
                 continue;
             }
             let bit = 1u8 << i;
-            let Timing::Clock(StepClock::Cruise {
-                base,
-                time,
-                interval,
-            }) = a.timing
+            let Timing::Clock(
+                clock @ StepClock::Cruise {
+                    base,
+                    time,
+                    interval,
+                },
+            ) = a.timing
             else {
                 return None;
             };
-            let steady =
-                (interval >> 32) >= spacing.max(1) && (interval >> 32) < u64::from(MAX_DELTA);
+            let steady = is_steady(&clock, spacing);
             let next = base + (time >> 32);
             let rose = em.rose_at.get(i).copied().unwrap_or(0);
             if !steady
@@ -656,9 +657,7 @@ impl<const N: usize> Current<N> {
         // delay: after its first step, which is checked against the last event and the axis's
         // last edge, each of its steps is after the one before by one of its gaps, and only the
         // horizon is checked.
-        let steady = clock
-            .cruise_gaps()
-            .is_some_and(|(fewest, most)| fewest >= spacing.max(1) && most <= u64::from(MAX_DELTA));
+        let steady = is_steady(clock, spacing);
         // The closures are inlined into the walk's loops, also where the board optimises for
         // size.
         let (mut steps, mut work) = clock.walk(
@@ -739,6 +738,16 @@ impl<const N: usize> Current<N> {
     fn done(&self) -> bool {
         self.axes.iter().all(|a| a.j > a.n)
     }
+}
+
+/// Whether `clock` is a cruise whose steps are always at least `spacing` apart (a pulse and as
+/// long low) and at most one event's delay: after its first step, each of its steps needs
+/// neither check ([`Current::run_alone`], [`Current::run_cruises`]).
+#[inline(always)]
+fn is_steady(clock: &StepClock, spacing: u64) -> bool {
+    clock
+        .cruise_gaps()
+        .is_some_and(|(fewest, most)| fewest >= spacing.max(1) && most <= u64::from(MAX_DELTA))
 }
 
 /// The axes `0..N` in the order of their next steps' ticks (`next_of(axis)`), by insertion:
