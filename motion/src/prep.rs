@@ -33,7 +33,7 @@ use crate::bound::{at_least, at_most};
 use crate::planner::{Block, BlockKind, Planner};
 use crate::profile::{PHASES, Profile, Shape};
 use crate::queue::{Event, MAX_DELTA, Producer};
-use crate::step_clock::StepClock;
+use crate::step_clock::{CruiseGaps, StepClock};
 
 /// Free slots kept for the events one step can need (the previous edge, a direction change,
 /// the splits of a long wait).
@@ -94,33 +94,21 @@ impl AxisSteps {
     }
 }
 
-/// One axis in [`Current::run_cruises`]: its cruise clock's state, kept apart from the others'
-/// while the clocks are merged.
+/// One axis in [`Current::run_cruises`]: its cruise's gaps in 32-bit ticks, kept apart from
+/// the others' while the clocks are merged (the tick of its next step is in the walk's own
+/// array, the one the merge compares).
 #[derive(Debug, Clone, Copy)]
 struct Lane {
-    /// The tick of its next step (`u64::MAX`: none left in the block).
-    next: u64,
-    /// The cruise's time and interval (32.32 fixed point) and the tick it counts from.
-    time: u64,
-    interval: u64,
-    base: u64,
-    /// The tick of its last rising edge.
-    rose: u64,
-    /// The steps it may take before the last of its phase, and those it has taken.
+    gaps: CruiseGaps,
+    /// The steps it may take before the last of its phase.
     left: u32,
-    taken: u32,
 }
 
 impl Lane {
     /// An axis with no step left.
     const DONE: Self = Self {
-        next: u64::MAX,
-        time: 0,
-        interval: 0,
-        base: 0,
-        rose: 0,
+        gaps: CruiseGaps::NONE,
         left: 0,
-        taken: 0,
     };
 }
 
@@ -409,7 +397,7 @@ impl<const N: usize> Current<N> {
         // Step by step, the axis whose step comes first: the axes are kept in the order of
         // their next steps, and an axis that has stepped moves down past those due sooner
         // (one comparison when it stays first).
-        let mut order = by_next_step::<N>(|k| self.next_tick.get(k).copied());
+        let mut order = by_next_step::<N, u64>(|k| self.next_tick.get(k).copied());
         let spacing = 2 * em.pulse;
         let mut last = em.last_tick;
         let mut work = 0u32;
@@ -471,10 +459,10 @@ impl<const N: usize> Current<N> {
     /// [`Current::burst`] when every axis with steps left cruises with steady gaps (see
     /// [`Current::run_alone`]), its direction line set and its last edge a pulse and as long
     /// low before its next step: the axes' clocks are merged with their state in a local
-    /// copy, each step checked only against the horizon, the last event (an edge at the same
-    /// tick joins it on the general path) and the end of its axis's phase. `None` when the
-    /// axes are not all such (the step-by-step loop takes them). Out of line: its loop's
-    /// registers stay its own.
+    /// copy, in 32-bit ticks from the last event, each step checked only against the horizon,
+    /// the last event (an edge at the same tick joins it on the general path) and the end of
+    /// its axis's phase. `None` when the axes are not all such (the step-by-step loop takes
+    /// them). Out of line: its loop's registers stay its own.
     #[inline(never)]
     fn run_cruises<const Q: usize>(
         &mut self,
@@ -495,114 +483,113 @@ impl<const N: usize> Current<N> {
             return Some(0);
         }
         let spacing = 2 * em.pulse;
+        // The walk's ticks count from the last event and end at the horizon, or half the
+        // 32-bit range on (a step's tick plus one interval stays in range).
+        let origin = em.last_tick;
+        let span = horizon.saturating_sub(origin).min(1 << 31) as u32;
         let mut lanes = [Lane::DONE; N];
-        for (i, (a, lane)) in self.axes.iter().zip(lanes.iter_mut()).enumerate() {
+        let mut next = [u32::MAX; N];
+        for (i, ((a, lane), due)) in self
+            .axes
+            .iter()
+            .zip(lanes.iter_mut())
+            .zip(next.iter_mut())
+            .enumerate()
+        {
             if a.j > a.n {
                 continue;
             }
             let bit = 1u8 << i;
-            let Timing::Clock(
-                clock @ StepClock::Cruise {
-                    base,
-                    time,
-                    interval,
-                },
-            ) = a.timing
-            else {
+            let Timing::Clock(clock) = &a.timing else {
                 return None;
             };
-            let steady = is_steady(&clock, spacing);
-            let next = base + (time >> 32);
             let rose = em.rose_at.get(i).copied().unwrap_or(0);
-            if !steady
+            let next = clock.tick();
+            if !is_steady(clock, spacing)
                 || (em.dir_known & bit) == 0
                 || (em.dir_neg ^ self.neg) & bit != 0
                 || next.wrapping_sub(rose) < spacing
             {
                 return None;
             }
+            // A step at or past the span is never taken: it stays where the span ends.
+            let (tick, gaps) = clock.near(origin, span)?;
+            *due = tick;
             *lane = Lane {
-                next,
-                time,
-                interval,
-                base,
-                rose,
+                gaps,
                 left: a.phase_last.saturating_sub(a.j),
-                taken: 0,
             };
         }
-        let mut order = by_next_step::<N>(|k| lanes.get(k).map(|l| l.next));
-        let mut last = em.last_tick;
-        // Steps taken (the work), and the events they were written in.
+        let start = lanes;
+        let mut order = by_next_step::<N, u32>(|k| next.get(k).copied());
+        let mut last = 0u32;
+        // Steps taken (the work), and the events written before them.
         let mut steps = 0u32;
-        let mut written = 0usize;
+        let written_before = tx.written();
         let mut last_axis = self.last_axis;
         while steps < max_work {
             // The axis whose step comes first.
             let i = usize::from(order.first().copied().unwrap_or(0));
-            let Some(lane) = lanes.get_mut(i) else {
+            let (Some(lane), Some(due)) = (lanes.get_mut(i), next.get_mut(i)) else {
                 break;
             };
-            let t = lane.next;
-            if t >= horizon || lane.left == 0 {
+            let t = *due;
+            if t >= span || lane.left == 0 {
                 break;
             }
             let delta = t.wrapping_sub(last);
-            let edge = Event {
-                delta: delta as u32,
-                rise: 1 << i,
-                ..Event::default()
-            };
             // At the tick of an event this walk wrote (two axes stepping together, as on a
             // diagonal), the edge joins it; an earlier event is the general path's to join.
-            if delta == 0 && written > 0 {
+            if delta == 0 && steps > 0 {
+                let edge = Event {
+                    rise: 1 << i,
+                    ..Event::default()
+                };
                 if !tx.amend_last(&edge) {
                     break;
                 }
-            } else if delta.wrapping_sub(1) >= u64::from(MAX_DELTA) || !tx.write(&edge) {
+            } else if delta.wrapping_sub(1) >= MAX_DELTA || !tx.write_rise(delta, 1 << i) {
                 break;
-            } else {
-                written += 1;
             }
             #[cfg(debug_assertions)]
-            if let Some(a) = self.axes.get(i) {
+            if let (Some(a), Some(s)) = (self.axes.get(i), start.get(i)) {
                 let exact = self
                     .profile
-                    .time_at(a.step_mm_at(a.j + lane.taken) - self.s_anchor)
+                    .time_at(a.step_mm_at(a.j + (s.left - lane.left)) - self.s_anchor)
                     .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s);
-                self.burst_error = self.burst_error.max((t as f64 - exact).abs());
+                let tick = origin + u64::from(t);
+                self.burst_error = self.burst_error.max((tick as f64 - exact).abs());
             }
             last = t;
             last_axis = i as u8;
             steps += 1;
-            lane.rose = t;
             lane.left -= 1;
-            lane.taken += 1;
-            lane.time = lane.time.wrapping_add(lane.interval);
-            let tick = lane.base + (lane.time >> 32);
-            lane.next = tick;
-            sink_first(&mut order, tick, |k| lanes.get(k).map(|l| l.next));
+            let tick = lane.gaps.after(t);
+            *due = tick;
+            sink_first(&mut order, tick, |k| next.get(k).copied());
         }
         if steps > 0 {
-            for (((a, lane), next), rose) in self
+            // Each clock moves on by the steps its axis took, in its own 64-bit terms.
+            for (((a, (lane, was)), next), rose) in self
                 .axes
                 .iter_mut()
-                .zip(lanes.iter())
+                .zip(lanes.iter().zip(start.iter()))
                 .zip(self.next_tick.iter_mut())
                 .zip(em.rose_at.iter_mut())
             {
-                if lane.taken == 0 {
+                let taken = was.left - lane.left;
+                if taken == 0 {
                     continue;
                 }
-                if let Timing::Clock(StepClock::Cruise { time, .. }) = &mut a.timing {
-                    *time = lane.time;
+                if let Timing::Clock(clock) = &mut a.timing {
+                    *rose = clock.skip(taken);
+                    *next = clock.tick();
                 }
-                a.j += lane.taken;
-                *next = lane.next;
-                *rose = lane.rose;
+                a.j += taken;
             }
             self.last_axis = last_axis;
-            em.wrote_run(last, written);
+            let written = tx.written().wrapping_sub(written_before) as usize;
+            em.wrote_run(origin + u64::from(last), written);
         }
         Some(steps)
     }
@@ -691,34 +678,34 @@ impl<const N: usize> Current<N> {
                 true
             },
         );
-        if steady && steps == 1 && left > 1 {
-            let (more, more_work) = clock.walk(
-                left - 1,
-                max_work.saturating_sub(work),
-                ROOT_WORK,
-                #[inline(always)]
-                |t| {
-                    if t >= horizon
-                        || !tx.write(&Event {
-                            delta: t.wrapping_sub(last) as u32,
-                            rise: bit,
-                            ..Event::default()
-                        })
-                    {
-                        return false;
-                    }
-                    #[cfg(debug_assertions)]
-                    {
-                        debug_assert!(t - last >= spacing && t - last <= u64::from(MAX_DELTA));
-                        worst = worst.max((t as f64 - exact_at(j)).abs());
-                        j += 1;
-                    }
-                    last = t;
-                    true
-                },
-            );
+        // The rest in 32-bit ticks from the first step, up to the horizon or half the range
+        // on (a step's tick plus one interval stays in range).
+        let span = horizon.saturating_sub(last).min(1 << 31) as u32;
+        if steady
+            && steps == 1
+            && left > 1
+            && let Some((mut t, mut gaps)) = clock.near(last, span)
+        {
+            let most = (left - 1).min(max_work.saturating_sub(work));
+            let mut previous = 0u32;
+            let mut more = 0u32;
+            while more < most && t < span && tx.write_rise(t.wrapping_sub(previous), bit) {
+                #[cfg(debug_assertions)]
+                {
+                    let gap = u64::from(t - previous);
+                    debug_assert!(gap >= spacing && gap <= u64::from(MAX_DELTA));
+                    worst = worst.max(((last + u64::from(t)) as f64 - exact_at(j)).abs());
+                    j += 1;
+                }
+                previous = t;
+                more += 1;
+                t = gaps.after(t);
+            }
+            if more > 0 {
+                last = clock.skip(more);
+            }
             steps += more;
-            work += more_work;
+            work += more;
         }
         if steps == 0 {
             return 0;
@@ -753,7 +740,7 @@ fn is_steady(clock: &StepClock, spacing: u64) -> bool {
 /// The axes `0..N` in the order of their next steps' ticks (`next_of(axis)`), by insertion:
 /// of two at the same tick, the lower axis first.
 #[inline(always)]
-fn by_next_step<const N: usize>(next_of: impl Fn(usize) -> Option<u64>) -> [u8; N] {
+fn by_next_step<const N: usize, T: Ord>(next_of: impl Fn(usize) -> Option<T>) -> [u8; N] {
     let mut order = [0u8; N];
     for k in 0..N {
         let due = next_of(k);
@@ -777,10 +764,10 @@ fn by_next_step<const N: usize>(next_of: impl Fn(usize) -> Option<u64>) -> [u8; 
 /// The first axis of `order` has stepped and its next step is at `tick`: it moves down past
 /// the axes due sooner (one comparison when it stays first).
 #[inline(always)]
-fn sink_first<const N: usize>(
+fn sink_first<const N: usize, T: Ord>(
     order: &mut [u8; N],
-    tick: u64,
-    next_of: impl Fn(usize) -> Option<u64>,
+    tick: T,
+    next_of: impl Fn(usize) -> Option<T>,
 ) {
     let first = order.first().copied().unwrap_or(0);
     let mut p = 0;

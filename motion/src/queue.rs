@@ -35,11 +35,18 @@ pub(crate) struct Event {
     pub rise: u8,
 }
 
+/// An event's second word: the axes whose direction changes, their new directions, the
+/// step lines to raise.
+#[inline(always)]
+fn masks_word(dir_set: u8, dir_neg: u8, rise: u8) -> u32 {
+    u32::from(dir_set) | u32::from(dir_neg) << 8 | u32::from(rise) << 16
+}
+
 impl Event {
     fn encode(&self) -> [u32; 2] {
         [
             (self.delta & MAX_DELTA) | if self.rest { REST_FLAG } else { 0 },
-            u32::from(self.dir_set) | u32::from(self.dir_neg) << 8 | u32::from(self.rise) << 16,
+            masks_word(self.dir_set, self.dir_neg, self.rise),
         ]
     }
 
@@ -321,6 +328,13 @@ impl<'q, const N: usize, const Q: usize> Producer<'q, N, Q> {
         Q - self.next.wrapping_sub(tail) as usize
     }
 
+    /// Events written so far (free-running, published or not): the difference of two
+    /// readings is the events written between them.
+    #[inline(always)]
+    pub(crate) fn written(&self) -> u32 {
+        self.next
+    }
+
     /// Events written and not yet taken by the interrupt.
     pub(crate) fn len(&self) -> usize {
         Q - self.free()
@@ -348,6 +362,21 @@ impl<'q, const N: usize, const Q: usize> Producer<'q, N, Q> {
         };
         s0.store(w0, Ordering::Relaxed);
         s1.store(w1, Ordering::Relaxed);
+        self.next = self.next.wrapping_add(1);
+        true
+    }
+
+    /// [`Producer::write`] of the rising edges of `rise` alone, `delta` (at most
+    /// [`MAX_DELTA`]) after the last event: the walks' one kind of event, with nothing to
+    /// mask.
+    #[inline(always)]
+    pub(crate) fn write_rise(&mut self, delta: u32, rise: u8) -> bool {
+        debug_assert!(delta <= MAX_DELTA);
+        let Some([s0, s1]) = self.q.slot(self.next) else {
+            return false;
+        };
+        s0.store(delta, Ordering::Relaxed);
+        s1.store(masks_word(0, 0, rise), Ordering::Relaxed);
         self.next = self.next.wrapping_add(1);
         true
     }

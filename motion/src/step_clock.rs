@@ -176,6 +176,32 @@ impl StepClock {
     }
 }
 
+/// A cruise's steps in 32-bit ticks ([`StepClock::near`]): the fraction of a tick its
+/// current step is at, and its interval in whole ticks and a fraction (32.32, as the clock's).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct CruiseGaps {
+    frac: u32,
+    whole: u32,
+    part: u32,
+}
+
+impl CruiseGaps {
+    /// No steps: for an axis that has none left.
+    pub(crate) const NONE: Self = Self {
+        frac: 0,
+        whole: 0,
+        part: 0,
+    };
+
+    /// The tick of the step after the one at `tick`; the gaps move on to it.
+    #[inline(always)]
+    pub(crate) fn after(&mut self, tick: u32) -> u32 {
+        let (frac, carry) = self.frac.overflowing_add(self.part);
+        self.frac = frac;
+        tick.wrapping_add(self.whole).wrapping_add(u32::from(carry))
+    }
+}
+
 impl StepClock {
     /// A cruise's fewest and most ticks from one step to the next (its interval rounded down
     /// and up); `None` for a ramp.
@@ -183,6 +209,51 @@ impl StepClock {
         match *self {
             Self::Cruise { interval, .. } => Some((interval >> 32, (interval >> 32) + 1)),
             Self::Ramp { .. } => None,
+        }
+    }
+
+    /// This cruise from its current step on, in 32-bit ticks from `origin`: that step's
+    /// tick (at most `span`: a step at or past it stands at `span`), and the gaps that lead
+    /// from each step to the next. `None` for a ramp.
+    ///
+    /// The walks of steady cruises ([`crate::prep`]) merge and write steps in these ticks,
+    /// and then move the clock on with [`StepClock::skip`]: a step costs a 32-bit addition
+    /// with carry, where the clock's own time is 64-bit.
+    #[inline(always)]
+    pub(crate) fn near(&self, origin: u64, span: u32) -> Option<(u32, CruiseGaps)> {
+        match *self {
+            Self::Cruise {
+                base,
+                time,
+                interval,
+            } => {
+                let tick = (base + (time >> 32)).saturating_sub(origin);
+                let gaps = CruiseGaps {
+                    frac: time as u32,
+                    whole: (interval >> 32) as u32,
+                    part: interval as u32,
+                };
+                Some((tick.min(u64::from(span)) as u32, gaps))
+            }
+            Self::Ramp { .. } => None,
+        }
+    }
+
+    /// A cruise moved on by `steps` (at least one) of its steps: returns the tick of the last
+    /// of them. A ramp stays (its steps are never skipped).
+    #[inline(always)]
+    pub(crate) fn skip(&mut self, steps: u32) -> u64 {
+        match self {
+            Self::Cruise {
+                base,
+                time,
+                interval,
+            } => {
+                let last = time.wrapping_add(u64::from(steps.saturating_sub(1)) * *interval);
+                *time = last.wrapping_add(*interval);
+                *base + (last >> 32)
+            }
+            Self::Ramp { .. } => self.tick(),
         }
     }
 
@@ -352,6 +423,35 @@ mod tests {
         assert_eq!(nudge(1990, 4_000_000), (2000, false));
         assert_eq!(nudge(2010, 4_000_000), (2000, false));
         assert_eq!(nudge(1000, 4_000_000), (2000, true));
+    }
+
+    #[test]
+    fn a_cruise_seen_near_steps_as_its_clock_and_skips_to_the_same_step() {
+        let start = StepClock::cruise(5_000_000_000, 3.7, 61.803_398_87, 100_000);
+        let start = start.expect("in range");
+        let origin = start.tick() - 17;
+        let (mut near, mut gaps) = start.near(origin, 1 << 31).expect("a cruise");
+        let mut clock = start;
+        for steps in 1..=50_000u32 {
+            assert_eq!(origin + u64::from(near), clock.tick(), "step {steps}");
+            near = gaps.after(near);
+            clock.advance();
+            if steps % 9_973 == 0 {
+                let mut skipped = start;
+                let last = skipped.skip(steps);
+                assert_eq!(skipped, clock, "skip {steps}");
+                assert_eq!(origin + u64::from(near), skipped.tick());
+                let mut previous = start;
+                for _ in 1..steps {
+                    previous.advance();
+                }
+                assert_eq!(last, previous.tick(), "the last step skipped");
+            }
+        }
+        // A step at or past the span stands at the span; a ramp has no gaps.
+        assert_eq!(start.near(origin, 10).map(|(t, _)| t), Some(10));
+        let ramp = StepClock::ramp(0, 0.0, 100.0, 10.0, true, 10).expect("in range");
+        assert!(ramp.near(0, 1 << 31).is_none());
     }
 
     #[test]
