@@ -6,9 +6,9 @@
 //! on Cortex-M4 and on `riscv32imc`, which has no atomic read-modify-write instructions. Every
 //! atomic has exactly one writer; the comments on each field name it.
 //!
-//! An event is two 32-bit words: the delay since the previous event in ticks (30 bits) with a
-//! "rest" flag, and three 8-bit axis masks: directions to change, the new directions, step
-//! lines to raise. The interrupt applies them in that order; it ends each pulse itself, a
+//! An event is two 32-bit words: the delay since the previous event in ticks (at most
+//! [`MAX_DELTA`], the whole word: the interrupt reads it without masking), and three 8-bit axis
+//! masks (directions to change, the new directions, step lines to raise) with a "rest" flag. The interrupt applies them in that order; it ends each pulse itself, a
 //! pulse width after the rising edge, so falling edges never travel through the queue.
 
 #![deny(clippy::indexing_slicing)]
@@ -17,7 +17,8 @@ use core::sync::atomic::{AtomicI32, AtomicU32, Ordering};
 
 /// Largest delay one event can carry; longer waits are split into empty events.
 pub(crate) const MAX_DELTA: u32 = (1 << 30) - 1;
-const REST_FLAG: u32 = 1 << 31;
+/// In an event's second word, above its three masks.
+const REST_FLAG: u32 = 1 << 24;
 
 /// One step event.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -35,8 +36,8 @@ pub(crate) struct Event {
     pub rise: u8,
 }
 
-/// An event's second word: the axes whose direction changes, their new directions, the
-/// step lines to raise.
+/// An event's second word but its rest flag: the axes whose direction changes, their new
+/// directions, the step lines to raise.
 #[inline(always)]
 fn masks_word(dir_set: u8, dir_neg: u8, rise: u8) -> u32 {
     u32::from(dir_set) | u32::from(dir_neg) << 8 | u32::from(rise) << 16
@@ -45,8 +46,9 @@ fn masks_word(dir_set: u8, dir_neg: u8, rise: u8) -> u32 {
 impl Event {
     fn encode(&self) -> [u32; 2] {
         [
-            (self.delta & MAX_DELTA) | if self.rest { REST_FLAG } else { 0 },
-            masks_word(self.dir_set, self.dir_neg, self.rise),
+            self.delta & MAX_DELTA,
+            masks_word(self.dir_set, self.dir_neg, self.rise)
+                | if self.rest { REST_FLAG } else { 0 },
         ]
     }
 
@@ -74,13 +76,13 @@ impl Raw {
     /// See [`Event::delta`].
     #[inline(always)]
     pub(crate) fn delta(self) -> u32 {
-        self.time & MAX_DELTA
+        self.time
     }
 
     /// See [`Event::rest`].
     #[inline(always)]
     pub(crate) fn rest(self) -> bool {
-        self.time & REST_FLAG != 0
+        self.masks & REST_FLAG != 0
     }
 
     /// See [`Event::dir_set`].
