@@ -520,7 +520,6 @@ impl<const N: usize> Current<N> {
                 left: a.phase_last.saturating_sub(a.j),
             };
         }
-        let start = lanes;
         let mut order = by_next_step::<N, u32>(|k| next.get(k).copied());
         let mut last = 0u32;
         // Steps taken (the work), and the events written before them.
@@ -552,10 +551,11 @@ impl<const N: usize> Current<N> {
                 break;
             }
             #[cfg(debug_assertions)]
-            if let (Some(a), Some(s)) = (self.axes.get(i), start.get(i)) {
+            if let Some(a) = self.axes.get(i) {
+                let taken = a.phase_last.saturating_sub(a.j) - lane.left;
                 let exact = self
                     .profile
-                    .time_at(a.step_mm_at(a.j + (s.left - lane.left)) - self.s_anchor)
+                    .time_at(a.step_mm_at(a.j + taken) - self.s_anchor)
                     .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s);
                 let tick = origin + u64::from(t);
                 self.burst_error = self.burst_error.max((tick as f64 - exact).abs());
@@ -569,15 +569,16 @@ impl<const N: usize> Current<N> {
             sink_first(&mut order, tick, |k| next.get(k).copied());
         }
         if steps > 0 {
-            // Each clock moves on by the steps its axis took, in its own 64-bit terms.
-            for (((a, (lane, was)), next), rose) in self
+            // Each clock moves on by the steps its axis took (from the steps it had left), in
+            // its own 64-bit terms.
+            for (((a, lane), next), rose) in self
                 .axes
                 .iter_mut()
-                .zip(lanes.iter().zip(start.iter()))
+                .zip(lanes.iter())
                 .zip(self.next_tick.iter_mut())
                 .zip(em.rose_at.iter_mut())
             {
-                let taken = was.left - lane.left;
+                let taken = a.phase_last.saturating_sub(a.j) - lane.left;
                 if taken == 0 {
                     continue;
                 }
