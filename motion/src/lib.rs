@@ -83,6 +83,7 @@ mod stepgen;
 #[cfg(test)]
 mod testing;
 mod trig;
+mod whole;
 
 pub use config::{
     AxisConfig, AxisKind, DEFAULT_QUEUE_LEAD_MS, HomeDirection, HomingConfig, MachineConfig,

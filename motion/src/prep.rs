@@ -27,13 +27,13 @@
 use core::sync::atomic::Ordering;
 
 use forja_hal_abstraction::time::Instant;
-use libm::{ceil, floor};
 
-use crate::bound::{at_least, at_most};
+use crate::bound::at_least;
 use crate::planner::{Block, BlockKind, Planner};
 use crate::profile::{PHASES, Profile, Shape};
 use crate::queue::{Event, MAX_DELTA, Producer};
 use crate::step_clock::{CruiseGaps, StepClock};
+use crate::whole::{ceil_u64, floor_u64};
 
 /// Free slots kept for the events one step can need (the previous edge, a direction change,
 /// the splits of a long wait).
@@ -257,15 +257,16 @@ impl<const N: usize> Current<N> {
             let ph = self.profile.phase(a.phase);
             let last = if a.phase + 1 < PHASES {
                 // The last step before the phase's end.
-                at_most(ceil(ph.end * per_mm + offset) - 1.0, f64::from(a.n))
+                ceil_u64(ph.end * per_mm + offset).saturating_sub(1)
             } else if self.profile.stops() {
                 // Within rounding of a hold's stopping point, a step is at it.
                 let end = ph.end * (1.0 + 1e-9) + 1e-12;
-                at_most(floor(end * per_mm + offset), f64::from(a.n))
+                floor_u64(end * per_mm + offset)
             } else {
-                f64::from(a.n)
+                u64::MAX
             };
-            if last >= f64::from(a.j) {
+            let last = last.min(u64::from(a.n));
+            if last >= u64::from(a.j) {
                 a.phase_last = last as u32;
                 break;
             }
@@ -278,9 +279,8 @@ impl<const N: usize> Current<N> {
         let x = at_least(a.step_mm_at(a.j) - self.s_anchor - ph.start, 0.0);
         let steps = a.phase_last - a.j + 1;
         let start = self.t_anchor + ph.t_start * ticks_per_s;
-        let base = floor(start);
-        let rel = start - base;
-        let base = base as u64;
+        let base = floor_u64(start);
+        let rel = start - base as f64;
         let clock = match ph.shape {
             Shape::Cruise => {
                 let ticks_per_mm = ticks_per_s / ph.v_start;

@@ -25,6 +25,7 @@
 use libm::{round, sqrt};
 
 use crate::bound::at_most;
+use crate::whole::round_up_half;
 
 /// Fraction bits of a ramp's times: `R` counts sixteenths of a tick.
 const RAMP_BITS: u32 = 4;
@@ -368,33 +369,6 @@ fn nudge(guess: u32, w: u64) -> (u32, bool) {
     }
 }
 
-/// `x` (at least 0; `u64::MAX` from 2⁶⁴ on) rounded to the nearest integer, halves up, from
-/// its bits: integer shifts, where `(x + 0.5) as u64` in software double precision is an
-/// addition, two comparisons and a conversion (about 200 instructions on the Cortex-M4, more
-/// on RISC-V), and `libm::round` a call of its own. Exact, where the addition could round.
-#[inline]
-fn round_up_half(x: f64) -> u64 {
-    let bits = x.to_bits();
-    // x = mantissa · 2^(exponent − 1075), the implicit leading bit restored (0 and the
-    // subnormals are below ½, and come out 0).
-    let exponent = ((bits >> 52) & 0x7FF) as u32;
-    let mantissa = (bits & ((1 << 52) - 1)) | (1 << 52);
-    if exponent >= 1087 {
-        // 2⁶⁴ or more.
-        return u64::MAX;
-    }
-    if exponent >= 1075 {
-        // An integer already: 53 bits shifted by at most 11.
-        return mantissa << (exponent - 1075);
-    }
-    // Shifted right to keep one bit below the point, then rounded up on it.
-    let shift = 1074 - exponent;
-    match mantissa.checked_shr(shift) {
-        Some(halves) => (halves + 1) >> 1,
-        None => 0,
-    }
-}
-
 /// `⌊√w⌋` for `w < 2^62`.
 #[cold]
 #[inline(never)]
@@ -427,41 +401,6 @@ mod tests {
                 (tick as f64 - t).abs() <= 0.6,
                 "step {m}: tick {tick}, exact {t}"
             );
-        }
-    }
-
-    #[test]
-    fn rounding_from_the_bits_rounds_halves_up() {
-        for (x, rounded) in [
-            (0.0, 0),
-            (-0.0, 0),
-            (f64::MIN_POSITIVE, 0),
-            (0.25, 0),
-            (0.499_999_999_999_999_9, 0),
-            (0.5, 1),
-            (1.0, 1),
-            (1.5, 2),
-            (2.5, 3),
-            (2.499_999, 2),
-            (4_503_599_627_370_495.5, 4_503_599_627_370_496),
-            (9_007_199_254_740_993.0, 9_007_199_254_740_992),
-            (1.8e19, 18_000_000_000_000_000_000),
-            (18_446_744_073_709_549_568.0, 18_446_744_073_709_549_568),
-            (18_446_744_073_709_551_616.0, u64::MAX),
-            (1e30, u64::MAX),
-        ] {
-            assert_eq!(round_up_half(x), rounded, "{x}");
-        }
-        // Against the exact rounding of `libm::floor(x + ½)` wherever the addition is exact
-        // (x below 2⁵²), over values of every scale the clocks use.
-        let mut seed = 0x2545_f491_4f6c_dd1du64;
-        for _ in 0..200_000 {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            let scale = f64::from((seed >> 58) as u32 % 52);
-            let x = (seed >> 11) as f64 / (1u64 << 53) as f64 * libm::exp2(scale);
-            assert_eq!(round_up_half(x), libm::floor(x + 0.5) as u64, "{x}");
         }
     }
 
