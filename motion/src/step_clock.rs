@@ -25,7 +25,7 @@
 use libm::{round, sqrt};
 
 use crate::bound::at_most;
-use crate::whole::round_up_half;
+use crate::whole::{round_up_half, round_up_half_scaled};
 
 /// Fraction bits of a ramp's times: `R` counts sixteenths of a tick.
 const RAMP_BITS: u32 = 4;
@@ -33,7 +33,9 @@ const RAMP_BITS: u32 = 4;
 const RAMP_UNIT: f64 = (1u32 << RAMP_BITS) as f64;
 /// Corrections by one unit tried before a full square root.
 const MAX_NUDGES: u32 = 2;
-/// `2^32`: the cruise's fixed point.
+/// Fraction bits of a cruise's times (32.32 fixed point).
+const CRUISE_BITS: u32 = 32;
+/// `2^CRUISE_BITS`.
 const CRUISE_UNIT: f64 = 4_294_967_296.0;
 
 /// The steps of one axis through one phase. See the [module documentation](self).
@@ -71,14 +73,25 @@ impl StepClock {
     /// A clock for `steps` steps at constant speed: the first one at `first` ticks after
     /// `base` (exact, `≥ −½`), the others `interval` ticks apart. `None` beyond its range.
     pub(crate) fn cruise(base: u64, first: f64, interval: f64, steps: u32) -> Option<Self> {
-        let last = first + interval * f64::from(steps.saturating_sub(1));
-        if !(first >= -0.5 && interval >= 0.0 && last + 1.0 < CRUISE_UNIT) {
+        // The range is checked in the clock's own integers: the first step's `time` not
+        // below 0, the interval not negative, the last step's `time` below `2^32 − ½` ticks
+        // (its tick below `base + 2^32 − 1`).
+        let start = first + 0.5;
+        if start.is_sign_negative() || interval.is_sign_negative() {
+            return None;
+        }
+        let time = round_up_half_scaled(start, CRUISE_BITS);
+        let interval = round_up_half_scaled(interval, CRUISE_BITS);
+        let last = interval
+            .checked_mul(u64::from(steps.saturating_sub(1)))?
+            .checked_add(time)?;
+        if last >= u64::MAX - (1 << (CRUISE_BITS - 1)) {
             return None;
         }
         Some(Self::Cruise {
             base,
-            time: round_up_half((first + 0.5) * CRUISE_UNIT),
-            interval: round_up_half(interval * CRUISE_UNIT),
+            time,
+            interval,
         })
     }
 

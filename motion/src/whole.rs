@@ -13,12 +13,12 @@ const SATURATED: u32 = 1087;
 /// The exponent field from which a value is an integer (its last mantissa bit is 2⁰).
 const INTEGER: u32 = 1075;
 
-/// `x` as an integer when it is one or saturates (`Ok`), else `Err((m, s))` with
-/// `x = m · 2^−s` (`s ≥ 1`; for 0 and the subnormals, `s` is beyond 64).
+/// `x · 2^scale` as an integer when it is one or saturates (`Ok`), else `Err((m, s))` with
+/// `x · 2^scale = m · 2^−s` (`s ≥ 1`; for 0 and the subnormals, `s` is beyond 64).
 #[inline(always)]
-fn split(x: f64) -> Result<u64, (u64, u32)> {
+fn split(x: f64, scale: u32) -> Result<u64, (u64, u32)> {
     let bits = x.to_bits();
-    let exponent = ((bits >> 52) & 0x7FF) as u32;
+    let exponent = ((bits >> 52) & 0x7FF) as u32 + scale;
     // The leading bit restored.
     let mantissa = (bits & ((1 << 52) - 1)) | (1 << 52);
     if bits >> 63 != 0 {
@@ -36,7 +36,7 @@ fn split(x: f64) -> Result<u64, (u64, u32)> {
 /// `⌊x⌋`, saturating (see the module).
 #[inline]
 pub(crate) fn floor_u64(x: f64) -> u64 {
-    match split(x) {
+    match split(x, 0) {
         Ok(whole) => whole,
         Err((mantissa, shift)) => mantissa.checked_shr(shift).unwrap_or(0),
     }
@@ -45,10 +45,11 @@ pub(crate) fn floor_u64(x: f64) -> u64 {
 /// `⌈x⌉`, saturating (see the module).
 #[inline]
 pub(crate) fn ceil_u64(x: f64) -> u64 {
-    if x == 0.0 {
+    // +0 (−0 is negative).
+    if x.to_bits() == 0 {
         return 0;
     }
-    match split(x) {
+    match split(x, 0) {
         Ok(whole) => whole,
         Err((mantissa, shift)) => match mantissa.checked_shr(shift) {
             Some(whole) if whole << shift == mantissa => whole,
@@ -63,7 +64,14 @@ pub(crate) fn ceil_u64(x: f64) -> u64 {
 /// `(x + 0.5) as u64` could round in the addition.
 #[inline]
 pub(crate) fn round_up_half(x: f64) -> u64 {
-    match split(x) {
+    round_up_half_scaled(x, 0)
+}
+
+/// `x · 2^scale` rounded as [`round_up_half`] rounds: a value in fixed point with `scale`
+/// fraction bits, without the multiplication.
+#[inline]
+pub(crate) fn round_up_half_scaled(x: f64, scale: u32) -> u64 {
+    match split(x, scale) {
         Ok(whole) => whole,
         // Shifted right to keep one bit below the point, then rounded up on it.
         Err((mantissa, shift)) => mantissa
@@ -137,9 +145,19 @@ mod tests {
         ] {
             assert_eq!(round_up_half(x), rounded, "{x}");
         }
-        // Against `⌊x + ½⌋` wherever the addition is exact (below 2⁵²).
+        // Against `⌊x + ½⌋` wherever the addition is exact (below 2⁵²), and scaled as the
+        // step clocks scale.
         for x in samples().filter(|x| *x < 4_503_599_627_370_496.0) {
             assert_eq!(round_up_half(x), libm::floor(x + 0.5) as u64, "{x}");
+            let scaled = x / 4_294_967_296.0;
+            assert_eq!(round_up_half_scaled(scaled, 32), round_up_half(x), "{x}");
         }
+        assert_eq!(round_up_half_scaled(0.0, 32), 0);
+        assert_eq!(round_up_half_scaled(-1.0, 32), 0);
+        assert_eq!(round_up_half_scaled(4_294_967_296.0, 32), u64::MAX);
+        assert_eq!(
+            round_up_half_scaled(4_294_967_295.5, 32),
+            18_446_744_071_562_067_968
+        );
     }
 }
