@@ -28,7 +28,7 @@ use core::sync::atomic::Ordering;
 
 use forja_hal_abstraction::time::Instant;
 
-use crate::bound::at_least;
+use crate::bound::{at_least, at_least_zero};
 use crate::planner::{Block, BlockKind, Planner};
 use crate::profile::{PHASES, Profile, Shape};
 use crate::queue::{Event, MAX_DELTA, Producer};
@@ -276,7 +276,7 @@ impl<const N: usize> Current<N> {
             return;
         }
         let ph = self.profile.phase(a.phase);
-        let x = at_least(a.step_mm_at(a.j) - self.s_anchor - ph.start, 0.0);
+        let x = at_least_zero(a.step_mm_at(a.j) - self.s_anchor - ph.start);
         let steps = a.phase_last - a.j + 1;
         let start = self.t_anchor + ph.t_start * ticks_per_s;
         let base = floor_u64(start);
@@ -293,7 +293,7 @@ impl<const N: usize> Current<N> {
                 let (c, y) = if up {
                     (rel - c, c * c + k * x)
                 } else {
-                    (rel + c, at_least(c * c - k * x, 0.0))
+                    (rel + c, at_least_zero(c * c - k * x))
                 };
                 StepClock::ramp(base, c, y, k * h, up, steps)
             }

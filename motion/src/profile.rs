@@ -8,7 +8,7 @@
 
 use libm::sqrt;
 
-use crate::bound::{at_least, at_most};
+use crate::bound::{at_least, at_least_zero, at_most};
 
 /// Phases of a profile: [`Profile::phase`] takes `0..PHASES`.
 pub(crate) const PHASES: usize = 3;
@@ -56,7 +56,7 @@ impl Profile {
     /// Cover `r` mm starting at `v0`, cruising at most at `vn`, ending at `ve` (lowered to what
     /// is reachable, raised to what deceleration allows), with acceleration `a`.
     pub(crate) fn plan(r: f64, v0: f64, vn: f64, ve: f64, a: f64) -> Self {
-        let r = at_least(r, 0.0);
+        let r = at_least_zero(r);
         let two_a = 2.0 * a;
         // The exit speed within what the block can reach from v0, compared squared: a square
         // root (a few hundred instructions in software) only when it is out of reach.
@@ -74,7 +74,7 @@ impl Profile {
             d1 = at_most((v0 * v0 - vc * vc) / two_a, r);
             up1 = false;
             v1 = vc;
-            d3 = at_least(at_most((vc * vc - ve * ve) / two_a, r - d1), 0.0);
+            d3 = at_least_zero(at_most((vc * vc - ve * ve) / two_a, r - d1));
         } else {
             let full1 = (vn * vn - v0 * v0) / two_a;
             let full3 = (vn * vn - ve * ve) / two_a;
@@ -83,18 +83,18 @@ impl Profile {
                 v1 = vn;
                 d3 = full3;
             } else {
-                let peak = sqrt(at_least((two_a * r + v0 * v0 + ve * ve) * 0.5, 0.0));
+                let peak = sqrt(at_least_zero((two_a * r + v0 * v0 + ve * ve) * 0.5));
                 let peak = at_least(at_least(peak, v0), ve);
                 v1 = peak;
                 d1 = ((peak * peak - v0 * v0) / two_a).clamp(0.0, r);
-                d3 = at_least(r - d1, 0.0);
+                d3 = at_least_zero(r - d1);
             }
             up1 = true;
         }
-        let d2 = at_least(r - d1 - d3, 0.0);
+        let d2 = at_least_zero(r - d1 - d3);
         // The end of the last phase is the exit speed, unless a phase was cut short: compared
         // squared, within rounding, before a square root.
-        let v3_sq = at_least(v1 * v1 - two_a * d3, 0.0);
+        let v3_sq = at_least_zero(v1 * v1 - two_a * d3);
         let v3 = if (v3_sq - ve * ve).abs() <= 1e-12 * (v1 * v1) {
             ve
         } else {
@@ -105,12 +105,12 @@ impl Profile {
 
     /// Decelerate from `v0` at `a` over at most `r` mm: stop inside the block if possible.
     pub(crate) fn hold(r: f64, v0: f64, a: f64) -> Self {
-        let r = at_least(r, 0.0);
+        let r = at_least_zero(r);
         let stop_mm = v0 * v0 / (2.0 * a);
         if stop_mm < r {
             Self::from_phases(v0, a, 0.0, false, v0, 0.0, stop_mm, 0.0, true)
         } else {
-            let v3 = sqrt(at_least(v0 * v0 - 2.0 * a * r, 0.0));
+            let v3 = sqrt(at_least_zero(v0 * v0 - 2.0 * a * r));
             Self::from_phases(v0, a, 0.0, false, v0, 0.0, r, v3, false)
         }
     }
@@ -217,7 +217,7 @@ impl Profile {
             let v = if self.up1 {
                 sqrt(self.v0 * self.v0 + two_a * x)
             } else {
-                sqrt(at_least(self.v0 * self.v0 - two_a * x, 0.0))
+                sqrt(at_least_zero(self.v0 * self.v0 - two_a * x))
             };
             return Some(2.0 * x / (self.v0 + v));
         }
@@ -227,7 +227,7 @@ impl Profile {
         }
         let x = x - self.d2;
         if x < self.d3 {
-            let v = sqrt(at_least(self.v1 * self.v1 - two_a * x, 0.0));
+            let v = sqrt(at_least_zero(self.v1 * self.v1 - two_a * x));
             let sum = self.v1 + v;
             if sum <= 0.0 {
                 return None;
@@ -251,7 +251,7 @@ impl Profile {
             return if self.up1 {
                 sqrt(self.v0 * self.v0 + two_a * x)
             } else {
-                sqrt(at_least(self.v0 * self.v0 - two_a * x, 0.0))
+                sqrt(at_least_zero(self.v0 * self.v0 - two_a * x))
             };
         }
         let x = x - self.d1;
@@ -259,7 +259,7 @@ impl Profile {
             return self.v1;
         }
         let x = at_most(x - self.d2, self.d3);
-        sqrt(at_least(self.v1 * self.v1 - two_a * x, 0.0))
+        sqrt(at_least_zero(self.v1 * self.v1 - two_a * x))
     }
 }
 
