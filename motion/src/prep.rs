@@ -112,6 +112,17 @@ impl Lane {
     };
 }
 
+/// Where a phase starts on the step clocks' timeline, the same for every axis that steps in
+/// it ([`Current::enter_phase`]): the tick the clocks count from, the start's fraction of a
+/// tick past it, and the phase's rate (a cruise's ticks per mm, a ramp's ticks from speed 0 to
+/// its start speed).
+#[derive(Debug, Clone, Copy)]
+struct PhaseStart {
+    base: u64,
+    rel: f64,
+    rate: f64,
+}
+
 /// The block being prepared.
 #[derive(Debug, Clone, Copy)]
 struct Current<const N: usize> {
@@ -134,7 +145,10 @@ struct Current<const N: usize> {
     /// Axes whose timing is not set up for the current profile yet: `fill` sets them up one
     /// per turn (each is a few thousand instructions) before the next step.
     unset: u8,
+    /// Set through [`Current::set_profile`], which forgets the phases' starts.
     profile: Profile,
+    /// Each phase's start on the clocks' timeline, once an axis has entered it.
+    starts: [Option<PhaseStart>; PHASES],
     exit_used: f32,
     hold_used: bool,
     /// The largest distance of a step's tick from its exact time in the last
@@ -168,11 +182,18 @@ impl<const N: usize> Current<N> {
             only_axis: None,
             unset: 0,
             profile: Profile::plan(0.0, 0.0, 0.0, 0.0, 1.0),
+            starts: [None; PHASES],
             exit_used: 0.0,
             hold_used: false,
             #[cfg(debug_assertions)]
             burst_error: 0.0,
         }
+    }
+
+    /// Take `profile` from the anchor on: the phases' starts are found anew.
+    fn set_profile(&mut self, profile: Profile) {
+        self.profile = profile;
+        self.starts = [None; PHASES];
     }
 
     fn profile_for(&self, v0: f64, exit_sqr: f32, hold: bool) -> Profile {
@@ -214,7 +235,7 @@ impl<const N: usize> Current<N> {
         self.last_axis = NO_AXIS;
         self.exit_used = exit_sqr;
         self.hold_used = hold;
-        self.profile = self.profile_for(v, exit_sqr, hold);
+        self.set_profile(self.profile_for(v, exit_sqr, hold));
         for a in self.axes.iter_mut() {
             a.phase = 0;
         }
@@ -278,16 +299,34 @@ impl<const N: usize> Current<N> {
         let ph = self.profile.phase(a.phase);
         let x = at_least_zero(a.step_mm_at(a.j) - self.s_anchor - ph.start);
         let steps = a.phase_last - a.j + 1;
-        let start = self.t_anchor + ph.t_start * ticks_per_s;
-        let base = floor_u64(start);
-        let rel = start - base as f64;
+        // The phase's start, found by the first axis that enters it.
+        let PhaseStart { base, rel, rate } = match self.starts.get(a.phase).copied().flatten() {
+            Some(start) => start,
+            None => {
+                let start = self.t_anchor + ph.t_start * ticks_per_s;
+                let base = floor_u64(start);
+                let rate = match ph.shape {
+                    Shape::Cruise => ticks_per_s / ph.v_start,
+                    Shape::Up | Shape::Down => self.ticks_per_speed * ph.v_start,
+                };
+                let found = PhaseStart {
+                    base,
+                    rel: start - base as f64,
+                    rate,
+                };
+                if let Some(slot) = self.starts.get_mut(a.phase) {
+                    *slot = Some(found);
+                }
+                found
+            }
+        };
         let clock = match ph.shape {
             Shape::Cruise => {
-                let ticks_per_mm = ticks_per_s / ph.v_start;
+                let ticks_per_mm = rate;
                 StepClock::cruise(base, rel + ticks_per_mm * x, ticks_per_mm * h, steps)
             }
             shape => {
-                let c = self.ticks_per_speed * ph.v_start;
+                let c = rate;
                 let k = 2.0 * ticks_per_s * self.ticks_per_speed;
                 let up = shape == Shape::Up;
                 let (c, y) = if up {
@@ -1250,7 +1289,7 @@ impl<const N: usize> Prep<N> {
                 cur.s_anchor += cur.profile.length();
                 cur.t_anchor += cur.profile.duration() * tps;
                 cur.last_axis = NO_AXIS;
-                cur.profile = Profile::hold(0.0, 0.0, cur.accel);
+                cur.set_profile(Profile::hold(0.0, 0.0, cur.accel));
                 self.t_plan = cur.t_anchor;
                 self.held = true;
                 self.em.finish_rest(tx);
@@ -1327,7 +1366,7 @@ impl<const N: usize> Prep<N> {
         {
             cur.burst_error = 0.0;
         }
-        cur.profile = cur.profile_for(self.v_carry, exit_sqr, self.hold);
+        cur.set_profile(cur.profile_for(self.v_carry, exit_sqr, self.hold));
         cur.unset = moving;
         self.loaded = true;
         self.line = block.line;
