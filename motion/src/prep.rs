@@ -522,10 +522,9 @@ impl<const N: usize> Current<N> {
             return Some(0);
         }
         let spacing = 2 * em.pulse;
-        // The walk's ticks count from the last event and end at the horizon, or half the
-        // 32-bit range on (a step's tick plus one interval stays in range).
+        // The walk's ticks count from the last event.
         let origin = em.last_tick;
-        let span = horizon.saturating_sub(origin).min(1 << 31) as u32;
+        let span = StepClock::span(origin, horizon);
         let mut lanes = [Lane::DONE; N];
         let mut next = [u32::MAX; N];
         for (i, ((a, lane), due)) in self
@@ -718,9 +717,8 @@ impl<const N: usize> Current<N> {
                 true
             },
         );
-        // The rest in 32-bit ticks from the first step, up to the horizon or half the range
-        // on (a step's tick plus one interval stays in range).
-        let span = horizon.saturating_sub(last).min(1 << 31) as u32;
+        // The rest in 32-bit ticks from the first step.
+        let span = StepClock::span(last, horizon);
         if steady
             && steps == 1
             && left > 1

@@ -8,8 +8,9 @@
 //!
 //! An event is two 32-bit words: the delay since the previous event in ticks (at most
 //! [`MAX_DELTA`], the whole word: the interrupt reads it without masking), and three 8-bit axis
-//! masks (directions to change, the new directions, step lines to raise) with a "rest" flag. The interrupt applies them in that order; it ends each pulse itself, a
-//! pulse width after the rising edge, so falling edges never travel through the queue.
+//! masks (directions to change, the new directions, step lines to raise) with a "rest" flag.
+//! The interrupt applies them in that order; it ends each pulse itself, a pulse width after
+//! the rising edge, so falling edges never travel through the queue.
 
 #![deny(clippy::indexing_slicing)]
 

@@ -226,6 +226,14 @@ impl StepClock {
         }
     }
 
+    /// The span a walk in 32-bit ticks from `origin` ([`StepClock::near`]) may cover up to
+    /// `horizon`: to it, or to half the 32-bit range, where a step's tick plus one interval
+    /// still fits.
+    #[inline(always)]
+    pub(crate) fn span(origin: u64, horizon: u64) -> u32 {
+        horizon.saturating_sub(origin).min(1 << 31) as u32
+    }
+
     /// This cruise from its current step on, in 32-bit ticks from `origin`: that step's
     /// tick (at most `span`: a step at or past it stands at `span`), and the gaps that lead
     /// from each step to the next. `None` for a ramp.
