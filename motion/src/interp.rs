@@ -324,6 +324,70 @@ pub(crate) struct Interpreter<const N: usize> {
     flow_percent: [u16; N],
 }
 
+/// The interpreter's state in force beside a spare that a line is interpreted into
+/// ([`Staged::stage`]). Taking the line makes the spare the state in force
+/// ([`Staged::commit`]), with no copy back; refusing it leaves the state in force as it was.
+/// A line costs one copy of the state, where a copy to work on and a copy to keep made two.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Staged<const N: usize> {
+    slots: [Interpreter<N>; 2],
+    /// The state in force is the second slot.
+    second: bool,
+}
+
+impl<const N: usize> Staged<N> {
+    /// `state` in force.
+    pub(crate) const fn new(state: Interpreter<N>) -> Self {
+        Self {
+            slots: [state, state],
+            second: false,
+        }
+    }
+
+    /// The state in force.
+    pub(crate) const fn live(&self) -> &Interpreter<N> {
+        let [first, second] = &self.slots;
+        if self.second { second } else { first }
+    }
+
+    /// The state in force, to change in place (outside a line's interpretation).
+    pub(crate) const fn live_mut(&mut self) -> &mut Interpreter<N> {
+        let [first, second] = &mut self.slots;
+        if self.second { second } else { first }
+    }
+
+    /// The spare, made a copy of the state in force: the state a line is interpreted into.
+    pub(crate) const fn stage(&mut self) -> &mut Interpreter<N> {
+        let [first, second] = &mut self.slots;
+        let (live, spare) = if self.second {
+            (second, first)
+        } else {
+            (first, second)
+        };
+        *spare = *live;
+        spare
+    }
+
+    /// The spare as the last [`Staged::stage`] left it: the state after the line.
+    pub(crate) const fn staged(&self) -> &Interpreter<N> {
+        let [first, second] = &self.slots;
+        if self.second { first } else { second }
+    }
+
+    /// The spare becomes `state` (a state interpreted apart), without the copy of the state in
+    /// force that [`Staged::stage`] makes.
+    pub(crate) const fn stage_as(&mut self, state: &Interpreter<N>) {
+        let [first, second] = &mut self.slots;
+        let spare = if self.second { first } else { second };
+        *spare = *state;
+    }
+
+    /// The staged state is taken: it is the state in force from now on.
+    pub(crate) const fn commit(&mut self) {
+        self.second = !self.second;
+    }
+}
+
 /// A number in nm from a decimal in the current unit, rounded to the nearest nm (halves away
 /// from zero), exact, in 64-bit integers: a multiplication when the decimal has at most six
 /// digits after the point (five in inches), else a division into whole nm and the rest. A

@@ -14,7 +14,7 @@ use crate::drill::{DrillCycle, DrillStep};
 use crate::effect::{Effect, StopKind};
 use crate::error::{Alarm, CommandError, ConfigError};
 use crate::interp::{
-    Action, Interpreter, LimitChange, NM_PER_MM, mm_to_nm, nm_to_steps, steps_to_nm, to_nm,
+    Action, Interpreter, LimitChange, NM_PER_MM, Staged, mm_to_nm, nm_to_steps, steps_to_nm, to_nm,
 };
 use crate::planner::{MoveRequest, PathLimits, Planner};
 use crate::prep::{Fill, Prep};
@@ -244,7 +244,8 @@ pub struct Kernel<'q, const N: usize, const B: usize = 32, const Q: usize = 256>
     prep: Prep<N>,
     /// The last [`Kernel::poll`] stopped preparing with work left.
     prep_more: bool,
-    interp: Interpreter<N>,
+    /// The interpreter's state, and the spare a line is interpreted into.
+    interp: Staged<N>,
     /// Commanded machine position in steps (where the last queued move ends).
     steps: [i32; N],
     /// Interrupt step count of machine step 0.
@@ -315,7 +316,7 @@ pub fn split<'q, const N: usize, const B: usize, const Q: usize>(
         .clamp(1, u64::from(MAX_DELTA)) as u32;
     let origin = queue.positions();
     let kernel = Kernel {
-        interp: Interpreter::new(&config),
+        interp: Staged::new(Interpreter::new(&config)),
         coords: Coordinates::ZERO,
         coords_changed: 0,
         tick_hz,
@@ -360,7 +361,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// the lines executed so far.
     pub fn planner_settings(&self) -> PlannerSettings<N> {
         let axes = &self.config.axes;
-        let flow = self.interp.flow_percent();
+        let flow = self.interp.live().flow_percent();
         PlannerSettings {
             letters: core::array::from_fn(|i| axes[i].letter),
             steps_per_mm: core::array::from_fn(|i| axes[i].steps_per_mm),
@@ -368,7 +369,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             max_rate_mm_s: core::array::from_fn(|i| axes[i].max_rate_mm_s()),
             path: self.planner.limits(),
             junction_deviation_mm: self.config.junction_deviation_mm,
-            feed_percent: self.interp.feed_percent(),
+            feed_percent: self.interp.live().feed_percent(),
             flow_percent: core::array::from_fn(|i| {
                 (axes[i].kind == AxisKind::Extruder).then_some(flow[i])
             }),
@@ -456,7 +457,10 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// Positions for a report.
     pub fn position(&self) -> PositionReport<N> {
         let m = self.machine_steps();
-        let w = self.interp.work_position(self.config.axis_index(b'Z'));
+        let w = self
+            .interp
+            .live()
+            .work_position(self.config.axis_index(b'Z'));
         PositionReport {
             letters: core::array::from_fn(|i| self.config.axes[i].letter),
             work_mm: core::array::from_fn(|i| w[i] as f64 / NM_PER_MM),
@@ -479,18 +483,20 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
 
     /// A copy of the interpreter's state (for dry runs).
     pub(crate) fn interpreter(&self) -> Interpreter<N> {
-        self.interp
+        *self.interp.live()
     }
 
     /// Where the last queued move ends, in machine nanometres per axis.
     pub fn commanded_position_nm(&self) -> [Nm; N] {
-        self.interp.pos
+        self.interp.live().pos
     }
 
     /// Take the power-on modal state (mm, absolute, no offsets) where the last queued move
     /// ends: the state a resumed job's return moves are made in (see [`crate::Replay`]).
     pub fn reset_modal_state(&mut self) {
-        self.interp.reset_modal(&self.config, &self.coords);
+        self.interp
+            .live_mut()
+            .reset_modal(&self.config, &self.coords);
     }
 
     /// Take a program's modal state ([`crate::Replay`]) to go on with it, the last queued move
@@ -505,7 +511,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             }
         }
         state.pos = at;
-        self.interp = state;
+        *self.interp.live_mut() = state;
     }
 
     /// Where the last queued move ends, in machine steps.
@@ -542,10 +548,13 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         if let Some((first, then)) = split_spindle_and_motion(line) {
             return self.execute_in_order(first, &then);
         }
-        let mut next = self.interp;
         // The action is read where `interpret` left it: moved out, it would be copied whole.
-        match next.interpret(line, &self.config, &self.coords) {
-            Ok(ref action) => self.act(action, &next),
+        match self
+            .interp
+            .stage()
+            .interpret(line, &self.config, &self.coords)
+        {
+            Ok(ref action) => self.act(action),
             Err(e) => Err(e),
         }
     }
@@ -559,9 +568,11 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         first: Line<'l>,
         then: &Line<'l>,
     ) -> Result<Reply<'l, N>, CommandError> {
-        let mut next = self.interp;
-        let command = next.interpret(&first, &self.config, &self.coords)?;
-        let mut after = next;
+        let command = self
+            .interp
+            .stage()
+            .interpret(&first, &self.config, &self.coords)?;
+        let mut after = *self.interp.staged();
         let motion = after.interpret(then, &self.config, &self.coords)?;
         let Action::Effect(effect) = command else {
             return Err(CommandError::ModalConflict);
@@ -581,10 +592,11 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return Err(CommandError::ModalConflict);
         }
         self.check_travel(&motion)?;
-        match self.act(&Action::Effect(effect), &next)? {
+        match self.act(&Action::Effect(effect))? {
             Reply::Effect(e) => {
                 // At rest: the motion is taken (checked above, the planner empty).
-                let _ = self.act(&motion, &after)?;
+                self.interp.stage_as(&after);
+                let _ = self.act(&motion)?;
                 Ok(Reply::Effect(e))
             }
             other => Ok(other),
@@ -620,36 +632,32 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// A rapid move to `target` (machine nm), as a `G0` naming every axis would be taken:
     /// refused, `Busy` or queued by the same rules. For a resumed job's return to its line.
     pub fn rapid_to(&mut self, target: [Nm; N]) -> Result<Reply<'static, N>, CommandError> {
-        let mut next = self.interp;
-        next.pos = target;
+        self.interp.stage().pos = target;
         let action = Action::Move {
             target,
             feed_mm_min: None,
             ramp: false,
         };
-        self.act(&action, &next)
+        self.act(&action)
     }
 
-    /// Carry out `action`, interpreted from a line: `next` is the interpreter's state after
-    /// that line, kept when the action is taken. A refused action changes nothing.
-    fn act<'l>(
-        &mut self,
-        action: &Action<'l, N>,
-        next: &Interpreter<N>,
-    ) -> Result<Reply<'l, N>, CommandError> {
+    /// Carry out `action`, interpreted from a line into the staged interpreter state
+    /// ([`Staged::stage`]), which is committed when the action is taken. A refused action
+    /// changes nothing.
+    fn act<'l>(&mut self, action: &Action<'l, N>) -> Result<Reply<'l, N>, CommandError> {
         // Always accepted: emergency stop, reports and immediate effects.
         match *action {
             Action::Stop(StopKind::Emergency) => {
-                self.interp = *next;
+                self.interp.commit();
                 self.emergency_stop();
                 return Ok(Reply::Effect(Effect::Stopped(StopKind::Emergency)));
             }
             Action::Report => {
-                self.interp = *next;
+                self.interp.commit();
                 return Ok(Reply::Position(self.position()));
             }
             Action::Effect(e) if e.sync() == crate::Sync::Now => {
-                self.interp = *next;
+                self.interp.commit();
                 return Ok(Reply::Effect(e));
             }
             _ => {}
@@ -676,7 +684,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
         self.check_travel(action)?;
         let idle = self.is_idle();
-        self.block_rpm = next.spindle_rpm();
+        self.block_rpm = self.interp.staged().spindle_rpm();
         // What the action answers besides `ok`: an effect for the caller to carry out. Only that is
         // kept until the state is committed (a whole reply would be copied on the way out).
         let effect = match *action {
@@ -697,14 +705,14 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 self.queue_move(
                     &target,
                     feed_mm_min,
-                    next.feed_scale(),
+                    self.interp.staged().feed_scale(),
                     ramp,
                     0,
-                    next.exact_stop,
+                    self.interp.staged().exact_stop,
                 );
                 // The most common line, answered here: the answer below moves the optional
                 // effect into the reply whatever it holds (a copy of 21 bytes, byte by byte).
-                self.interp = *next;
+                self.interp.commit();
                 return Ok(Reply::Ok);
             }
             Action::Arc {
@@ -715,9 +723,9 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 self.arc = Some(PendingArc {
                     cutter,
                     feed_mm_min,
-                    feed_scale: next.feed_scale(),
+                    feed_scale: self.interp.staged().feed_scale(),
                     ramp,
-                    exact_stop: next.exact_stop,
+                    exact_stop: self.interp.staged().exact_stop,
                 });
                 self.drain_arc();
                 None
@@ -726,7 +734,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 self.drill = Some(PendingDrill {
                     cycle,
                     feed_mm_min,
-                    feed_scale: next.feed_scale(),
+                    feed_scale: self.interp.staged().feed_scale(),
                 });
                 self.drain_arc();
                 None
@@ -806,18 +814,32 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 if B.saturating_sub(self.planner.len()) < 2 {
                     return Ok(Reply::Busy);
                 }
-                self.queue_move(&via, None, next.feed_scale(), false, 0, false);
-                self.queue_move(&target, None, next.feed_scale(), false, 0, false);
+                self.queue_move(
+                    &via,
+                    None,
+                    self.interp.staged().feed_scale(),
+                    false,
+                    0,
+                    false,
+                );
+                self.queue_move(
+                    &target,
+                    None,
+                    self.interp.staged().feed_scale(),
+                    false,
+                    0,
+                    false,
+                );
                 None
             }
             // Taken before these checks (see the top); answered the same way here.
             Action::Report => {
-                self.interp = *next;
+                self.interp.commit();
                 return Ok(Reply::Position(self.position()));
             }
         };
         // Keep the modal state the line set (a move's target is its new position).
-        self.interp = *next;
+        self.interp.commit();
         Ok(effect.map_or(Reply::Ok, Reply::Effect))
     }
 
@@ -848,7 +870,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         let nm = to_nm(step_mm, false, b'S')?
             .checked_mul(i64::from(count))
             .ok_or(CommandError::BadValue { letter: b'S' })?;
-        let mut target = self.interp.pos;
+        let mut target = self.interp.live().pos;
         target[axis] = target[axis].saturating_add(nm);
         self.check_move(&target, &target)?;
         if self.planner.is_full() {
@@ -856,7 +878,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         }
         let feed = self.config.jog_feed_mm_min;
         self.queue_move(&target, Some(feed), 1.0, false, 0, false);
-        self.interp.pos = target;
+        self.interp.live_mut().pos = target;
         Ok(Reply::Ok)
     }
 
@@ -886,11 +908,11 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// `G20`/`G21` hold for this move only; the modal state is the one before it, the position
     /// the jog's target. Soft limits apply as to any move.
     pub fn jog_line<'l>(&mut self, line: &Line<'l>) -> Result<Reply<'l, N>, CommandError> {
-        let before = self.interp;
+        let before = *self.interp.live();
         let reply = self.execute(line)?;
-        let target = self.interp.pos;
-        self.interp = before;
-        self.interp.pos = target;
+        let target = self.interp.live().pos;
+        *self.interp.live_mut() = before;
+        self.interp.live_mut().pos = target;
         Ok(reply)
     }
 
@@ -902,7 +924,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// Take `coords` (the stored table, at start-up): the active system's origin follows.
     pub fn set_coordinates(&mut self, coords: Coordinates<N>) {
         self.coords = coords;
-        self.interp.use_coordinates(&coords);
+        self.interp.live_mut().use_coordinates(&coords);
     }
 
     /// The slots of the table that lines changed since the last call (bit
@@ -914,7 +936,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
 
     /// The modal state of the interpreter (grbl's `$G`).
     pub fn modal_report(&self) -> ModalReport<N> {
-        self.interp.modal()
+        self.interp.live().modal()
     }
 
     /// The realtime feed and rapid overrides (grbl's `0x90`–`0x98`), percent.
@@ -949,7 +971,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 speed_mm_min: 0.0,
                 fraction: 0.0,
                 rapid: false,
-                spindle_rpm: self.interp.spindle_rpm(),
+                spindle_rpm: self.interp.live().spindle_rpm(),
             },
         }
     }
@@ -961,7 +983,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
 
     /// The feed-rate override, percent (`M220`).
     pub fn feed_override_percent(&self) -> u16 {
-        self.interp.feed_percent()
+        self.interp.live().feed_percent()
     }
 
     /// After a [`Kernel::reset`] that cut the motion: lock the machine in
@@ -974,7 +996,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// `G4 P` in seconds, `M0` paused until cycle start), or RepRap's (a link in the grbl
     /// dialect, or one that left it).
     pub fn set_grbl_dialect(&mut self, grbl: bool) {
-        self.interp.grbl = grbl;
+        self.interp.live_mut().grbl = grbl;
     }
 
     /// Leave an alarm without homing (grbl's `$X`), the position kept as the steps counted it.
@@ -1041,7 +1063,9 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         self.alarm = None;
         self.halted = false;
         self.paused = false;
-        self.interp.reset_modal(&self.config, &self.coords);
+        self.interp
+            .live_mut()
+            .reset_modal(&self.config, &self.coords);
         self.set_realtime_overrides(100, 100);
     }
 
@@ -1100,7 +1124,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     fn rescale_steps(&mut self) {
         let isr = self.tx.shared().positions();
         for (i, a) in self.config.axes.iter().enumerate() {
-            let steps = nm_to_steps(self.interp.pos[i], a.steps_per_mm);
+            let steps = nm_to_steps(self.interp.live().pos[i], a.steps_per_mm);
             self.origin[i] = isr[i].wrapping_sub(steps);
             self.steps[i] = steps;
         }
@@ -1213,7 +1237,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// right whether homed or not: longer on an axis than that axis's whole travel, or ending
     /// beyond what is counted in `i32` steps and reported ([`MAX_POSITION_MM`]).
     fn check_reach(&self, lo: &[Nm; N], hi: &[Nm; N]) -> Result<(), CommandError> {
-        let from = &self.interp.pos;
+        let from = &self.interp.live().pos;
         for (i, b) in self.bounds.iter().enumerate() {
             let low = lo[i].min(from[i]);
             let high = hi[i].max(from[i]);
@@ -1297,12 +1321,12 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// Where the steppers are becomes the commanded position.
     fn resync(&mut self) {
         let m = self.machine_steps();
-        let mut pos = self.interp.pos;
+        let mut pos = self.interp.live().pos;
         for (i, a) in self.config.axes.iter().enumerate() {
             self.steps[i] = m[i];
             pos[i] = steps_to_nm(m[i], a.steps_per_mm);
         }
-        self.interp.set_machine_position(pos);
+        self.interp.live_mut().set_machine_position(pos);
     }
 
     /// Run the thread side: take the interrupt's news, advance homing, plan arc chords, and
@@ -1544,10 +1568,10 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             .shared()
             .homing_mask
             .store(u32::from(switch_mask), Ordering::Relaxed);
-        let mut target = self.interp.pos;
+        let mut target = self.interp.live().pos;
         target[axis] += mm_to_nm(mm);
         self.queue_move(&target, Some(feed_mm_min), 1.0, false, switch_mask, false);
-        self.interp.pos = target;
+        self.interp.live_mut().pos = target;
     }
 
     /// Start a probing move to `target`: the step interrupt stops it when the probe touches
