@@ -179,11 +179,22 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         switches: &mut [L],
     ) -> Option<Instant> {
         // The end of a pulse before the next event, the call of every other alarm.
+        let high = self.high;
         if self.mode == Mode::Running
-            && self.high != 0
+            && high != 0
             && now.is_at_or_after(self.next_fall)
             && !now.is_at_or_after(self.wake_at)
         {
+            // One line raised (one axis moving, or the others' pulses over): it is the one
+            // due, ended here without the general path's registers saved and restored.
+            if high & high.wrapping_sub(1) == 0 {
+                let i = lowest_axis(high);
+                self.high = 0;
+                return match steppers.get_mut(i).map(|s| s.step_end()) {
+                    Some(Err(_)) => self.stop(now, StopCause::Fault(i as u8), steppers),
+                    _ => Some(self.wake_at),
+                };
+            }
             return self.end_of_pulse(now, steppers);
         }
         self.serve(now, steppers, switches)
