@@ -44,7 +44,9 @@ pub trait Stepper: ErrorType {
 
     /// Begin a step pulse (drive the step line to its active level).
     ///
-    /// Context: interrupt. Never blocks. Errors: as [`Stepper::set_direction`].
+    /// Context: interrupt. Never blocks. Errors: as [`Stepper::set_direction`]; the line's
+    /// level is then unknown, and the step generator still ends the pulse
+    /// ([`Stepper::step_end`]) as motion stops, as it does for every line of the same event.
     fn step_begin(&mut self) -> Result<(), Self::Error>;
 
     /// End a step pulse (return the step line to idle).

@@ -462,7 +462,10 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
                 self.step_sign.get(i),
                 self.fall_at.get_mut(i),
             ) {
-                s.step_begin().map_err(|_| StopCause::Fault(i as u8))?;
+                if s.step_begin().is_err() {
+                    *f = fall;
+                    return Err(self.failed_rise(i, rise & !axes, fall));
+                }
                 p.store(
                     p.load(Ordering::Relaxed).wrapping_add(*d),
                     Ordering::Relaxed,
@@ -571,6 +574,19 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         self.rx.clear();
         self.rx.q.set_stop_cause(cause);
         self.wind_down(now, steppers)
+    }
+
+    /// Axis `i`'s driver failed its rising edge at an event raising `raised` (the lines raised
+    /// so far, `i`'s among them: its line's state is unknown): they end their pulses at `fall`
+    /// as the stop winds down, so that no line is left high to swallow a later move's first
+    /// step. Returns the stop's cause.
+    #[cold]
+    fn failed_rise(&mut self, i: usize, raised: u8, fall: Instant) -> StopCause {
+        if self.high == 0 {
+            self.next_fall = fall;
+        }
+        self.high |= raised;
+        StopCause::Fault(i as u8)
     }
 
     /// Lower every raised step line as its pulse ends, then go idle.
