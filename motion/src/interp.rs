@@ -738,7 +738,13 @@ impl<const N: usize> Interpreter<N> {
     /// The feed-rate override as a factor, for the moves of the lines interpreted now.
     #[inline]
     pub(crate) fn feed_scale(&self) -> f32 {
-        f32::from(self.feed_percent) / 100.0
+        // 100 % (no override, nearly always) without the division, a call where floats are
+        // software: the same 1.0.
+        if self.feed_percent == 100 {
+            1.0
+        } else {
+            f32::from(self.feed_percent) / 100.0
+        }
     }
 
     /// The flow override (`M221`) of each axis, percent (100 for axes that are not extruders).

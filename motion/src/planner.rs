@@ -49,6 +49,9 @@ pub(crate) struct Block<const N: usize> {
     pub mm: f32,
     /// Acceleration along the path, mm/s².
     pub accel: f32,
+    /// `2 × accel × mm`: the most the speed's square changes over the block, (mm/s)², worked
+    /// out once for the planner's passes.
+    pub reach_sqr: f32,
     /// Square of the nominal speed, (mm/s)².
     pub nominal_sqr: f32,
     /// Square of the largest entry speed the junction allows.
@@ -113,6 +116,7 @@ impl<const N: usize> Block<N> {
         steps: [0; N],
         mm: 0.0,
         accel: 1.0,
+        reach_sqr: 0.0,
         nominal_sqr: 0.0,
         max_entry_sqr: 0.0,
         entry_sqr: 0.0,
@@ -455,6 +459,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         let mut len_sqr = 0f32;
         let mut feed_len_sqr = 0f32;
         let mut extrudes = false;
+        let mut moves_axes = false;
         // The axes that move: the others add nothing and cost nothing below.
         let mut moving = 0u8;
         for (i, (m, a)) in mm.iter_mut().zip(config.axes.iter()).enumerate() {
@@ -468,6 +473,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             if a.kind == AxisKind::Extruder {
                 extrudes = true;
             } else {
+                moves_axes = true;
                 feed_len_sqr += *m * *m;
             }
         }
@@ -476,7 +482,6 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         }
         let length = sqrtf(len_sqr);
         // Without extrusion the two sums are the same to the bit: one square root.
-        let moves_axes = feed_len_sqr > 0.0;
         let feed_len = if extrudes && moves_axes {
             sqrtf(feed_len_sqr)
         } else {
@@ -525,7 +530,11 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         };
         let speed = SpeedParts {
             wanted,
-            floor: if floor > 0.0 { along_path(floor) } else { 0.0 },
+            floor: if is_positive(floor) {
+                along_path(floor)
+            } else {
+                0.0
+            },
             cap: rate,
             junction_sqr,
             rapid: req.feed_mm_min.is_none(),
@@ -548,6 +557,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             steps: req.steps,
             mm: length,
             accel,
+            reach_sqr: 2.0 * accel * length,
             nominal_sqr,
             max_entry_sqr,
             entry_sqr: 0.0,
@@ -586,15 +596,15 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         let Some(newest) = self.blocks.get_mut(idx) else {
             return;
         };
-        let mut next_entry = least(newest.max_entry_sqr, 2.0 * newest.accel * newest.mm);
+        let mut next_entry = least(newest.max_entry_sqr, newest.reach_sqr);
         newest.entry_sqr = next_entry;
         idx = prev(idx, B);
         while idx != self.planned {
             let Some(cur) = self.blocks.get_mut(idx) else {
                 return;
             };
-            if cur.entry_sqr != cur.max_entry_sqr {
-                let e = least(next_entry + 2.0 * cur.accel * cur.mm, cur.max_entry_sqr);
+            if !same(cur.entry_sqr, cur.max_entry_sqr) {
+                let e = least(next_entry + cur.reach_sqr, cur.max_entry_sqr);
                 cur.entry_sqr = e;
                 next_entry = e;
             } else {
@@ -606,24 +616,24 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         let Some(first) = self.blocks.get(self.planned) else {
             return;
         };
-        let mut cur = (first.entry_sqr, first.accel, first.mm);
+        let mut cur = (first.entry_sqr, first.reach_sqr);
         let mut idx = next(self.planned, B);
         while idx != self.head {
             let Some(nxt) = self.blocks.get_mut(idx) else {
                 return;
             };
-            let (entry_sqr, accel, mm) = cur;
-            if entry_sqr < nxt.entry_sqr {
-                let e = entry_sqr + 2.0 * accel * mm;
-                if e < nxt.entry_sqr {
+            let (entry_sqr, reach_sqr) = cur;
+            if below(entry_sqr, nxt.entry_sqr) {
+                let e = entry_sqr + reach_sqr;
+                if below(e, nxt.entry_sqr) {
                     nxt.entry_sqr = e;
                     self.planned = idx;
                 }
             }
-            if nxt.entry_sqr == nxt.max_entry_sqr {
+            if same(nxt.entry_sqr, nxt.max_entry_sqr) {
                 self.planned = idx;
             }
-            cur = (nxt.entry_sqr, nxt.accel, nxt.mm);
+            cur = (nxt.entry_sqr, nxt.reach_sqr);
             idx = next(idx, B);
         }
     }
@@ -638,6 +648,36 @@ impl<const N: usize, const B: usize> Planner<N, B> {
 fn least(a: f32, b: f32) -> f32 {
     debug_assert!(a.is_sign_positive() && b.is_sign_positive(), "{a} {b}");
     if b.to_bits() < a.to_bits() { b } else { a }
+}
+
+/// A key that orders floats (not NaN) as their numbers, −0 just below +0, in one integer
+/// comparison: the bits, with a negative value's magnitude bits flipped. A float comparison is
+/// a call on RISC-V, whose floats are software.
+#[inline(always)]
+const fn order_key(x: f32) -> i32 {
+    let bits = x.to_bits().cast_signed();
+    bits ^ ((bits >> 31).cast_unsigned() >> 1).cast_signed()
+}
+
+/// Whether `x` (not NaN) is above 0, by its bits.
+#[inline(always)]
+const fn is_positive(x: f32) -> bool {
+    x.to_bits().cast_signed() > 0
+}
+
+/// Whether `a` is below `b`, two of the planner's values, by their bits as [`least`].
+#[inline(always)]
+fn below(a: f32, b: f32) -> bool {
+    debug_assert!(a.is_sign_positive() && b.is_sign_positive(), "{a} {b}");
+    a.to_bits() < b.to_bits()
+}
+
+/// Whether `a` equals `b`, two of the planner's values, by their bits as [`least`] (neither is
+/// NaN nor −0, where the bits and the numbers disagree).
+#[inline(always)]
+fn same(a: f32, b: f32) -> bool {
+    debug_assert!(a.is_sign_positive() && b.is_sign_positive(), "{a} {b}");
+    a.to_bits() == b.to_bits()
 }
 
 /// The larger of two of the planner's values, as [`least`].
@@ -672,19 +712,21 @@ pub(crate) fn junction_speed_sqr<const N: usize>(
         delta[i] = d;
         delta_len_sqr += d * d;
     }
-    if cos_theta > 0.999_999 {
+    if order_key(cos_theta) > order_key(0.999_999) {
         // A reversal: stop.
         return 0.0;
     }
-    if cos_theta < -0.999_999 {
+    if order_key(cos_theta) < order_key(-0.999_999) {
         // Straight on: no corner.
         return f32::INFINITY;
     }
     let delta_len = sqrtf(delta_len_sqr);
     let mut accel = cap_mm_s2;
-    for (d, a) in delta.iter().zip(config.axes.iter()) {
-        // The axis's limit over its share of the change, `|d| / delta_len`.
-        if d.to_bits() << 1 != 0 {
+    for (i, (d, a)) in delta.iter().zip(config.axes.iter()).enumerate() {
+        // The axis's limit over its share of the change, `|d| / delta_len`: infinite, and so
+        // no limit, for an axis whose share does not change (`delta_len` is not 0: the
+        // moves are not in line).
+        if moving & (1 << i) != 0 {
             accel = least(accel, a.accel_mm_s2 * (delta_len / d.abs()));
         }
     }
