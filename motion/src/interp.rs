@@ -331,8 +331,8 @@ pub(crate) struct Interpreter<const N: usize> {
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Staged<const N: usize> {
     slots: [Interpreter<N>; 2],
-    /// The state in force is the second slot.
-    second: bool,
+    /// The slot of the state in force (0 or 1); the other is the spare.
+    live: usize,
 }
 
 impl<const N: usize> Staged<N> {
@@ -340,51 +340,41 @@ impl<const N: usize> Staged<N> {
     pub(crate) const fn new(state: Interpreter<N>) -> Self {
         Self {
             slots: [state, state],
-            second: false,
+            live: 0,
         }
     }
 
     /// The state in force.
     pub(crate) const fn live(&self) -> &Interpreter<N> {
-        let [first, second] = &self.slots;
-        if self.second { second } else { first }
+        &self.slots[self.live & 1]
     }
 
     /// The state in force, to change in place (outside a line's interpretation).
     pub(crate) const fn live_mut(&mut self) -> &mut Interpreter<N> {
-        let [first, second] = &mut self.slots;
-        if self.second { second } else { first }
+        &mut self.slots[self.live & 1]
     }
 
     /// The spare, made a copy of the state in force: the state a line is interpreted into.
     pub(crate) const fn stage(&mut self) -> &mut Interpreter<N> {
-        let [first, second] = &mut self.slots;
-        let (live, spare) = if self.second {
-            (second, first)
-        } else {
-            (first, second)
-        };
-        *spare = *live;
-        spare
+        let live = self.live & 1;
+        self.slots[live ^ 1] = self.slots[live];
+        &mut self.slots[live ^ 1]
     }
 
     /// The spare as the last [`Staged::stage`] left it: the state after the line.
     pub(crate) const fn staged(&self) -> &Interpreter<N> {
-        let [first, second] = &self.slots;
-        if self.second { first } else { second }
+        &self.slots[(self.live & 1) ^ 1]
     }
 
     /// The spare becomes `state` (a state interpreted apart), without the copy of the state in
     /// force that [`Staged::stage`] makes.
     pub(crate) const fn stage_as(&mut self, state: &Interpreter<N>) {
-        let [first, second] = &mut self.slots;
-        let spare = if self.second { first } else { second };
-        *spare = *state;
+        self.slots[(self.live & 1) ^ 1] = *state;
     }
 
     /// The staged state is taken: it is the state in force from now on.
     pub(crate) const fn commit(&mut self) {
-        self.second = !self.second;
+        self.live ^= 1;
     }
 }
 
