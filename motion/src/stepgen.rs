@@ -188,11 +188,9 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
             // One line raised (one axis moving, or the others' pulses over): it is the one
             // due, ended here without the general path's registers saved and restored.
             if high & high.wrapping_sub(1) == 0 {
-                let i = lowest_axis(high);
-                self.high = 0;
-                return match steppers.get_mut(i).map(|s| s.step_end()) {
-                    Some(Err(_)) => self.stop(now, StopCause::Fault(i as u8), steppers),
-                    _ => Some(self.wake_at),
+                return match self.end_one_pulse(high, steppers) {
+                    Ok(_) => Some(self.wake_at),
+                    Err(cause) => self.stop(now, cause, steppers),
                 };
             }
             return self.end_of_pulse(now, steppers);
@@ -277,6 +275,22 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         }
     }
 
+    /// Lower the one raised line (`high`, a single bit), whose pulse is due to end; returns
+    /// it, or the cause of the stop when its driver failed.
+    #[inline(always)]
+    fn end_one_pulse<S: Stepper>(
+        &mut self,
+        high: u8,
+        steppers: &mut [S; N],
+    ) -> Result<u8, StopCause> {
+        let i = lowest_axis(high);
+        self.high = 0;
+        match steppers.get_mut(i).map(|s| s.step_end()) {
+            Some(Err(_)) => Err(StopCause::Fault(i as u8)),
+            _ => Ok(high),
+        }
+    }
+
     /// Lower the raised lines whose pulse is over at `now`; returns them, or the first axis
     /// whose driver failed (after trying every one).
     #[inline(always)]
@@ -288,12 +302,7 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         let high = self.high;
         // One line raised (one axis moving, or the others' pulses over): it is the one due.
         if high & high.wrapping_sub(1) == 0 {
-            let i = lowest_axis(high);
-            self.high = 0;
-            return match steppers.get_mut(i).map(|s| s.step_end()) {
-                Some(Err(_)) => Err(StopCause::Fault(i as u8)),
-                _ => Ok(high),
-            };
+            return self.end_one_pulse(high, steppers);
         }
         let mut due = 0u8;
         let mut failed = None;
@@ -473,12 +482,18 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
                 *f = fall;
             }
         }
-        // Lines already high end sooner than these.
+        self.mark_raised(rise, fall);
+        Ok(())
+    }
+
+    /// The lines of `raised` went high, their pulses to end at `fall`; lines already high end
+    /// sooner than these.
+    #[inline(always)]
+    fn mark_raised(&mut self, raised: u8, fall: Instant) {
         if self.high == 0 {
             self.next_fall = fall;
         }
-        self.high |= rise;
-        Ok(())
+        self.high |= raised;
     }
 
     /// Write the direction lines an event changes.
@@ -582,10 +597,7 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
     /// step. Returns the stop's cause.
     #[cold]
     fn failed_rise(&mut self, i: usize, raised: u8, fall: Instant) -> StopCause {
-        if self.high == 0 {
-            self.next_fall = fall;
-        }
-        self.high |= raised;
+        self.mark_raised(raised, fall);
         StopCause::Fault(i as u8)
     }
 
