@@ -1340,6 +1340,39 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// dozen step events (under 20,000 instructions on a Cortex-M4, `docs/performance.md`),
     /// and a motion starts once its lead is prepared.
     pub fn poll(&mut self, now: Instant) -> Option<Instant> {
+        if self.has_nothing_to_do(now) {
+            self.prep_more = false;
+            return None;
+        }
+        self.poll_fully(now)
+    }
+
+    /// Whether this poll has nothing to do: the interrupt runs with no stop to report, no
+    /// cycle, flush or stop waits on the thread side, and the step queue holds enough motion
+    /// (most polls while the machine moves). The checks come ahead of the full call, whose
+    /// set-up alone would cost more than they do; the full call would find the same and
+    /// return `None`, the interrupt being under way.
+    #[inline(always)]
+    fn has_nothing_to_do(&mut self, now: Instant) -> bool {
+        let q = self.tx.shared();
+        if q.stops.load(Ordering::Acquire) != self.stops_seen
+            || self.flush.is_some()
+            || self.homing.is_some()
+            || self.probing.is_some()
+            || self.arc.is_some()
+            || self.drill.is_some()
+            || self.stop_requested
+            || self.isr_idle()
+        {
+            return false;
+        }
+        let ahead = self.prep.ahead_of(&self.tx, now, true);
+        self.prep.holds_enough(ahead, self.lead_ticks, true)
+    }
+
+    /// [`Kernel::poll`] when there may be something to do.
+    #[inline(never)]
+    fn poll_fully(&mut self, now: Instant) -> Option<Instant> {
         // Only a preparation this call stops short asks for another at once: a call that
         // returns before preparing (a flush under way) leaves the interrupt to run first.
         self.prep_more = false;

@@ -1163,6 +1163,41 @@ impl<const N: usize> Prep<N> {
         self.worst_error
     }
 
+    /// Ticks of motion the queue holds ahead of `now` (the interrupt `running`).
+    #[inline(always)]
+    pub(crate) fn ahead_of<const Q: usize>(
+        &self,
+        tx: &Producer<'_, N, Q>,
+        now: Instant,
+        running: bool,
+    ) -> u32 {
+        let q = tx.shared();
+        let consumed = q.consumed_ticks.load(Ordering::Relaxed);
+        // Time already spent after the last consumed event (its successors are due sooner).
+        let spent = if running {
+            let last = Instant::from_ticks(q.last_event_at.load(Ordering::Relaxed));
+            now.saturating_duration_since(last).ticks()
+        } else {
+            0
+        };
+        self.em.ahead(consumed, spent)
+    }
+
+    /// Whether the queue, holding `ahead` ticks, needs no top-up now; if so, records what it
+    /// holds. Topped up to the lead, the queue runs down to half of it before the next top-up:
+    /// a call in between prepares nothing and costs little, and each top-up prepares many
+    /// steps for one call's set-up. The queue never holds more than the lead (a feed hold
+    /// still starts decelerating within it), and the board polls again within half of what it
+    /// holds, so it never runs dry.
+    #[inline(always)]
+    pub(crate) fn holds_enough(&mut self, ahead: u32, lead_ticks: u32, running: bool) -> bool {
+        let enough = !self.refilling && running && ahead >= lead_ticks / 2;
+        if enough {
+            self.queued_ticks = ahead;
+        }
+        enough
+    }
+
     /// Prepare events until `lead_ticks` of motion are queued ahead of `now`, the queue is
     /// full or the plan is exhausted. `running` tells whether the interrupt side is executing
     /// (when it is idle, nothing queued has started yet).
@@ -1174,23 +1209,8 @@ impl<const N: usize> Prep<N> {
         now: Instant,
         running: bool,
     ) -> Fill {
-        let q = tx.shared();
-        let consumed = q.consumed_ticks.load(Ordering::Relaxed);
-        // Time already spent after the last consumed event (its successors are due sooner).
-        let spent = if running {
-            let last = Instant::from_ticks(q.last_event_at.load(Ordering::Relaxed));
-            now.saturating_duration_since(last).ticks()
-        } else {
-            0
-        };
-        let ahead = self.em.ahead(consumed, spent);
-        // Topped up to the lead, the queue runs down to half of it before the next top-up: a
-        // call in between prepares nothing and costs little, and each top-up prepares many
-        // steps for one call's set-up. The queue never holds more than the lead (a feed hold
-        // still starts decelerating within it), and the board polls again within half of what
-        // it holds, so it never runs dry.
-        if !self.refilling && running && ahead >= lead_ticks / 2 {
-            self.queued_ticks = ahead;
+        let ahead = self.ahead_of(tx, now, running);
+        if self.holds_enough(ahead, lead_ticks, running) {
             return Fill::Pending;
         }
         self.refilling = true;
@@ -1296,7 +1316,7 @@ impl<const N: usize> Prep<N> {
             }
         };
         self.em.publish(tx);
-        self.queued_ticks = self.em.ahead(consumed, spent);
+        self.queued_ticks = self.ahead_of(tx, now, running);
         result
     }
 
