@@ -11,7 +11,8 @@
 //! last increment, then corrected unit by unit against `W` (one 32×32 multiplication each); a
 //! prediction off by more than [`MAX_NUDGES`] units (the first steps from rest, where the
 //! intervals shrink fastest) takes one Newton step first (a 32-bit division), and a full
-//! square root only when that is out of reach. [`StepClock::walk`] runs a clock through many
+//! square root ([`isqrt`]: single precision's estimate and a Newton step in integers) only
+//! when that is out of reach. [`StepClock::walk`] runs a clock through many
 //! steps at once, for the loop that takes one axis's steps in a row.
 //!
 //! Accuracy: with `k` = [`RAMP_BITS`] = 4, `R` is within one unit (1/16 tick) below `√W`, the
@@ -22,7 +23,7 @@
 //! longer than about 2^27 ticks, 16 s at 8 MHz; a cruise longer than 2^32 ticks) gets no
 //! clock: its caller times its steps in double precision.
 
-use libm::{round, sqrt};
+use libm::round;
 
 use crate::bound::at_most;
 use crate::whole::{round_up_half, round_up_half_scaled};
@@ -165,7 +166,7 @@ impl StepClock {
     }
 
     /// Move to the next step; returns its tick, and whether it took a full square root (the
-    /// first steps of a ramp from rest: a few hundred instructions instead of a few dozen).
+    /// first steps of a ramp from rest: about a hundred instructions instead of a few dozen).
     #[inline]
     pub(crate) fn advance(&mut self) -> (u64, bool) {
         let mut rooted = false;
@@ -390,18 +391,51 @@ fn nudge(guess: u32, w: u64) -> (u32, bool) {
     }
 }
 
-/// `⌊√w⌋` for `w < 2^62`.
+/// The largest root of a `w` below 2^62.
+const MAX_ROOT: u32 = (1 << 31) - 1;
+
+/// `⌊√w⌋` for `w < 2^62`, in a few dozen instructions where a square root in double
+/// precision takes hundreds on the cores without a double-precision FPU (the M4, the
+/// ESP32-C3): [`root_estimate`], then the last unit in integers.
 #[cold]
 #[inline(never)]
 fn isqrt(w: u64) -> u32 {
-    let mut r = sqrt(w as f64) as u64;
-    while r * r > w {
+    let mut r = root_estimate(w);
+    while u64::from(r) * u64::from(r) > w {
         r -= 1;
     }
-    while (r + 1) * (r + 1) <= w {
+    while u64::from(r + 1) * u64::from(r + 1) <= w {
         r += 1;
     }
-    r as u32
+    r
+}
+
+/// `√w` within a unit, for `w < 2^62`: single precision's root, within 2⁻²³ of `√w` and so at
+/// most 2⁸ units off, then one Newton step `r + (w − r²)/2r` in a 32-bit division, the error
+/// and the divisor shifted alike to fit it (the divisor keeps at least 23 bits).
+/// The estimate is at most one unit from `⌊√w⌋`.
+#[inline(always)]
+fn root_estimate(w: u64) -> u32 {
+    let r = (libm::sqrtf(w as f32) as u32).min(MAX_ROOT);
+    let sq = u64::from(r) * u64::from(r);
+    let error = w.abs_diff(sq);
+    let twice = 2 * u64::from(r);
+    if error <= u64::from(r) {
+        return r;
+    }
+    let bits = |x: u64| 64 - x.leading_zeros();
+    let shift = bits(error).max(bits(twice)).saturating_sub(32);
+    let divisor = (twice >> shift) as u32;
+    if divisor == 0 {
+        return r;
+    }
+    let error = (error >> shift) as u32;
+    // Newton's step lands at or just above `√w`: rounded down going up, up going down.
+    if w > sq {
+        r.saturating_add(error / divisor).min(MAX_ROOT)
+    } else {
+        r - error.div_ceil(divisor).min(r)
+    }
 }
 
 #[cfg(test)]
@@ -422,6 +456,38 @@ mod tests {
                 (tick as f64 - t).abs() <= 0.6,
                 "step {m}: tick {tick}, exact {t}"
             );
+        }
+    }
+
+    /// Square roots over every bit length, at and around the perfect squares: exact, and the
+    /// estimate before the last correction within a unit.
+    #[test]
+    fn isqrt_is_exact_and_its_estimate_within_a_unit() {
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut random = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        for _ in 0..200_000 {
+            let bits = random() % 63;
+            let w = random() >> (64 - bits).min(63);
+            let k = u64::from(isqrt(w));
+            let r = random() as u32 & MAX_ROOT;
+            let near_square = u64::from(r) * u64::from(r);
+            for w in [
+                w,
+                near_square.saturating_sub(1),
+                near_square,
+                near_square + 2 * u64::from(r),
+            ] {
+                let k = u64::from(isqrt(w));
+                assert!(k * k <= w && (k + 1) * (k + 1) > w, "{w}");
+                let estimate = u64::from(root_estimate(w));
+                assert!(estimate.abs_diff(k) <= 1, "{w}: {estimate} for {k}");
+            }
+            assert!(k < 1 << 31);
         }
     }
 
