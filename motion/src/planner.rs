@@ -106,7 +106,7 @@ impl SpeedParts {
             (false, true) => rapid,
             (false, false) => feed,
         };
-        least(most(self.wanted * scale, self.floor), self.cap)
+        least(most(times(self.wanted, scale), self.floor), self.cap)
     }
 }
 
@@ -298,6 +298,42 @@ pub(crate) struct Planner<const N: usize, const B: usize> {
     feed_override: f32,
     /// The realtime rapid override, as a factor.
     rapid_override: f32,
+    /// The last feed's conversion to mm/s.
+    feed_per_s: FeedPerSecond,
+}
+
+/// A feed (mm/min, times the line's scale) in mm/s, kept for the next line: the feed is modal,
+/// and the conversion, a multiplication and a division, is in software on RISC-V.
+#[derive(Debug, Clone, Copy)]
+struct FeedPerSecond {
+    /// The feed's bits.
+    mm_min: u32,
+    /// The scale's bits.
+    scale: u32,
+    /// `feed × scale / 60`.
+    mm_s: f32,
+}
+
+impl FeedPerSecond {
+    /// Feed 0 at scale 0, which is 0 mm/s: a true conversion from the start.
+    const ZERO: Self = Self {
+        mm_min: 0,
+        scale: 0,
+        mm_s: 0.0,
+    };
+
+    /// `feed_mm_min × scale / 60`, the same to the bit as worked out each time.
+    #[inline(always)]
+    fn of(&mut self, feed_mm_min: f32, scale: f32) -> f32 {
+        if feed_mm_min.to_bits() != self.mm_min || scale.to_bits() != self.scale {
+            *self = Self {
+                mm_min: feed_mm_min.to_bits(),
+                scale: scale.to_bits(),
+                mm_s: times(feed_mm_min, scale) / 60.0,
+            };
+        }
+        self.mm_s
+    }
 }
 
 const fn next(i: usize, b: usize) -> usize {
@@ -320,6 +356,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             limits: PathLimits::NONE,
             feed_override: 1.0,
             rapid_override: 1.0,
+            feed_per_s: FeedPerSecond::ZERO,
         }
     }
 
@@ -457,7 +494,6 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         }
         let mut mm = [0f32; N];
         let mut len_sqr = 0f32;
-        let mut feed_len_sqr = 0f32;
         let mut extrudes = false;
         let mut moves_axes = false;
         // The axes that move: the others add nothing and cost nothing below.
@@ -467,22 +503,28 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             if s == 0 {
                 continue;
             }
-            moving |= 1 << i;
             *m = s as f32 / a.steps_per_mm;
             len_sqr += *m * *m;
+            moving |= 1 << i;
             if a.kind == AxisKind::Extruder {
                 extrudes = true;
             } else {
                 moves_axes = true;
-                feed_len_sqr += *m * *m;
             }
         }
         if moving == 0 {
             return true;
         }
         let length = sqrtf(len_sqr);
-        // Without extrusion the two sums are the same to the bit: one square root.
+        // Without extrusion the feed's length is the whole length, to the bit: one sum and
+        // one square root.
         let feed_len = if extrudes && moves_axes {
+            let mut feed_len_sqr = 0f32;
+            for (m, a) in mm.iter().zip(config.axes.iter()) {
+                if a.kind != AxisKind::Extruder {
+                    feed_len_sqr += *m * *m;
+                }
+            }
             sqrtf(feed_len_sqr)
         } else {
             length
@@ -519,8 +561,8 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             }
         };
         let wanted = match req.feed_mm_min {
-            Some(f) => along_path(f * req.feed_scale / 60.0),
-            None => rate * req.feed_scale,
+            Some(f) => along_path(self.feed_per_s.of(f, req.feed_scale)),
+            None => times(rate, req.feed_scale),
         };
         let floor = self.limits.min_feed_mm_s(kind);
         let junction_sqr = match (self.len, self.previous) {
@@ -557,7 +599,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             steps: req.steps,
             mm: length,
             accel,
-            reach_sqr: 2.0 * accel * length,
+            reach_sqr: doubled(accel * length),
             nominal_sqr,
             max_entry_sqr,
             entry_sqr: 0.0,
@@ -659,6 +701,41 @@ const fn order_key(x: f32) -> i32 {
     bits ^ ((bits >> 31).cast_unsigned() >> 1).cast_signed()
 }
 
+/// `x × factor`, or `x` itself for a factor of exactly 1 (the overrides' and scales' usual
+/// value): the same to the bit, without the multiplication.
+#[inline(always)]
+fn times(x: f32, factor: f32) -> f32 {
+    if factor.to_bits() == 1f32.to_bits() {
+        x
+    } else {
+        x * factor
+    }
+}
+
+/// `2x` for one of the planner's values, by its exponent when that is exact (a normal value
+/// below the largest binade), else by a multiplication.
+#[inline(always)]
+fn doubled(x: f32) -> f32 {
+    let exponent = x.to_bits() >> 23;
+    if (1..0xFE).contains(&exponent) {
+        f32::from_bits(x.to_bits() + (1 << 23))
+    } else {
+        x * 2.0
+    }
+}
+
+/// `x / 2` for one of the planner's values, by its exponent when that is exact (a normal value
+/// whose half is normal), else by a multiplication.
+#[inline(always)]
+fn halved(x: f32) -> f32 {
+    let exponent = x.to_bits() >> 23;
+    if (2..0xFF).contains(&exponent) {
+        f32::from_bits(x.to_bits() - (1 << 23))
+    } else {
+        x * 0.5
+    }
+}
+
 /// Whether `x` (not NaN) is above 0, by its bits.
 #[inline(always)]
 const fn is_positive(x: f32) -> bool {
@@ -730,7 +807,7 @@ pub(crate) fn junction_speed_sqr<const N: usize>(
             accel = least(accel, a.accel_mm_s2 * (delta_len / d.abs()));
         }
     }
-    let sin_half = sqrtf(0.5 * (1.0 - cos_theta));
+    let sin_half = sqrtf(halved(1.0 - cos_theta));
     accel * config.junction_deviation_mm * sin_half / (1.0 - sin_half)
 }
 
@@ -980,5 +1057,56 @@ mod tests {
         p.retire_tail();
         assert!(p.push_move(&mv(100, 0, 3000.0), &c));
         assert_eq!(p.len(), 4);
+    }
+
+    /// The feed's conversion kept from line to line is the conversion worked out each time.
+    #[test]
+    fn a_kept_feed_conversion_is_the_one_worked_out() {
+        let mut kept = FeedPerSecond::ZERO;
+        for (feed, scale) in [
+            (0.0, 0.0),
+            (3000.0, 1.0),
+            (3000.0, 1.0),
+            (3000.0, 0.5),
+            (1234.5, 1.0),
+            (1234.5, 0.25),
+            (3000.0, 1.0),
+        ] {
+            let worked_out = feed * scale / 60.0;
+            assert_eq!(
+                kept.of(feed, scale).to_bits(),
+                worked_out.to_bits(),
+                "{feed} {scale}"
+            );
+        }
+        assert_eq!(kept.of(3000.0, 1.0), 50.0);
+    }
+
+    /// Doubling, halving and scaling by their bits are the multiplications, to the bit, over
+    /// the binades of the planner's values, their edges included.
+    #[test]
+    fn doubling_halving_and_scaling_by_bits_are_exact() {
+        let check = |x: f32| {
+            assert_eq!(doubled(x).to_bits(), (x * 2.0).to_bits(), "{x}");
+            assert_eq!(halved(x).to_bits(), (x * 0.5).to_bits(), "{x}");
+            assert_eq!(times(x, 1.0).to_bits(), x.to_bits(), "{x}");
+            assert_eq!(times(x, 0.75).to_bits(), (x * 0.75).to_bits(), "{x}");
+        };
+        let edges = [
+            0.0,
+            f32::MIN_POSITIVE,
+            f32::MIN_POSITIVE / 4.0,
+            f32::MIN_POSITIVE * 2.0,
+            f32::MAX,
+            f32::MAX / 2.0,
+            f32::INFINITY,
+        ];
+        edges.into_iter().for_each(check);
+        let mut x = 1.0e-38f32;
+        while x < 3.0e38 {
+            check(x);
+            check(x * 1.618_034);
+            x *= 3.0;
+        }
     }
 }
