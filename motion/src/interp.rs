@@ -73,7 +73,7 @@ use crate::coords::{Coordinates, SYSTEMS, Slot};
 use crate::drill::{DrillCycle, DrillKind};
 use crate::effect::{Coolant, Effect, Heater, Spindle, StopKind, Storage, TemperatureWait};
 use crate::error::CommandError;
-use crate::planner::PathLimits;
+use crate::planner::{PathLimits, times};
 
 /// Nanometres per millimetre: positions are kept in integer nanometres.
 pub const NM_PER_MM: f64 = 1e6;
@@ -915,7 +915,7 @@ impl<const N: usize> Interpreter<N> {
         }
         // In inverse time (`G93`) `F` is the line's own: moves per minute, not a modal rate.
         if let Some(f) = line.get(b'F').filter(|_| !self.inverse_time) {
-            let per_min = f.to_f32() * if self.inches { 25.4 } else { 1.0 };
+            let per_min = times(f.to_f32(), if self.inches { 25.4 } else { 1.0 });
             if !(per_min.is_finite() && per_min >= MIN_FEED_MM_MIN) {
                 return Err(CommandError::BadValue { letter: b'F' });
             }

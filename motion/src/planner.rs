@@ -701,15 +701,23 @@ const fn order_key(x: f32) -> i32 {
     bits ^ ((bits >> 31).cast_unsigned() >> 1).cast_signed()
 }
 
-/// `x × factor`, or `x` itself for a factor of exactly 1 (the overrides' and scales' usual
-/// value): the same to the bit, without the multiplication.
+/// `x × factor`, or `x` itself for a factor of exactly 1 (the overrides', scales' and units'
+/// usual value): the same to the bit, without the multiplication.
 #[inline(always)]
-fn times(x: f32, factor: f32) -> f32 {
+pub(crate) fn times(x: f32, factor: f32) -> f32 {
     if factor.to_bits() == 1f32.to_bits() {
         x
     } else {
-        x * factor
+        product(x, factor)
     }
+}
+
+/// `a × b`, out of line: inlined, the compiler would work it out ahead of the test that
+/// skips it and select the result (a multiplication is cheap to it, and a call in software on
+/// RISC-V).
+#[inline(never)]
+fn product(a: f32, b: f32) -> f32 {
+    a * b
 }
 
 /// `2x` for one of the planner's values, by its exponent when that is exact (a normal value
