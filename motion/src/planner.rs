@@ -226,6 +226,9 @@ struct Previous<const N: usize> {
     /// The axes it moves (their bits): the others' `unit` is 0.
     moving: u8,
     nominal_sqr: f32,
+    /// The fastest its axes allow along it ([`SpeedParts::cap`]), mm/s: no override takes its
+    /// nominal speed above.
+    cap: f32,
 }
 
 /// A new move for the planner.
@@ -568,7 +571,12 @@ impl<const N: usize, const B: usize> Planner<N, B> {
         let junction_sqr = match (self.len, self.previous) {
             (0, _) | (_, None) => 0.0,
             _ if req.exact_stop => 0.0,
-            (_, Some(p)) => junction_speed_sqr(&p.unit, &unit, p.moving | moving, config, cap),
+            (_, Some(p)) => {
+                let fastest = most(p.cap, rate);
+                let fastest_sqr = fastest * fastest;
+                let moves = p.moving | moving;
+                junction_speed_sqr(&p.unit, &unit, moves, config, cap, fastest_sqr)
+            }
         };
         let speed = SpeedParts {
             wanted,
@@ -613,6 +621,7 @@ impl<const N: usize, const B: usize> Planner<N, B> {
             unit,
             moving,
             nominal_sqr,
+            cap: rate,
         });
         self.recalculate();
         true
@@ -721,26 +730,26 @@ fn product(a: f32, b: f32) -> f32 {
 }
 
 /// `2x` for one of the planner's values, by its exponent when that is exact (a normal value
-/// below the largest binade), else by a multiplication.
+/// below the largest binade), else by a multiplication (out of line, as in [`times`]).
 #[inline(always)]
 fn doubled(x: f32) -> f32 {
     let exponent = x.to_bits() >> 23;
     if (1..0xFE).contains(&exponent) {
         f32::from_bits(x.to_bits() + (1 << 23))
     } else {
-        x * 2.0
+        product(x, 2.0)
     }
 }
 
 /// `x / 2` for one of the planner's values, by its exponent when that is exact (a normal value
-/// whose half is normal), else by a multiplication.
+/// whose half is normal), else by a multiplication (out of line, as in [`times`]).
 #[inline(always)]
 fn halved(x: f32) -> f32 {
     let exponent = x.to_bits() >> 23;
     if (2..0xFF).contains(&exponent) {
         f32::from_bits(x.to_bits() - (1 << 23))
     } else {
-        x * 0.5
+        product(x, 0.5)
     }
 }
 
@@ -776,26 +785,36 @@ fn most(a: f32, b: f32) -> f32 {
 /// `junction_deviation_mm` from the corner, is taken at the acceleration the axes allow along
 /// the change of direction, and at most `cap_mm_s2` (the [`PathLimits`] acceleration of the
 /// new move's kind). `moving` has the bits of the axes either move moves: the others' units
-/// are 0 and are skipped. Returns the square of the speed.
+/// are 0 and are skipped. Returns the square of the speed, or infinity when it is at least
+/// `fastest_sqr`, the square of the fastest either move may be planned at (whatever the
+/// overrides), where it could never limit them.
+///
+/// That case is told from the angle alone, before the change of direction's length, its
+/// axes' limits and two square roots. With `c` the cosine below, `w = (1 + c)/2` and
+/// `s = √(1 − w)` the half angle's sine, the speed² is `a·δ·s/(1 − s) = a·δ·s(1 + s)/w`, and
+/// `s(1 + s) ≥ 2s² = 2(1 − w)` (as `s ≤ 1`); `a` is at least the smallest of the moving axes'
+/// accelerations and the cap (an axis's share of the change is at most all of it). The test
+/// is `2·a·δ·(1 − w)/w ≥ v²` with `w` raised by 10⁻⁶, above its rounding (that of `c` from
+/// rounded unit vectors), and the rest of the rounding within the bound's own slack (the
+/// inequality's, at least `w/4` relative).
 pub(crate) fn junction_speed_sqr<const N: usize>(
     prev_unit: &[f32; N],
     unit: &[f32; N],
     moving: u8,
     config: &MachineConfig<N>,
     cap_mm_s2: f32,
+    fastest_sqr: f32,
 ) -> f32 {
     let mut cos_theta = 0f32;
-    let mut delta = [0f32; N];
-    let mut delta_len_sqr = 0f32;
+    let mut slowest = cap_mm_s2;
     for i in 0..N {
         if moving & (1 << i) == 0 {
             continue;
         }
-        let (p, u) = (prev_unit[i], unit[i]);
-        cos_theta -= p * u;
-        let d = u - p;
-        delta[i] = d;
-        delta_len_sqr += d * d;
+        cos_theta -= prev_unit[i] * unit[i];
+        if let Some(a) = config.axes.get(i) {
+            slowest = least(slowest, a.accel_mm_s2);
+        }
     }
     if order_key(cos_theta) > order_key(0.999_999) {
         // A reversal: stop.
@@ -804,6 +823,21 @@ pub(crate) fn junction_speed_sqr<const N: usize>(
     if order_key(cos_theta) < order_key(-0.999_999) {
         // Straight on: no corner.
         return f32::INFINITY;
+    }
+    // 2·a·δ·(1 − w)/w ≥ v² as 2·a·δ ≥ w·(v² + 2·a·δ), with no division.
+    let w = halved(1.000_002 + cos_theta);
+    let least_reach = slowest * doubled(config.junction_deviation_mm);
+    if !below(least_reach, w * (fastest_sqr + least_reach)) {
+        return f32::INFINITY;
+    }
+    let mut delta = [0f32; N];
+    let mut delta_len_sqr = 0f32;
+    for i in 0..N {
+        if moving & (1 << i) != 0 {
+            let d = unit[i] - prev_unit[i];
+            delta[i] = d;
+            delta_len_sqr += d * d;
+        }
     }
     let delta_len = sqrtf(delta_len_sqr);
     let mut accel = cap_mm_s2;
@@ -1116,5 +1150,55 @@ mod tests {
             check(x * 1.618_034);
             x *= 3.0;
         }
+    }
+
+    /// A junction the angle alone shows to be faster than either move may go is infinite;
+    /// every other is the full computation's, and the full computation is at least the
+    /// fastest speed wherever the test says so.
+    #[test]
+    fn a_junction_told_by_its_angle_alone_is_faster_than_either_move() {
+        let mut c = MachineConfig::new([
+            AxisConfig::linear(b'X', 80.0, 12_000.0, 3000.0, 500.0),
+            AxisConfig::linear(b'Y', 80.0, 12_000.0, 500.0, 500.0),
+            AxisConfig::linear(b'Z', 400.0, 900.0, 200.0, 500.0),
+        ]);
+        c.junction_deviation_mm = 0.01;
+        let mut seed = 0x9e37_79b9u32;
+        let mut random = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 17;
+            seed ^= seed << 5;
+            f32::from(seed as u16) / 65_536.0 - 0.5
+        };
+        let unit = |v: [f32; 3]| {
+            let n = sqrtf(v.iter().map(|x| x * x).sum());
+            v.map(|x| x / n)
+        };
+        let (mut told, mut worked_out) = (0, 0);
+        for k in 0..20_000 {
+            let p = unit([1.0, random(), random() * 0.1]);
+            // Turns from a thousandth of a radian to a reversal.
+            let bend = [0.001, 0.01, 0.1, 1.0, 3.0][k % 5] * random();
+            let u = unit([1.0 + bend * random(), p[1] + bend, p[2] + bend * random()]);
+            let fastest_sqr = [100.0, 10_000.0, 1.0e6][k % 3] * (1.0 + random());
+            let exact = junction_speed_sqr(&p, &u, 0b111, &c, f32::INFINITY, f32::INFINITY);
+            let quick = junction_speed_sqr(&p, &u, 0b111, &c, f32::INFINITY, fastest_sqr);
+            // Just above the full computation's speed, the test never tells.
+            if exact.is_finite() && exact > 0.0 {
+                let above = exact * 1.000_01;
+                let near = junction_speed_sqr(&p, &u, 0b111, &c, f32::INFINITY, above);
+                assert_eq!(near.to_bits(), exact.to_bits(), "{exact}");
+            }
+            if quick.to_bits() == exact.to_bits() {
+                worked_out += 1;
+            } else {
+                assert!(
+                    quick.is_infinite() && exact >= fastest_sqr,
+                    "{exact} {fastest_sqr}"
+                );
+                told += 1;
+            }
+        }
+        assert!(told > 1000 && worked_out > 1000, "{told} {worked_out}");
     }
 }
