@@ -313,6 +313,8 @@ pub(crate) struct Interpreter<const N: usize> {
     cycle: CycleWords,
     plane: Plane,
     pub(crate) feed_mm_min: f32,
+    /// The last `F` word taken.
+    feed_word: Option<FeedWord>,
     /// The spindle speed (`S`), rpm: of `M3`/`M4` without `S`, and carried by the moves
     /// planned while it is in force (an `S` on a motion line changes it with that motion).
     spindle_rpm: u32,
@@ -493,6 +495,16 @@ pub(crate) fn steps_to_nm(steps: i32, steps_per_mm: f32) -> Nm {
     libm::round(f64::from(steps) / f64::from(steps_per_mm) * NM_PER_MM) as Nm
 }
 
+/// An `F` word converted to mm/min in the unit it was read in, kept: programs repeat the same
+/// `F` move after move, and its conversion is a division and a comparison in software on
+/// RISC-V. A cache of a pure function, holding a valid feed only: it needs no clearing.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct FeedWord {
+    word: Decimal,
+    inches: bool,
+    mm_min: f32,
+}
+
 /// What a G code with one decimal is numbered as in the interpreter: ten times the code plus
 /// the decimal, after this (so that `G28.1` is not `G281`).
 const DECIMAL_CODE: u32 = 100_000;
@@ -651,6 +663,7 @@ impl<const N: usize> Interpreter<N> {
             cycle: CycleWords::default(),
             plane: Plane::Xy,
             feed_mm_min: config.default_feed_mm_min,
+            feed_word: None,
             spindle_rpm: 0,
             feed_percent: 100,
             feed_percent_backup: 100,
@@ -915,11 +928,21 @@ impl<const N: usize> Interpreter<N> {
         }
         // In inverse time (`G93`) `F` is the line's own: moves per minute, not a modal rate.
         if let Some(f) = line.get(b'F').filter(|_| !self.inverse_time) {
-            let per_min = times(f.to_f32(), if self.inches { 25.4 } else { 1.0 });
-            if !(per_min.is_finite() && per_min >= MIN_FEED_MM_MIN) {
-                return Err(CommandError::BadValue { letter: b'F' });
-            }
-            self.feed_mm_min = per_min;
+            self.feed_mm_min = match self.feed_word {
+                Some(kept) if kept.word == f && kept.inches == self.inches => kept.mm_min,
+                _ => {
+                    let per_min = times(f.to_f32(), if self.inches { 25.4 } else { 1.0 });
+                    if !(per_min.is_finite() && per_min >= MIN_FEED_MM_MIN) {
+                        return Err(CommandError::BadValue { letter: b'F' });
+                    }
+                    self.feed_word = Some(FeedWord {
+                        word: f,
+                        inches: self.inches,
+                        mm_min: per_min,
+                    });
+                    per_min
+                }
+            };
         }
         match command {
             Some((letter, n)) => self.command(letter, n, line, config, coords),
