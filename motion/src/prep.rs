@@ -52,6 +52,12 @@ const PROFILE_WORK: u32 = 24;
 const PHASE_WORK: u32 = 24;
 /// What a step timed by a full square root (or in double precision) counts, in steps.
 const ROOT_WORK: u32 = 3;
+/// Steps of the cruising axes' merged walk ([`Current::run_cruises`]) that count as one: such
+/// a step costs about 70 instructions on the Cortex-M4, against about 180 on the general path
+/// (three axes: 108 per step event with the walk, 180 without), so that a call prepares three
+/// times as many of them for its set-up (the largest calls, within budget, in
+/// `docs/performance.md`).
+const MERGED_STEPS_PER_WORK: u32 = 3;
 
 /// A speed from the planner's square of it: single precision, as the planner holds it (a
 /// square root in double precision would add digits the square does not have, for ten times
@@ -426,12 +432,14 @@ impl<const N: usize> Current<N> {
         ticks_per_s: f64,
     ) -> u32 {
         let room = em.room.saturating_sub(SLOTS_PER_STEP + 2);
-        let limit = max_work.min(room.min(u32::MAX as usize) as u32);
+        let room = room.min(u32::MAX as usize) as u32;
+        let limit = max_work.min(room);
         if let Some(i) = self.only_axis {
             return self.run_alone(i, em, tx, horizon, limit, ticks_per_s);
         }
-        if let Some(work) = self.run_cruises(em, tx, horizon, limit, ticks_per_s) {
-            return work;
+        let cruise_steps = max_work.saturating_mul(MERGED_STEPS_PER_WORK).min(room);
+        if let Some(steps) = self.run_cruises(em, tx, horizon, cruise_steps, ticks_per_s) {
+            return steps.div_ceil(MERGED_STEPS_PER_WORK);
         }
         // Step by step, the axis whose step comes first: the axes are kept in the order of
         // their next steps, and an axis that has stepped moves down past those due sooner
