@@ -508,15 +508,16 @@ impl<const N: usize> Current<N> {
     /// low before its next step: the axes' clocks are merged with their state in a local
     /// copy, in 32-bit ticks from the last event, each step checked only against the horizon,
     /// the last event (an edge at the same tick joins it on the general path) and the end of
-    /// its axis's phase. `None` when the axes are not all such (the step-by-step loop takes
-    /// them). Out of line: its loop's registers stay its own.
+    /// its axis's phase. At most `max_steps` steps; returns how many it took, or `None` when
+    /// the axes are not all such (the step-by-step loop takes them). Out of line: its loop's
+    /// registers stay its own.
     #[inline(never)]
     fn run_cruises<const Q: usize>(
         &mut self,
         em: &mut Emitter<N>,
         tx: &mut Producer<'_, N, Q>,
         horizon: u64,
-        max_work: u32,
+        max_steps: u32,
         ticks_per_s: f64,
     ) -> Option<u32> {
         let _ = ticks_per_s;
@@ -568,11 +569,11 @@ impl<const N: usize> Current<N> {
         }
         let mut order = by_next_step::<N, u32>(|k| next.get(k).copied());
         let mut last = 0u32;
-        // Steps taken (the work), and the events written before them.
+        // Steps taken, and the events written before them.
         let mut steps = 0u32;
         let written_before = tx.written();
         let mut last_axis = self.last_axis;
-        while steps < max_work {
+        while steps < max_steps {
             // The axis whose step comes first.
             let i = usize::from(order.first().copied().unwrap_or(0));
             let (Some(lane), Some(due)) = (lanes.get_mut(i), next.get_mut(i)) else {
