@@ -1163,13 +1163,9 @@ mod tests {
             AxisConfig::linear(b'Z', 400.0, 900.0, 200.0, 500.0),
         ]);
         c.junction_deviation_mm = 0.01;
-        let mut seed = 0x9e37_79b9u32;
-        let mut random = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 17;
-            seed ^= seed << 5;
-            f32::from(seed as u16) / 65_536.0 - 0.5
-        };
+        let mut seed = 0x9e37_79b9u64;
+        let mut random =
+            move || f32::from(crate::testing::xorshift(&mut seed) as u16) / 65_536.0 - 0.5;
         let unit = |v: [f32; 3]| {
             let n = sqrtf(v.iter().map(|x| x * x).sum());
             v.map(|x| x / n)

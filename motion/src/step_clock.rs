@@ -464,12 +464,7 @@ mod tests {
     #[test]
     fn isqrt_is_exact_and_its_estimate_within_a_unit() {
         let mut seed = 0x2545_f491_4f6c_dd1du64;
-        let mut random = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        };
+        let mut random = move || crate::testing::xorshift(&mut seed);
         for _ in 0..200_000 {
             let bits = random() % 63;
             let w = random() >> (64 - bits).min(63);

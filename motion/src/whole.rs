@@ -88,11 +88,9 @@ mod tests {
     fn samples() -> impl Iterator<Item = f64> {
         let mut seed = 0x2545_f491_4f6c_dd1du64;
         (0..300_000).map(move |k| {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            let scale = f64::from((seed >> 57) as u32 % 70) - 4.0;
-            let x = (seed >> 11) as f64 / (1u64 << 53) as f64 * libm::exp2(scale);
+            let bits = crate::testing::xorshift(&mut seed);
+            let scale = f64::from((bits >> 57) as u32 % 70) - 4.0;
+            let x = (bits >> 11) as f64 / (1u64 << 53) as f64 * libm::exp2(scale);
             if k % 3 == 0 { libm::floor(x) } else { x }
         })
     }
