@@ -1241,9 +1241,12 @@ impl<const N: usize> Prep<N> {
             if work >= WORK_PER_FILL {
                 break Fill::More;
             }
-            if self.em.room < SLOTS_PER_STEP + 2 {
+            // A step needs the room of `SLOTS_PER_STEP + 2` slots, and a run of steps
+            // ([`Current::burst`]) one more: at less, the room is counted again, and the queue
+            // is full if it has no more.
+            if self.em.room <= SLOTS_PER_STEP + 2 {
                 self.em.room = tx.free();
-                if self.em.room < SLOTS_PER_STEP + 2 {
+                if self.em.room <= SLOTS_PER_STEP + 2 {
                     // Full before the lead (fast steps): topped up all the same.
                     self.refilling = false;
                     break Fill::Pending;
