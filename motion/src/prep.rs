@@ -35,6 +35,13 @@ use crate::queue::{Event, MAX_DELTA, Producer};
 use crate::step_clock::{CruiseGaps, StepClock};
 use crate::whole::{ceil_u64, floor_u64};
 
+/// How [`Current::run_cruises`] merges the axes' steps: by a scan of lanes kept in registers
+/// (RISC-V's 31 registers, and a firmware built at `opt-level = 2`, which unrolls the scan),
+/// or, on the Cortex-M (13 registers, and a firmware built at `opt-level = "z"`, which keeps
+/// loops), by the axes kept in the order of their next steps. Per step merged, on the bench's
+/// three axes: about 38 instructions against 53 on RISC-V, 75 against 53 on the Cortex-M4.
+const MERGE_IN_REGISTERS: bool = !cfg!(target_arch = "arm");
+
 /// Free slots kept for the events one step can need (the previous edge, a direction change,
 /// the splits of a long wait).
 const SLOTS_PER_STEP: usize = 4;
@@ -53,10 +60,9 @@ const PHASE_WORK: u32 = 24;
 /// What a step timed by a full square root (or in double precision) counts, in steps.
 const ROOT_WORK: u32 = 3;
 /// Steps of the cruising axes' merged walk ([`Current::run_cruises`]) that count as one: such
-/// a step costs about 70 instructions on the Cortex-M4, against about 180 on the general path
-/// (three axes: 108 per step event with the walk, 180 without), so that a call prepares three
-/// times as many of them for its set-up (the largest calls, within budget, in
-/// `docs/performance.md`).
+/// a step costs about 53 instructions on the Cortex-M4 and 38 on RISC-V, against about 180 on
+/// the general path, so that a call prepares three times as many of them for its set-up (the
+/// largest calls, within budget, in `docs/performance.md`).
 const MERGED_STEPS_PER_WORK: u32 = 3;
 
 /// A speed from the planner's square of it: single precision, as the planner holds it (a
@@ -100,21 +106,19 @@ impl AxisSteps {
     }
 }
 
-/// One axis in [`Current::run_cruises`]: its cruise's gaps in 32-bit ticks, kept apart from
-/// the others' while the clocks are merged (the tick of its next step is in the walk's own
-/// array, the one the merge compares).
+/// One axis in [`Current::run_cruises`]: the tick of its next step and its cruise's gaps, in
+/// the walk's 32-bit ticks (16 bytes: an axis's lane is found with one shift).
 #[derive(Debug, Clone, Copy)]
 struct Lane {
+    next: u32,
     gaps: CruiseGaps,
-    /// The steps it may take before the last of its phase.
-    left: u32,
 }
 
 impl Lane {
-    /// An axis with no step left.
+    /// An axis with no step left: never the first.
     const DONE: Self = Self {
+        next: u32::MAX,
         gaps: CruiseGaps::NONE,
-        left: 0,
     };
 }
 
@@ -438,7 +442,9 @@ impl<const N: usize> Current<N> {
             return self.run_alone(i, em, tx, horizon, limit, ticks_per_s);
         }
         let cruise_steps = max_work.saturating_mul(MERGED_STEPS_PER_WORK).min(room);
-        if let Some(steps) = self.run_cruises(em, tx, horizon, cruise_steps, ticks_per_s) {
+        if let Some(steps) =
+            self.run_cruises::<Q, MERGE_IN_REGISTERS>(em, tx, horizon, cruise_steps, ticks_per_s)
+        {
             return steps.div_ceil(MERGED_STEPS_PER_WORK);
         }
         // Step by step, the axis whose step comes first: the axes are kept in the order of
@@ -506,13 +512,20 @@ impl<const N: usize> Current<N> {
     /// [`Current::burst`] when every axis with steps left cruises with steady gaps (see
     /// [`Current::run_alone`]), its direction line set and its last edge a pulse and as long
     /// low before its next step: the axes' clocks are merged with their state in a local
-    /// copy, in 32-bit ticks from the last event, each step checked only against the horizon,
-    /// the last event (an edge at the same tick joins it on the general path) and the end of
-    /// its axis's phase. At most `max_steps` steps; returns how many it took, or `None` when
-    /// the axes are not all such (the step-by-step loop takes them). Out of line: its loop's
-    /// registers stay its own.
+    /// copy, in 32-bit ticks from the last event, each step checked only against one stop
+    /// tick (the horizon's, or the last step of an axis's phase if sooner) and the last event
+    /// (an edge at the same tick joins it on the general path). At most `max_steps` steps;
+    /// returns how many it took, or `None` when the axes are not all such (the step-by-step
+    /// loop takes them). Out of line: its loop's registers stay its own.
+    ///
+    /// The merge finds the first axis by a scan of the lanes when `IN_REGISTERS` (the lanes
+    /// are then matched by constant indices, and kept in registers where the core has enough
+    /// and the compiler unrolls the scan), and otherwise keeps the axes in the order of their
+    /// next steps, the lanes in memory ([`MERGE_IN_REGISTERS`] chooses). Both take the same
+    /// steps, but for which of the axes stepping at the same tick steps first, which shows
+    /// only where `max_steps` cuts between them.
     #[inline(never)]
-    fn run_cruises<const Q: usize>(
+    fn run_cruises<const Q: usize, const IN_REGISTERS: bool>(
         &mut self,
         em: &mut Emitter<N>,
         tx: &mut Producer<'_, N, Q>,
@@ -531,18 +544,13 @@ impl<const N: usize> Current<N> {
             return Some(0);
         }
         let spacing = 2 * em.pulse;
-        // The walk's ticks count from the last event.
+        // The walk's ticks count from the last event. It stops before the horizon, before the
+        // last step of each axis's phase (the general path's), and within one event's delay
+        // of the last event, so that every step it takes needs no check but the stop's.
         let origin = em.last_tick;
-        let span = StepClock::span(origin, horizon);
+        let mut stop = StepClock::span(origin, horizon).min(MAX_DELTA);
         let mut lanes = [Lane::DONE; N];
-        let mut next = [u32::MAX; N];
-        for (i, ((a, lane), due)) in self
-            .axes
-            .iter()
-            .zip(lanes.iter_mut())
-            .zip(next.iter_mut())
-            .enumerate()
-        {
+        for (i, (a, lane)) in self.axes.iter().zip(lanes.iter_mut()).enumerate() {
             if a.j > a.n {
                 continue;
             }
@@ -559,73 +567,96 @@ impl<const N: usize> Current<N> {
             {
                 return None;
             }
-            // A step at or past the span is never taken: it stays where the span ends.
-            let (tick, gaps) = clock.near(origin, span)?;
-            *due = tick;
-            *lane = Lane {
-                gaps,
-                left: a.phase_last.saturating_sub(a.j),
-            };
+            let (tick, gaps) = clock.near(origin, stop)?;
+            let last = clock.tick_ahead(a.phase_last.saturating_sub(a.j))?;
+            stop = stop.min(last.saturating_sub(origin).min(u64::from(stop)) as u32);
+            *lane = Lane { next: tick, gaps };
         }
-        let mut order = by_next_step::<N, u32>(|k| next.get(k).copied());
-        let mut last = 0u32;
-        // Steps taken, and the events written before them.
-        let mut steps = 0u32;
+        // The axes in the order of their next steps, for a merge that keeps it.
+        let mut order = if IN_REGISTERS {
+            [0; N]
+        } else {
+            by_next_step::<N, u32>(|k| lanes.get(k).map(|l| l.next))
+        };
+        // The steps each axis took.
+        let mut taken = [0u32; N];
         let written_before = tx.written();
-        let mut last_axis = self.last_axis;
-        while steps < max_steps {
-            // The axis whose step comes first.
-            let i = usize::from(order.first().copied().unwrap_or(0));
-            let (Some(lane), Some(due)) = (lanes.get_mut(i), next.get_mut(i)) else {
-                break;
-            };
-            let t = *due;
-            if t >= span || lane.left == 0 {
-                break;
-            }
-            let delta = t.wrapping_sub(last);
-            // At the tick of an event this walk wrote (two axes stepping together, as on a
-            // diagonal), the edge joins it; an earlier event is the general path's to join.
-            if delta == 0 && steps > 0 {
-                let edge = Event {
-                    rise: 1 << i,
-                    ..Event::default()
+        // Steps taken, the tick of the last and its axis.
+        let (steps, last, last_axis) = tx.in_run(|tx| {
+            let mut last = 0u32;
+            let mut steps = 0u32;
+            let mut last_axis = self.last_axis;
+            while steps < max_steps {
+                // The axis whose step comes first (of two at the same tick, the lower in a
+                // scan; in the kept order, the one due there first).
+                let (i, t) = if IN_REGISTERS {
+                    first_lane(&lanes)
+                } else {
+                    let i = usize::from(order.first().copied().unwrap_or(0));
+                    (i, lanes.get(i).map_or(u32::MAX, |l| l.next))
                 };
-                if !tx.amend_last(&edge) {
+                if t >= stop {
                     break;
                 }
-            } else if delta.wrapping_sub(1) >= MAX_DELTA || !tx.write_rise(delta, 1 << i) {
-                break;
+                let delta = t.wrapping_sub(last);
+                debug_assert!(delta <= MAX_DELTA);
+                // At the tick of an event this walk wrote (two axes stepping together, as on a
+                // diagonal), the edge joins it; an earlier event is the general path's to join.
+                let edge = 1u8 << i;
+                let written = if delta == 0 {
+                    steps > 0
+                        && tx.amend_last(&Event {
+                            rise: edge,
+                            ..Event::default()
+                        })
+                } else {
+                    tx.write_rise(delta, edge)
+                };
+                if !written {
+                    break;
+                }
+                #[cfg(debug_assertions)]
+                if let Some(a) = self.axes.get(i) {
+                    let exact = self
+                        .profile
+                        .time_at(
+                            a.step_mm_at(a.j + taken.get(i).copied().unwrap_or(0)) - self.s_anchor,
+                        )
+                        .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s);
+                    let tick = origin + u64::from(t);
+                    self.burst_error = self.burst_error.max((tick as f64 - exact).abs());
+                }
+                last = t;
+                last_axis = i as u8;
+                steps += 1;
+                if IN_REGISTERS {
+                    // The lane that stepped is matched by a constant index, so that the lanes
+                    // stay in registers.
+                    for (k, (lane, n)) in lanes.iter_mut().zip(taken.iter_mut()).enumerate() {
+                        if k == i {
+                            *n += 1;
+                            lane.next = lane.gaps.after(t);
+                        }
+                    }
+                } else if let (Some(lane), Some(n)) = (lanes.get_mut(i), taken.get_mut(i)) {
+                    *n += 1;
+                    let tick = lane.gaps.after(t);
+                    lane.next = tick;
+                    sink_first(&mut order, tick, |k| lanes.get(k).map(|l| l.next));
+                }
             }
-            #[cfg(debug_assertions)]
-            if let Some(a) = self.axes.get(i) {
-                let taken = a.phase_last.saturating_sub(a.j) - lane.left;
-                let exact = self
-                    .profile
-                    .time_at(a.step_mm_at(a.j + taken) - self.s_anchor)
-                    .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s);
-                let tick = origin + u64::from(t);
-                self.burst_error = self.burst_error.max((tick as f64 - exact).abs());
-            }
-            last = t;
-            last_axis = i as u8;
-            steps += 1;
-            lane.left -= 1;
-            let tick = lane.gaps.after(t);
-            *due = tick;
-            sink_first(&mut order, tick, |k| next.get(k).copied());
-        }
+            (steps, last, last_axis)
+        });
         if steps > 0 {
             // Each clock moves on by the steps its axis took (from the steps it had left), in
             // its own 64-bit terms.
-            for (((a, lane), next), rose) in self
+            for (((a, &taken), next), rose) in self
                 .axes
                 .iter_mut()
-                .zip(lanes.iter())
+                .zip(taken.iter())
                 .zip(self.next_tick.iter_mut())
                 .zip(em.rose_at.iter_mut())
             {
-                let taken = a.phase_last.saturating_sub(a.j) - lane.left;
                 if taken == 0 {
                     continue;
                 }
@@ -815,6 +846,19 @@ fn by_next_step<const N: usize, T: Ord>(next_of: impl Fn(usize) -> Option<T>) ->
         }
     }
     order
+}
+
+/// The lane of [`Current::run_cruises`] whose step comes first, and its tick: of two at the
+/// same tick, the lower axis.
+#[inline(always)]
+fn first_lane<const N: usize>(lanes: &[Lane; N]) -> (usize, u32) {
+    let mut first = (0, u32::MAX);
+    for (k, lane) in lanes.iter().enumerate() {
+        if lane.next < first.1 {
+            first = (k, lane.next);
+        }
+    }
+    first
 }
 
 /// The first axis of `order` has stepped and its next step is at `tick`: it moves down past
@@ -1421,5 +1465,139 @@ impl<const N: usize> Prep<N> {
         self.line = block.line;
         self.rapid = block.speed.rapid;
         self.spindle_rpm = block.spindle_rpm;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::queue::{Consumer, Raw, StepQueue};
+    use crate::testing::xorshift;
+
+    /// Three axes cruising from `origin` with random intervals, first steps and lengths.
+    fn cruises(seed: &mut u64, origin: u64) -> Current<3> {
+        let mut cur = Current::<3>::unloaded();
+        for (a, next) in cur.axes.iter_mut().zip(cur.next_tick.iter_mut()) {
+            let interval = 40.0 + (xorshift(seed) % 4_000) as f64 / 7.0;
+            let first = (xorshift(seed) % 200) as f64 + (xorshift(seed) % 1000) as f64 / 997.0;
+            let n = 1 + (xorshift(seed) % 300) as u32;
+            let Some(clock) = StepClock::cruise(origin, first + 1.0, interval, n) else {
+                panic!("a cruise in range");
+            };
+            *a = AxisSteps {
+                n,
+                j: 1,
+                phase: 1,
+                phase_last: n,
+                step_mm: 0.0125,
+                per_mm: 80.0,
+                timing: Timing::Clock(clock),
+            };
+            *next = clock.tick();
+        }
+        // Some axes start at the same tick (a diagonal's steps share their events).
+        if xorshift(seed).is_multiple_of(2) {
+            let (first, rest) = cur.axes.split_at_mut(1);
+            if let (Some(a), Some(b)) = (first.first(), rest.first_mut()) {
+                b.timing = a.timing;
+                b.n = a.n;
+                b.phase_last = a.phase_last;
+            }
+            cur.next_tick[1] = cur.next_tick[0];
+        }
+        cur
+    }
+
+    fn emitter(origin: u64) -> Emitter<3> {
+        Emitter {
+            pulse: 8,
+            dir_setup: 8,
+            last_tick: origin,
+            amendable: false,
+            last_rest: false,
+            pushed_ticks: 0,
+            rose_at: [0; 3],
+            room: 256,
+            dir_neg: 0,
+            dir_known: 0b111,
+        }
+    }
+
+    /// The steps `walk` takes and the events it writes into a fresh queue (at most its 1,024
+    /// slots), from the tick before the axes' first step.
+    fn events_of(
+        cur: &mut Current<3>,
+        walk: impl FnOnce(&mut Current<3>, &mut Emitter<3>, &mut Producer<'_, 3, 1024>) -> Option<u32>,
+    ) -> (Option<u32>, [Raw; 1024]) {
+        let q = StepQueue::<3, 1024>::new();
+        let mut tx = Producer::new(&q);
+        let mut em = emitter(cur.next_tick.iter().min().copied().unwrap_or(1) - 1);
+        let steps = walk(cur, &mut em, &mut tx);
+        tx.publish();
+        let mut rx = Consumer::new(&q);
+        let mut events = [Raw::default(); 1024];
+        for slot in events.iter_mut() {
+            let Some(ev) = rx.peek() else {
+                break;
+            };
+            *slot = ev;
+            rx.advance();
+        }
+        (steps, events)
+    }
+
+    /// `cut` is `whole` cut at its `steps` steps: the same events, but the last, which may
+    /// hold some of the edges of `whole`'s at the same tick (of axes stepping together, the
+    /// steps taken are any of them).
+    fn is_cut_of(cut: &(Option<u32>, [Raw; 1024]), whole: &(Option<u32>, [Raw; 1024])) -> bool {
+        let written = cut.1.iter().take_while(|ev| **ev != Raw::default()).count();
+        let Some(last) = written.checked_sub(1) else {
+            return cut.0 == Some(0);
+        };
+        let (Some(a), Some(b)) = (cut.1.get(last), whole.1.get(last)) else {
+            return false;
+        };
+        let edges: u32 = cut.1.iter().map(|ev| ev.rise().count_ones()).sum();
+        cut.1.get(..last) == whole.1.get(..last)
+            && a.delta() == b.delta()
+            && a.rise() & !b.rise() == 0
+            && cut.0 == Some(edges)
+    }
+
+    #[test]
+    fn both_merges_of_the_cruises_take_the_same_steps() {
+        let mut seed = 0x5eed_cafe_u64;
+        let (mut stepped, mut cut_at_a_tie) = (0, 0);
+        for round in 0..2_000 {
+            let origin = 1_000 + xorshift(&mut seed) % 1_000_000;
+            let start = cruises(&mut seed, origin);
+            let horizon = origin + 500 + xorshift(&mut seed) % 100_000;
+            let max_steps = 1 + (xorshift(&mut seed) % 700) as u32;
+            let run = |in_registers: bool, max_steps: u32| {
+                let mut cur = start;
+                let out = events_of(&mut cur, |cur, em, tx| {
+                    if in_registers {
+                        cur.run_cruises::<1024, true>(em, tx, horizon, max_steps, 8e6)
+                    } else {
+                        cur.run_cruises::<1024, false>(em, tx, horizon, max_steps, 8e6)
+                    }
+                });
+                (out, cur.next_tick, cur.axes.map(|a| (a.j, a.timing)))
+            };
+            // Up to the horizon or an axis's last step, the same events and axes after them.
+            let (scanned, ordered) = (run(true, 1_000), run(false, 1_000));
+            assert_eq!(scanned, ordered, "round {round}");
+            // At most `max_steps`: the same, but which of the axes stepping together at the
+            // last tick stepped.
+            for in_registers in [true, false] {
+                let (cut, _, _) = run(in_registers, max_steps);
+                assert!(is_cut_of(&cut, &scanned.0), "round {round}, {in_registers}");
+                cut_at_a_tie += u32::from(cut != run(!in_registers, max_steps).0);
+            }
+            stepped += scanned.0.0.unwrap_or(0);
+        }
+        // The walks took steps, and some were cut between the steps of a tick.
+        assert!(stepped > 100_000, "{stepped} steps");
+        assert!(cut_at_a_tie > 0);
     }
 }

@@ -338,6 +338,21 @@ impl<'q, const N: usize, const Q: usize> Producer<'q, N, Q> {
         self.next
     }
 
+    /// Run `writes` on a copy of this producer, and take its writes back: a loop of writes
+    /// keeps the copy's write position in a register, where this producer's, behind a
+    /// reference, would be stored at every write.
+    #[inline(always)]
+    pub(crate) fn in_run<R>(&mut self, writes: impl FnOnce(&mut Self) -> R) -> R {
+        let mut run = Self {
+            q: self.q,
+            head: self.head,
+            next: self.next,
+        };
+        let result = writes(&mut run);
+        self.next = run.next;
+        result
+    }
+
     /// Events written and not yet taken by the interrupt.
     pub(crate) fn len(&self) -> usize {
         Q - self.free()

@@ -244,20 +244,34 @@ impl StepClock {
     /// with carry, where the clock's own time is 64-bit.
     #[inline(always)]
     pub(crate) fn near(&self, origin: u64, span: u32) -> Option<(u32, CruiseGaps)> {
+        let (base, time, interval) = self.cruise_state()?;
+        let tick = (base + (time >> 32)).saturating_sub(origin);
+        let gaps = CruiseGaps {
+            frac: time as u32,
+            whole: (interval >> 32) as u32,
+            part: interval as u32,
+        };
+        Some((tick.min(u64::from(span)) as u32, gaps))
+    }
+
+    /// The tick of the step `steps` after the current one, on a cruise; `None` for a ramp or
+    /// past the 64-bit range. [`CruiseGaps::after`] reaches the same tick `steps` times on.
+    #[inline(always)]
+    pub(crate) fn tick_ahead(&self, steps: u32) -> Option<u64> {
+        let (base, time, interval) = self.cruise_state()?;
+        let time = u64::from(steps).checked_mul(interval)?.checked_add(time)?;
+        base.checked_add(time >> 32)
+    }
+
+    /// A cruise's base tick, time and interval (32.32); `None` for a ramp.
+    #[inline(always)]
+    fn cruise_state(&self) -> Option<(u64, u64, u64)> {
         match *self {
             Self::Cruise {
                 base,
                 time,
                 interval,
-            } => {
-                let tick = (base + (time >> 32)).saturating_sub(origin);
-                let gaps = CruiseGaps {
-                    frac: time as u32,
-                    whole: (interval >> 32) as u32,
-                    part: interval as u32,
-                };
-                Some((tick.min(u64::from(span)) as u32, gaps))
-            }
+            } => Some((base, time, interval)),
             Self::Ramp { .. } => None,
         }
     }
@@ -513,6 +527,7 @@ mod tests {
             near = gaps.after(near);
             clock.advance();
             if steps % 9_973 == 0 {
+                assert_eq!(start.tick_ahead(steps), Some(origin + u64::from(near)));
                 let mut skipped = start;
                 let last = skipped.skip(steps);
                 assert_eq!(skipped, clock, "skip {steps}");
@@ -528,6 +543,10 @@ mod tests {
         assert_eq!(start.near(origin, 10).map(|(t, _)| t), Some(10));
         let ramp = StepClock::ramp(0, 0.0, 100.0, 10.0, true, 10).expect("in range");
         assert!(ramp.near(0, 1 << 31).is_none());
+        assert_eq!(ramp.tick_ahead(1), None);
+        assert_eq!(start.tick_ahead(0), Some(start.tick()));
+        // Steps past the 64-bit range of the clock's 32.32 time.
+        assert_eq!(start.tick_ahead(u32::MAX), None);
     }
 
     #[test]
