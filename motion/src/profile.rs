@@ -56,6 +56,16 @@ impl Profile {
     /// Cover `r` mm starting at `v0`, cruising at most at `vn`, ending at `ve` (lowered to what
     /// is reachable, raised to what deceleration allows), with acceleration `a`.
     pub(crate) fn plan(r: f64, v0: f64, vn: f64, ve: f64, a: f64) -> Self {
+        // Entered, cruised and left at one speed (a chain of short moves at one feed): all of
+        // it a cruise, as `plan_ramps` finds, without its divisions.
+        if v0 == vn && ve == vn {
+            return Self::from_phases(v0, a, 0.0, true, vn, at_least_zero(r), 0.0, ve, false);
+        }
+        Self::plan_ramps(r, v0, vn, ve, a)
+    }
+
+    /// [`Profile::plan`] in general: the ramps' lengths worked out.
+    fn plan_ramps(r: f64, v0: f64, vn: f64, ve: f64, a: f64) -> Self {
         let r = at_least_zero(r);
         let two_a = 2.0 * a;
         // The exit speed within what the block can reach from v0, compared squared: a square
@@ -269,6 +279,24 @@ mod tests {
 
     fn close(a: f64, b: f64) -> bool {
         (a - b).abs() <= 1e-9 * (1.0 + a.abs().max(b.abs()))
+    }
+
+    #[test]
+    fn a_block_at_one_speed_is_planned_as_in_general() {
+        let mut seed = 0x0123_4567_89ab_cdef_u64;
+        for _ in 0..10_000 {
+            let mut draw =
+                |scale: f64| (crate::testing::xorshift(&mut seed) % 1_000_000) as f64 / 1e6 * scale;
+            let (r, v, a) = (draw(20.0) - 1.0, draw(400.0), 1.0 + draw(20_000.0));
+            assert_eq!(
+                Profile::plan(r, v, v, v, a),
+                Profile::plan_ramps(r, v, v, v, a)
+            );
+        }
+        assert_eq!(
+            Profile::plan(0.0, 0.0, 0.0, 0.0, 1.0),
+            Profile::plan_ramps(0.0, 0.0, 0.0, 0.0, 1.0)
+        );
     }
 
     #[test]
