@@ -269,8 +269,16 @@ impl<const N: usize> Current<N> {
         }
         let h = a.step_mm;
         let per_mm = a.per_mm;
-        // Step j is at h·(j − ½) − s_anchor along the profile.
-        let offset = self.s_anchor * per_mm + 0.5;
+        // Step j is at h·(j − ½) − s_anchor along the profile. The anchor is the block's start
+        // until the block is planned again on its way (a hold, an override, a new exit speed):
+        // in software double precision, its products and sums are only worked out then (here
+        // and below, the same to the bit).
+        let anchored = self.s_anchor != 0.0;
+        let offset = if anchored {
+            self.s_anchor * per_mm + 0.5
+        } else {
+            0.5
+        };
         while a.phase < PHASES {
             // An empty phase before the last holds no step: passed over without its bounds
             // (a multiplication, an addition and a `ceil` in software double precision).
@@ -279,14 +287,17 @@ impl<const N: usize> Current<N> {
                 continue;
             }
             let ph = self.profile.phase(a.phase);
-            let last = if a.phase + 1 < PHASES {
+            let stops = self.profile.stops();
+            let last = if a.phase + 1 < PHASES && (stops || !self.profile.ends_with(a.phase)) {
                 // The last step before the phase's end.
                 ceil_u64(ph.end * per_mm + offset).saturating_sub(1)
-            } else if self.profile.stops() {
+            } else if stops {
                 // Within rounding of a hold's stopping point, a step is at it.
                 let end = ph.end * (1.0 + 1e-9) + 1e-12;
                 floor_u64(end * per_mm + offset)
             } else {
+                // The phase that ends the profile, not at a stop, ends at the block's end:
+                // `ceil(end·per_mm + offset) − 1` is the block's last step.
                 u64::MAX
             };
             let last = last.min(u64::from(a.n));
@@ -300,13 +311,23 @@ impl<const N: usize> Current<N> {
             return;
         }
         let ph = self.profile.phase(a.phase);
-        let x = at_least_zero(a.step_mm_at(a.j) - self.s_anchor - ph.start);
+        // How far into the phase the next step is, mm.
+        let x = if anchored || a.j != 1 || ph.start != 0.0 {
+            at_least_zero(a.step_mm_at(a.j) - self.s_anchor - ph.start)
+        } else {
+            // The block's first step, in a phase from its start: half a step in.
+            at_least_zero(a.step_mm * 0.5)
+        };
         let steps = a.phase_last - a.j + 1;
         // The phase's start, found by the first axis that enters it.
         let PhaseStart { base, rel, rate } = match self.starts.get(a.phase).copied().flatten() {
             Some(start) => start,
             None => {
-                let start = self.t_anchor + ph.t_start * ticks_per_s;
+                let start = if ph.t_start == 0.0 {
+                    self.t_anchor
+                } else {
+                    self.t_anchor + ph.t_start * ticks_per_s
+                };
                 let base = floor_u64(start);
                 let rate = match ph.shape {
                     Shape::Cruise => ticks_per_s / ph.v_start,

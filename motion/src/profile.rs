@@ -196,6 +196,11 @@ impl Profile {
         length.to_bits() << 1 == 0
     }
 
+    /// Whether every phase after `p` is empty ([`Profile::is_empty`]): `p` ends the profile.
+    pub(crate) fn ends_with(&self, p: usize) -> bool {
+        (p + 1..PHASES).all(|q| self.is_empty(q))
+    }
+
     /// Whether the profile ends at rest inside the block (a completed hold): no point past
     /// [`Profile::length`] (give or take rounding) is reached.
     pub(crate) fn stops(&self) -> bool {
