@@ -178,13 +178,14 @@ impl<'q, const N: usize, const Q: usize> StepGenerator<'q, N, Q> {
         steppers: &mut [S; N],
         switches: &mut [L],
     ) -> Option<Instant> {
+        // An event due (or any alarm out of the running state): the general path, asked
+        // first, as most alarms are a step's.
+        if now.is_at_or_after(self.wake_at) {
+            return self.serve(now, steppers, switches);
+        }
         // The end of a pulse before the next event, the call of every other alarm.
         let high = self.high;
-        if self.mode == Mode::Running
-            && high != 0
-            && now.is_at_or_after(self.next_fall)
-            && !now.is_at_or_after(self.wake_at)
-        {
+        if self.mode == Mode::Running && high != 0 && now.is_at_or_after(self.next_fall) {
             // One line raised (one axis moving, or the others' pulses over): it is the one
             // due, ended here without the general path's registers saved and restored.
             if high & high.wrapping_sub(1) == 0 {
