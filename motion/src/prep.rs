@@ -100,7 +100,7 @@ impl AxisSteps {
 }
 
 /// One axis in [`Current::run_cruises`]: the tick of its next step and its cruise's gaps, in
-/// the walk's 32-bit ticks (16 bytes: an axis's lane is found with one shift).
+/// the walk's 32-bit ticks.
 #[derive(Debug, Clone, Copy)]
 struct Lane {
     next: u32,
