@@ -578,7 +578,7 @@ impl<const N: usize> Current<N> {
             }
             let (tick, gaps) = clock.near(origin, stop)?;
             let last = clock.tick_ahead(a.phase_last.saturating_sub(a.j))?;
-            stop = stop.min(last.saturating_sub(origin).min(u64::from(stop)) as u32);
+            stop = last.saturating_sub(origin).min(u64::from(stop)) as u32;
             *lane = Lane { next: tick, gaps };
         }
         // The steps each axis took.

@@ -221,10 +221,8 @@ impl StepClock {
     /// A cruise's fewest and most ticks from one step to the next (its interval rounded down
     /// and up); `None` for a ramp.
     pub(crate) fn cruise_gaps(&self) -> Option<(u64, u64)> {
-        match *self {
-            Self::Cruise { interval, .. } => Some((interval >> 32, (interval >> 32) + 1)),
-            Self::Ramp { .. } => None,
-        }
+        let (_, _, interval) = self.cruise_state()?;
+        Some((interval >> 32, (interval >> 32) + 1))
     }
 
     /// The span a walk in 32-bit ticks from `origin` ([`StepClock::near`]) may cover up to
