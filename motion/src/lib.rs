@@ -43,6 +43,9 @@
 //! - A refused G-code line changes nothing; unsupported commands are named in the error.
 //! - The queue uses load/store atomics only (no compare-and-swap, no `unsafe`): it works on
 //!   `thumbv7em` and `riscv32imc` alike.
+//! - No `unsafe` code but one declaration: on hard-float Arm, single precision's square root
+//!   is the FPU's instruction, written in assembly (`fpu.rs`), where `libm` would run a
+//!   software routine for the same correctly rounded result.
 //!
 //! ## Modules
 //!
@@ -56,7 +59,7 @@
 //! | [`preview`] | [`Preview`]: the path a program asks for, as the kernel cuts it into straight pieces (a toolpath plot) |
 //! | [`replay`] | [`Replay`]: the modal state a program leaves after some of its lines (a resumed job) |
 #![no_std]
-#![forbid(unsafe_code)]
+#![deny(unsafe_code)]
 #![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::panic))]
 
 #[cfg(test)]
@@ -70,6 +73,7 @@ mod drill;
 pub mod effect;
 pub mod error;
 pub mod estimate;
+mod fpu;
 mod interp;
 mod kernel;
 mod planner;

@@ -24,7 +24,7 @@
 //! axes' cap, its corner speed), so that a change re-derives its nominal and maximum entry
 //! speeds and re-plans the whole ring.
 
-use libm::sqrtf;
+use crate::fpu::sqrtf;
 
 use crate::arc::Nm;
 use crate::config::{AxisKind, MachineConfig};

@@ -62,7 +62,7 @@ const MERGED_STEPS_PER_WORK: u32 = 3;
 /// square root in double precision would add digits the square does not have, for ten times
 /// the instructions in software).
 fn speed_of(square: f32) -> f64 {
-    f64::from(libm::sqrtf(square))
+    f64::from(crate::fpu::sqrtf(square))
 }
 
 /// How an axis's steps are timed in its current phase.

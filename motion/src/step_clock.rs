@@ -428,7 +428,7 @@ fn isqrt(w: u64) -> u32 {
 /// The estimate is at most one unit from `⌊√w⌋`.
 #[inline(always)]
 fn root_estimate(w: u64) -> u32 {
-    let r = (libm::sqrtf(w as f32) as u32).min(MAX_ROOT);
+    let r = (crate::fpu::sqrtf(w as f32) as u32).min(MAX_ROOT);
     let sq = u64::from(r) * u64::from(r);
     let error = w.abs_diff(sq);
     let twice = 2 * u64::from(r);
