@@ -99,20 +99,83 @@ impl AxisSteps {
     }
 }
 
-/// One axis in [`Current::run_cruises`]: the tick of its next step and its cruise's gaps, in
-/// the walk's 32-bit ticks.
+/// One axis in [`Current::run_cruises`], in the form each core's registers hold best (see
+/// [`PackedLane`] and [`SplitLane`]). Measured on the other core, each form costs the walk 4
+/// to 8 instructions a step more.
+#[cfg(not(target_arch = "arm"))]
+type Lane = PackedLane;
+/// One axis in [`Current::run_cruises`] (see the RISC-V build's).
+#[cfg(target_arch = "arm")]
+type Lane = SplitLane;
+
+/// A [`Lane`] as the time of its next step and its cruise's interval, both in the walk's
+/// 32-bit ticks with a 32-bit fraction (32.32), so that a step is one 64-bit addition: RISC-V's
+/// 31 registers hold every lane.
+#[cfg(any(test, not(target_arch = "arm")))]
 #[derive(Debug, Clone, Copy)]
-struct Lane {
+struct PackedLane {
+    at: u64,
+    interval: u64,
+}
+
+#[cfg(any(test, not(target_arch = "arm")))]
+impl PackedLane {
+    /// An axis with no step left: never the first.
+    const DONE: Self = Self::new(u32::MAX, CruiseGaps::NONE);
+
+    /// The axis whose next step is at `tick`, `gaps` leading on from it.
+    #[inline(always)]
+    const fn new(tick: u32, gaps: CruiseGaps) -> Self {
+        let (at, interval) = gaps.fixed_from(tick);
+        Self { at, interval }
+    }
+
+    /// The tick of its next step.
+    #[inline(always)]
+    fn next(&self) -> u32 {
+        (self.at >> 32) as u32
+    }
+
+    /// Move on past its next step (at `tick`, which this form does not need).
+    #[inline(always)]
+    fn step(&mut self, tick: u32) {
+        let _ = tick;
+        self.at = self.at.wrapping_add(self.interval);
+    }
+}
+
+/// A [`Lane`] as the tick of its next step apart from its cruise's gaps: on the Cortex-M,
+/// whose 13 registers cannot hold every lane, a step reads the tick alone and moves on from
+/// the one the scan found.
+#[cfg(any(test, target_arch = "arm"))]
+#[derive(Debug, Clone, Copy)]
+struct SplitLane {
     next: u32,
     gaps: CruiseGaps,
 }
 
-impl Lane {
+#[cfg(any(test, target_arch = "arm"))]
+impl SplitLane {
     /// An axis with no step left: never the first.
-    const DONE: Self = Self {
-        next: u32::MAX,
-        gaps: CruiseGaps::NONE,
-    };
+    const DONE: Self = Self::new(u32::MAX, CruiseGaps::NONE);
+
+    /// The axis whose next step is at `tick`, `gaps` leading on from it.
+    #[inline(always)]
+    const fn new(tick: u32, gaps: CruiseGaps) -> Self {
+        Self { next: tick, gaps }
+    }
+
+    /// The tick of its next step.
+    #[inline(always)]
+    fn next(&self) -> u32 {
+        self.next
+    }
+
+    /// Move on past its next step, which is at `tick`.
+    #[inline(always)]
+    fn step(&mut self, tick: u32) {
+        self.next = self.gaps.after(tick);
+    }
 }
 
 /// Where a phase starts on the step clocks' timeline, the same for every axis that steps in
@@ -579,7 +642,7 @@ impl<const N: usize> Current<N> {
             let (tick, gaps) = clock.near(origin, stop)?;
             let last = clock.tick_ahead(a.phase_last.saturating_sub(a.j))?;
             stop = last.saturating_sub(origin).min(u64::from(stop)) as u32;
-            *lane = Lane { next: tick, gaps };
+            *lane = Lane::new(tick, gaps);
         }
         // The steps each axis took.
         let mut taken = [0u32; N];
@@ -842,9 +905,9 @@ fn first_lane<const N: usize>(lanes: &[Lane; N]) -> (usize, u32) {
     #[inline(always)]
     fn scan<const N: usize>(lanes: &[Lane; N], k: usize, first: &mut (usize, u32)) {
         if let Some(lane) = lanes.get(k)
-            && lane.next < first.1
+            && lane.next() < first.1
         {
-            *first = (k, lane.next);
+            *first = (k, lane.next());
         }
     }
     let mut first = (0, u32::MAX);
@@ -860,8 +923,8 @@ fn first_lane<const N: usize>(lanes: &[Lane; N]) -> (usize, u32) {
     first
 }
 
-/// Lane `i` of [`Current::run_cruises`] took its step at tick `t`: it moves on to its next
-/// one, and counts the step. As in [`first_lane`], by constant indices.
+/// Lane `i` of [`Current::run_cruises`] took its step at tick `t`: it moves on to its next one, and
+/// counts the step. As in [`first_lane`], by constant indices.
 #[inline(always)]
 fn step_lane<const N: usize>(lanes: &mut [Lane; N], taken: &mut [u32; N], i: usize, t: u32) {
     #[inline(always)]
@@ -876,7 +939,7 @@ fn step_lane<const N: usize>(lanes: &mut [Lane; N], taken: &mut [u32; N], i: usi
             && let (Some(lane), Some(n)) = (lanes.get_mut(k), taken.get_mut(k))
         {
             *n += 1;
-            lane.next = lane.gaps.after(t);
+            lane.step(t);
         }
     }
     step_if(lanes, taken, 0, i, t);
@@ -1656,6 +1719,43 @@ mod tests {
         // The walks took steps, some of them at the same tick.
         assert!(stepped > 100_000, "{stepped} steps");
         assert!(together > 100, "{together} events of several steps");
+    }
+
+    #[test]
+    fn both_lane_forms_step_as_the_clock_does() {
+        let mut seed = 0x1a4e_5eed_u64;
+        let mut compared = 0u32;
+        for _ in 0..500 {
+            let origin = 1_000 + xorshift(&mut seed) % 1_000_000;
+            let start = cruises(&mut seed, origin);
+            for a in &start.axes {
+                let Timing::Clock(mut clock) = a.timing else {
+                    panic!("a clock");
+                };
+                let Some((tick, gaps)) = clock.near(origin, 1 << 31) else {
+                    panic!("a cruise");
+                };
+                let (mut packed, mut split) =
+                    (PackedLane::new(tick, gaps), SplitLane::new(tick, gaps));
+                for _ in 0..200 {
+                    let at = clock.tick() - origin;
+                    assert_eq!(
+                        (u64::from(packed.next()), u64::from(split.next())),
+                        (at, at)
+                    );
+                    packed.step(packed.next());
+                    split.step(split.next());
+                    clock.advance();
+                    compared += 1;
+                }
+            }
+        }
+        assert_eq!(compared, 500 * 3 * 200);
+        // A lane with no step left is never the first.
+        assert_eq!(
+            (PackedLane::DONE.next(), SplitLane::DONE.next()),
+            (u32::MAX, u32::MAX)
+        );
     }
 
     /// The tick the walk from `cur` counts from: the one before the axes' first step.

@@ -215,6 +215,17 @@ impl CruiseGaps {
         self.frac = frac;
         tick.wrapping_add(self.whole).wrapping_add(u32::from(carry))
     }
+
+    /// The step at `tick` and the interval, each as one 32.32 number of ticks: the interval
+    /// added to the step gives the next, as [`CruiseGaps::after`] does.
+    #[cfg(any(test, not(target_arch = "arm")))]
+    #[inline(always)]
+    pub(crate) const fn fixed_from(self, tick: u32) -> (u64, u64) {
+        (
+            (tick as u64) << 32 | self.frac as u64,
+            (self.whole as u64) << 32 | self.part as u64,
+        )
+    }
 }
 
 impl StepClock {
