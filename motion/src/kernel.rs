@@ -268,6 +268,10 @@ pub struct Kernel<'q, const N: usize, const B: usize = 32, const Q: usize = 256>
     /// The spindle speed the moves queued now carry, rpm.
     block_rpm: u32,
     stops_seen: u32,
+    /// Until when a [`Kernel::poll`] has nothing to do unless the interrupt stops: set by one
+    /// that found nothing, cleared by any call that gives the thread side work of its own (a
+    /// cycle, a flush, a stop) and by every poll that does work.
+    quiet_until: Option<Instant>,
     lead_ticks: u32,
     line_tag: u32,
 }
@@ -342,6 +346,7 @@ pub fn split<'q, const N: usize, const B: usize, const Q: usize>(
         overrides: (100, 100),
         block_rpm: 0,
         stops_seen: queue.stops.load(Ordering::Relaxed),
+        quiet_until: None,
         lead_ticks: lead,
         line_tag: 0,
         bounds: axis_bounds(&config),
@@ -720,6 +725,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 feed_mm_min,
                 ramp,
             } => {
+                self.quiet_until = None;
                 self.arc = Some(PendingArc {
                     cutter,
                     feed_mm_min,
@@ -731,6 +737,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
                 None
             }
             Action::Drill { cycle, feed_mm_min } => {
+                self.quiet_until = None;
                 self.drill = Some(PendingDrill {
                     cycle,
                     feed_mm_min,
@@ -1045,6 +1052,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         self.hold = true;
         self.prep.set_hold(true);
         self.stop_requested = true;
+        self.quiet_until = None;
     }
 
     /// `M112`: cut motion at once and lock the machine until a reset.
@@ -1100,6 +1108,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         q.homing_mask.store(0, Ordering::Relaxed);
         q.flush_req.store(req, Ordering::Release);
         self.flush = Some(req);
+        self.quiet_until = None;
     }
 
     /// Change steps per unit (`M92`), keeping the machine where it is.
@@ -1340,34 +1349,78 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// dozen step events (under 20,000 instructions on a Cortex-M4, `docs/performance.md`),
     /// and a motion starts once its lead is prepared.
     pub fn poll(&mut self, now: Instant) -> Option<Instant> {
-        if self.has_nothing_to_do(now) {
+        if self.is_quiet(now) || self.has_nothing_to_do(now) {
             self.prep_more = false;
             return None;
         }
+        self.quiet_until = None;
         self.poll_fully(now)
+    }
+
+    /// Whether this poll comes before the instant the last one found it would have nothing to
+    /// do until, with no stop of the interrupt since. Nothing has given the thread side work
+    /// meanwhile (that clears the instant), and the queue runs down by no more than the time
+    /// that passes, so the answer still holds: most polls while the machine moves read a clock
+    /// and a counter, not the whole state.
+    #[inline(always)]
+    fn is_quiet(&mut self, now: Instant) -> bool {
+        let Some(until) = self.quiet_until else {
+            return false;
+        };
+        // Before `until`, and by no more than the lead: an instant left from long ago (the
+        // clock wraps) is not taken for one to come.
+        let left = until.ticks().wrapping_sub(now.ticks());
+        if left == 0
+            || left > self.lead_ticks
+            || self.tx.shared().stops.load(Ordering::Acquire) != self.stops_seen
+        {
+            return false;
+        }
+        debug_assert!(
+            !self.has_thread_side_work(),
+            "work left behind a quiet poll"
+        );
+        // What the queue holds at the least: it holds half the lead at `until`.
+        self.prep.note_queued(left + self.lead_ticks / 2);
+        true
+    }
+
+    /// Whether a cycle (homing, probing, an arc or drilling cycle being cut), a flush or a stop
+    /// waits on the thread side.
+    #[inline(always)]
+    fn has_thread_side_work(&self) -> bool {
+        self.flush.is_some()
+            || self.homing.is_some()
+            || self.probing.is_some()
+            || self.arc.is_some()
+            || self.drill.is_some()
+            || self.stop_requested
     }
 
     /// Whether this poll has nothing to do: the interrupt runs with no stop to report, no
     /// cycle, flush or stop waits on the thread side, and the step queue holds enough motion
     /// (most polls while the machine moves). The checks come ahead of the full call, whose
     /// set-up alone would cost more than they do; the full call would find the same and
-    /// return `None`, the interrupt being under way.
+    /// return `None`, the interrupt being under way. When the queue holds enough, the polls
+    /// until it may not are quiet ([`Kernel::is_quiet`]).
     #[inline(always)]
     fn has_nothing_to_do(&mut self, now: Instant) -> bool {
         let q = self.tx.shared();
         if q.stops.load(Ordering::Acquire) != self.stops_seen
-            || self.flush.is_some()
-            || self.homing.is_some()
-            || self.probing.is_some()
-            || self.arc.is_some()
-            || self.drill.is_some()
-            || self.stop_requested
+            || self.has_thread_side_work()
             || self.isr_idle()
         {
             return false;
         }
         let ahead = self.prep.ahead_of(&self.tx, now, true);
-        self.prep.holds_enough(ahead, self.lead_ticks, true)
+        if !self.prep.holds_enough(ahead, self.lead_ticks, true) {
+            return false;
+        }
+        let margin = ahead
+            .saturating_sub(self.lead_ticks / 2)
+            .min(self.lead_ticks);
+        self.quiet_until = Some(now.wrapping_add(Duration::from_ticks(margin)));
+        true
     }
 
     /// [`Kernel::poll`] when there may be something to do.
@@ -1493,6 +1546,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return;
         }
         self.homed &= !mask;
+        self.quiet_until = None;
         self.homing = Some(Homing {
             pending: mask,
             axis: 0,
@@ -1614,6 +1668,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         let q = self.tx.shared();
         let mode = if away { PROBE_RELEASE } else { PROBE_CONTACT };
         q.probe.store(mode, Ordering::Relaxed);
+        self.quiet_until = None;
         self.probing = Some(Probing {
             must_trip,
             start: q.positions(),

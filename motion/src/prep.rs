@@ -1477,6 +1477,13 @@ impl<const N: usize> Prep<N> {
         result
     }
 
+    /// Record that the queue holds `ticks` of motion (at least), as a poll that reads no more
+    /// of it than that finds.
+    #[inline(always)]
+    pub(crate) fn note_queued(&mut self, ticks: u32) {
+        self.queued_ticks = ticks;
+    }
+
     /// Ticks of motion the queue held ahead of the time of the last [`Prep::fill`], after it:
     /// less than the lead when the queue filled up first (fast steps on several axes).
     pub(crate) fn queued_ticks(&self) -> u32 {

@@ -203,3 +203,21 @@ fn g83_pecks_and_g82_dwells() {
         "the bottom above R"
     );
 }
+
+#[test]
+fn a_cycle_asked_for_while_the_machine_moves_is_served_from_the_next_poll() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    // A slow move: its steps fill the queue's lead, and the polls between top-ups find
+    // nothing to do.
+    s.send("G1 X40 F600").expect("ok");
+    s.advance(u64::from(HZ) / 2);
+    // 42 pecks (from R at 1 mm to -20 mm, 0.5 mm each), more moves than the planner holds: the cycle waits on the thread side,
+    // which every poll from the next serves (debug builds check that no poll passes it by).
+    s.send("G99 G83 X40 Y0 Z-20 R1 Q0.5 F300").expect("pecks");
+    assert!(s.run_until_idle(600 * u64::from(HZ)));
+    assert_eq!(s.positions(), [xy_steps(40.0), 0, z_steps(1.0)]);
+    let downs = z_runs(&s).iter().filter(|(d, _)| *d < 0).count();
+    assert_eq!(downs, 42, "{:?}", z_runs(&s));
+    assert!(s.record().violations.is_empty());
+}
