@@ -152,6 +152,8 @@ impl PackedLane {
 struct SplitLane {
     next: u32,
     gaps: CruiseGaps,
+    /// The steps it took (see [`step_lane`]).
+    taken: u32,
 }
 
 #[cfg(any(test, target_arch = "arm"))]
@@ -162,7 +164,11 @@ impl SplitLane {
     /// The axis whose next step is at `tick`, `gaps` leading on from it.
     #[inline(always)]
     const fn new(tick: u32, gaps: CruiseGaps) -> Self {
-        Self { next: tick, gaps }
+        Self {
+            next: tick,
+            gaps,
+            taken: 0,
+        }
     }
 
     /// The tick of its next step.
@@ -171,10 +177,11 @@ impl SplitLane {
         self.next
     }
 
-    /// Move on past its next step, which is at `tick`.
+    /// Move on past its next step, which is at `tick`, and count it.
     #[inline(always)]
     fn step(&mut self, tick: u32) {
         self.next = self.gaps.after(tick);
+        self.taken += 1;
     }
 }
 
@@ -679,9 +686,7 @@ impl<const N: usize> Current<N> {
                 if let Some(a) = self.axes.get(i) {
                     let exact = self
                         .profile
-                        .time_at(
-                            a.step_mm_at(a.j + taken.get(i).copied().unwrap_or(0)) - self.s_anchor,
-                        )
+                        .time_at(a.step_mm_at(a.j + lane_taken(&lanes, &taken, i)) - self.s_anchor)
                         .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s);
                     let tick = origin + u64::from(t);
                     self.burst_error = self.burst_error.max((tick as f64 - exact).abs());
@@ -696,13 +701,14 @@ impl<const N: usize> Current<N> {
         if steps > 0 {
             // Each clock moves on by the steps its axis took (from the steps it had left), in
             // its own 64-bit terms.
-            for (((a, &taken), next), rose) in self
+            for (k, ((a, next), rose)) in self
                 .axes
                 .iter_mut()
-                .zip(taken.iter())
                 .zip(self.next_tick.iter_mut())
                 .zip(em.rose_at.iter_mut())
+                .enumerate()
             {
+                let taken = lane_taken(&lanes, &taken, k);
                 if taken == 0 {
                     continue;
                 }
@@ -923,8 +929,12 @@ fn first_lane<const N: usize>(lanes: &[Lane; N]) -> (usize, u32) {
     first
 }
 
-/// Lane `i` of [`Current::run_cruises`] took its step at tick `t`: it moves on to its next one, and
-/// counts the step. As in [`first_lane`], by constant indices.
+/// Lane `i` of [`Current::run_cruises`] took its step at tick `t`: it moves on to its next
+/// one, and the step is counted. As in [`first_lane`], by constant indices.
+///
+/// The steps are counted in `taken` on RISC-V, where a count in each lane kept the lanes in
+/// memory, and in the lanes on the Cortex-M ([`SplitLane`]), where each count kept apart was
+/// stored twice ([`lane_taken`] reads them).
 #[inline(always)]
 fn step_lane<const N: usize>(lanes: &mut [Lane; N], taken: &mut [u32; N], i: usize, t: u32) {
     #[inline(always)]
@@ -935,12 +945,18 @@ fn step_lane<const N: usize>(lanes: &mut [Lane; N], taken: &mut [u32; N], i: usi
         i: usize,
         t: u32,
     ) {
-        if k == i
-            && let (Some(lane), Some(n)) = (lanes.get_mut(k), taken.get_mut(k))
-        {
-            *n += 1;
+        if k != i {
+            return;
+        }
+        if let Some(lane) = lanes.get_mut(k) {
             lane.step(t);
         }
+        #[cfg(not(target_arch = "arm"))]
+        if let Some(n) = taken.get_mut(k) {
+            *n += 1;
+        }
+        #[cfg(target_arch = "arm")]
+        let _ = taken;
     }
     step_if(lanes, taken, 0, i, t);
     step_if(lanes, taken, 1, i, t);
@@ -950,6 +966,21 @@ fn step_lane<const N: usize>(lanes: &mut [Lane; N], taken: &mut [u32; N], i: usi
     step_if(lanes, taken, 5, i, t);
     for k in 6..N {
         step_if(lanes, taken, k, i, t);
+    }
+}
+
+/// The steps lane `k` of [`Current::run_cruises`] took (see [`step_lane`]).
+#[inline(always)]
+fn lane_taken<const N: usize>(lanes: &[Lane; N], taken: &[u32; N], k: usize) -> u32 {
+    #[cfg(target_arch = "arm")]
+    {
+        let _ = taken;
+        lanes.get(k).map_or(0, |lane| lane.taken)
+    }
+    #[cfg(not(target_arch = "arm"))]
+    {
+        let _ = lanes;
+        taken.get(k).copied().unwrap_or(0)
     }
 }
 
@@ -1755,6 +1786,8 @@ mod tests {
                     clock.advance();
                     compared += 1;
                 }
+                // The Cortex-M's form counts its steps (RISC-V's are counted beside the lanes).
+                assert_eq!(split.taken, 200);
             }
         }
         assert_eq!(compared, 500 * 3 * 200);
