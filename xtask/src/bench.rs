@@ -108,7 +108,7 @@ const CORES: &[Core] = &[
         clock_hz: 168e6,
         budgets: true,
         line_target_held: true,
-        whole_target_held: &[1],
+        whole_target_held: &[1, 2],
         note: "",
     },
     Core {
