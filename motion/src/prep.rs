@@ -97,6 +97,18 @@ impl AxisSteps {
     fn step_mm_at(&self, j: u32) -> f64 {
         self.step_mm * (f64::from(j) - 0.5)
     }
+
+    /// When every step of the block is emitted: past the last phase, no next step (`next`,
+    /// the axis's next tick, is `u64::MAX`); `true` then.
+    #[inline(always)]
+    fn end_if_done(&mut self, next: &mut u64) -> bool {
+        if self.j <= self.n {
+            return false;
+        }
+        self.phase = PHASES;
+        *next = u64::MAX;
+        true
+    }
 }
 
 /// One axis in [`Current::run_cruises`], in the form each core's registers hold best (see
@@ -142,6 +154,12 @@ impl PackedLane {
         let _ = tick;
         self.at = self.at.wrapping_add(self.interval);
     }
+
+    /// No step left: never the first again.
+    #[inline(always)]
+    fn end(&mut self) {
+        *self = Self::DONE;
+    }
 }
 
 /// A [`Lane`] as the tick of its next step apart from its cruise's gaps: on the Cortex-M,
@@ -182,6 +200,12 @@ impl SplitLane {
     fn step(&mut self, tick: u32) {
         self.next = self.gaps.after(tick);
         self.taken += 1;
+    }
+
+    /// No step left: never the first again (the steps it took stay counted).
+    #[inline(always)]
+    fn end(&mut self) {
+        self.next = u32::MAX;
     }
 }
 
@@ -333,8 +357,7 @@ impl<const N: usize> Current<N> {
             return;
         };
         *next = u64::MAX;
-        if a.j > a.n {
-            a.phase = PHASES;
+        if a.end_if_done(next) {
             return;
         }
         let h = a.step_mm;
@@ -614,20 +637,32 @@ impl<const N: usize> Current<N> {
     ) -> Option<u32> {
         let _ = ticks_per_s;
         // The first step needs the general path (an edge at the last event's tick, the last
-        // step of its phase, the horizon): found before the set-up, which would be wasted.
+        // step of a phase the axis has more steps after, the horizon): found before the
+        // set-up, which would be wasted.
         let (first, at) = self.first_step();
         if at == em.last_tick
             || at >= horizon
-            || self.axes.get(first).is_none_or(|a| a.j >= a.phase_last)
+            || self
+                .axes
+                .get(first)
+                .is_none_or(|a| a.j >= a.phase_last && a.phase_last < a.n)
         {
             return Some(0);
         }
         let spacing = 2 * em.pulse;
-        // The walk's ticks count from the last event. It stops before the horizon, before the
-        // last step of each axis's phase (the general path's), and within one event's delay
-        // of the last event, so that every step it takes needs no check but the stop's.
+        // The walk's ticks count from the last event. It stops before the horizon, within one
+        // event's delay of the last event (`bound`), and before the last step of each axis's
+        // phase (the general path's), so that every step it takes needs no check but the
+        // stop's. An axis whose phase ends its steps in the block takes that last step here
+        // and is done ([`Current::end_lane`]): the walk goes on with the others.
         let origin = em.last_tick;
-        let mut stop = StepClock::span(origin, horizon).min(MAX_DELTA);
+        let bound = StepClock::span(origin, horizon).min(MAX_DELTA);
+        // The walk stops at `hard`: the bound, or the last step of a phase its axis has more
+        // steps after. `stop` is the earlier of it and the next end of an axis still walking.
+        let (mut hard, mut stop) = (bound, bound);
+        // Each axis's last step of its phase, and the axes still walking.
+        let mut ends = [u32::MAX; N];
+        let mut walking = 0u8;
         let mut lanes = [Lane::DONE; N];
         for (i, (a, lane)) in self.axes.iter().zip(lanes.iter_mut()).enumerate() {
             if a.j > a.n {
@@ -646,9 +681,17 @@ impl<const N: usize> Current<N> {
             {
                 return None;
             }
-            let (tick, gaps) = clock.near(origin, stop)?;
+            let (tick, gaps) = clock.near(origin, bound)?;
             let last = clock.tick_ahead(a.phase_last.saturating_sub(a.j))?;
-            stop = last.saturating_sub(origin).min(u64::from(stop)) as u32;
+            let end = last.saturating_sub(origin).min(u64::from(u32::MAX)) as u32;
+            if let Some(e) = ends.get_mut(i) {
+                *e = end;
+            }
+            walking |= bit;
+            if a.phase_last < a.n {
+                hard = hard.min(end);
+            }
+            stop = stop.min(end);
             *lane = Lane::new(tick, gaps);
         }
         // The steps each axis took.
@@ -662,39 +705,32 @@ impl<const N: usize> Current<N> {
             while steps < max_steps {
                 // The axis whose step comes first (of two at the same tick, the lower).
                 let (i, t) = first_lane(&lanes);
-                if t >= stop {
+                // At the stop, the last step of an axis whose steps in the block end with it is
+                // taken (and any other at its tick), and that axis is done. At `hard`, the walk
+                // ends.
+                let at_stop = t >= stop;
+                if at_stop && t >= hard {
                     break;
                 }
-                let delta = t.wrapping_sub(last);
-                debug_assert!(delta <= MAX_DELTA);
-                // At the tick of an event this walk wrote (two axes stepping together, as on a
-                // diagonal), the edge joins it; an earlier event is the general path's to join.
-                let edge = 1u8 << i;
-                let written = if delta == 0 {
-                    steps > 0
-                        && tx.amend_last(&Event {
-                            rise: edge,
-                            ..Event::default()
-                        })
-                } else {
-                    tx.write_rise(delta, edge)
-                };
-                if !written {
+                if !write_step(tx, last, steps, i, t) {
                     break;
                 }
                 #[cfg(debug_assertions)]
-                if let Some(a) = self.axes.get(i) {
-                    let exact = self
-                        .profile
-                        .time_at(a.step_mm_at(a.j + lane_taken(&lanes, &taken, i)) - self.s_anchor)
-                        .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s);
-                    let tick = origin + u64::from(t);
-                    self.burst_error = self.burst_error.max((tick as f64 - exact).abs());
-                }
+                self.note_walk_error(
+                    i,
+                    lane_taken(&lanes, &taken, i),
+                    origin + u64::from(t),
+                    ticks_per_s,
+                );
                 last = t;
                 last_axis = i as u8;
                 steps += 1;
                 step_lane(&mut lanes, &mut taken, i, t);
+                if at_stop && ends.get(i) == Some(&t) {
+                    end_lane(&mut lanes, i);
+                    walking &= !(1 << i);
+                    stop = next_stop(hard, &ends, walking);
+                }
             }
             (steps, last, last_axis)
         });
@@ -717,12 +753,27 @@ impl<const N: usize> Current<N> {
                     *next = clock.tick();
                 }
                 a.j += taken;
+                // An axis that took its last step in the block is done.
+                a.end_if_done(next);
             }
             self.last_axis = last_axis;
             let written = tx.written().wrapping_sub(written_before) as usize;
             em.wrote_run(origin + u64::from(last), written);
         }
         Some(steps)
+    }
+
+    /// Debug builds: the step of axis `i` at `tick`, `taken` steps into a walk, is measured
+    /// against its exact time on the profile ([`Current::burst_error`]).
+    #[cfg(debug_assertions)]
+    fn note_walk_error(&mut self, i: usize, taken: u32, tick: u64, ticks_per_s: f64) {
+        if let Some(a) = self.axes.get(i) {
+            let exact = self
+                .profile
+                .time_at(a.step_mm_at(a.j + taken) - self.s_anchor)
+                .map_or(f64::INFINITY, |dt| self.t_anchor + dt * ticks_per_s);
+            self.burst_error = self.burst_error.max((tick as f64 - exact).abs());
+        }
     }
 
     /// [`Current::burst`] when axis `i` is the only one that steps: its steps before
@@ -966,6 +1017,67 @@ fn step_lane<const N: usize>(lanes: &mut [Lane; N], taken: &mut [u32; N], i: usi
     step_if(lanes, taken, 5, i, t);
     for k in 6..N {
         step_if(lanes, taken, k, i, t);
+    }
+}
+
+/// Where a [`Current::run_cruises`] walk stops next: at `hard`, or at the end of an axis
+/// still `walking` (a mask), whichever is sooner.
+fn next_stop<const N: usize>(hard: u32, ends: &[u32; N], walking: u8) -> u32 {
+    let mut stop = hard;
+    for (k, &end) in ends.iter().enumerate() {
+        if walking & (1 << k) != 0 {
+            stop = stop.min(end);
+        }
+    }
+    stop
+}
+
+/// Write the rising edge of axis `i` at tick `t` of a [`Current::run_cruises`] walk, whose
+/// last event is at `last` after `steps` steps: a new event, or at the tick of an event this
+/// walk wrote (two axes stepping together, as on a diagonal) the edge joins it (an earlier
+/// event is the general path's to join). `false` when it cannot be written.
+#[inline(always)]
+fn write_step<const N: usize, const Q: usize>(
+    tx: &mut Producer<'_, N, Q>,
+    last: u32,
+    steps: u32,
+    i: usize,
+    t: u32,
+) -> bool {
+    let delta = t.wrapping_sub(last);
+    debug_assert!(delta <= MAX_DELTA);
+    let edge = 1u8 << i;
+    if delta == 0 {
+        steps > 0
+            && tx.amend_last(&Event {
+                rise: edge,
+                ..Event::default()
+            })
+    } else {
+        tx.write_rise(delta, edge)
+    }
+}
+
+/// Lane `i` of [`Current::run_cruises`] has taken its last step in the block: it is done
+/// (its count of steps stays). As in [`first_lane`], by constant indices.
+#[inline(always)]
+fn end_lane<const N: usize>(lanes: &mut [Lane; N], i: usize) {
+    #[inline(always)]
+    fn end_if<const N: usize>(lanes: &mut [Lane; N], k: usize, i: usize) {
+        if k == i
+            && let Some(lane) = lanes.get_mut(k)
+        {
+            lane.end();
+        }
+    }
+    end_if(lanes, 0, i);
+    end_if(lanes, 1, i);
+    end_if(lanes, 2, i);
+    end_if(lanes, 3, i);
+    end_if(lanes, 4, i);
+    end_if(lanes, 5, i);
+    for k in 6..N {
+        end_if(lanes, k, i);
     }
 }
 
@@ -1616,11 +1728,18 @@ mod tests {
             let Some(clock) = StepClock::cruise(origin, first + 1.0, interval, n) else {
                 panic!("a cruise in range");
             };
+            // Half the cruises end the axis's steps in the block; the others are followed by
+            // another phase.
+            let phase_last = if xorshift(seed).is_multiple_of(2) {
+                n
+            } else {
+                1 + (xorshift(seed) % u64::from(n)) as u32
+            };
             *a = AxisSteps {
                 n,
                 j: 1,
                 phase: 1,
-                phase_last: n,
+                phase_last,
                 step_mm: 0.0125,
                 per_mm: 80.0,
                 timing: Timing::Clock(clock),
@@ -1679,11 +1798,14 @@ mod tests {
     }
 
     /// The steps the walk should take from `cur` at most `max_steps` of them: each axis's
-    /// clock ticks before the horizon, before the last step of its phase and within one
-    /// event's delay of `origin`, in the order of their ticks (of two at the same tick, the
-    /// lower axis first). Returns them as the events they make: delay and rising edges.
+    /// clock ticks before the horizon, within one event's delay of `origin` and before the
+    /// last step of each phase that the axis has more steps after, in the order of their ticks
+    /// (of two at the same tick, the lower axis first). An axis whose steps in the block end
+    /// with its phase takes that last step too. Returns them as the events they make: delay
+    /// and rising edges.
     fn reference(cur: &Current<3>, origin: u64, horizon: u64, max_steps: u32) -> Vec<(u32, u8)> {
-        let mut stop = horizon.min(origin + u64::from(MAX_DELTA));
+        let bound = horizon.min(origin + u64::from(MAX_DELTA));
+        let mut stop = bound;
         let mut steps = Vec::new();
         for (i, a) in cur.axes.iter().enumerate() {
             let Timing::Clock(mut clock) = a.timing else {
@@ -1693,7 +1815,13 @@ mod tests {
                 steps.push((clock.tick(), i));
                 clock.advance();
             }
-            stop = stop.min(clock.tick());
+            if a.phase_last == a.n {
+                if clock.tick() < bound {
+                    steps.push((clock.tick(), i));
+                }
+            } else {
+                stop = stop.min(clock.tick());
+            }
         }
         steps.retain(|&(tick, _)| tick < stop);
         steps.sort_unstable();
@@ -1713,7 +1841,7 @@ mod tests {
     #[test]
     fn the_cruises_walk_writes_each_clocks_steps_in_order() {
         let mut seed = 0x5eed_cafe_u64;
-        let (mut stepped, mut together) = (0, 0);
+        let (mut stepped, mut together, mut ended) = (0, 0, 0);
         for round in 0..2_000 {
             let origin = 1_000 + xorshift(&mut seed) % 1_000_000;
             let start = cruises(&mut seed, origin);
@@ -1746,7 +1874,13 @@ mod tests {
                     clock.advance();
                 }
                 assert_eq!((b.j, b.timing), (a.j + took, Timing::Clock(clock)));
-                assert_eq!(cur.next_tick.get(i), Some(&clock.tick()));
+                if b.j > b.n {
+                    // Its last step in the block taken: the axis is done.
+                    assert_eq!((b.phase, cur.next_tick.get(i)), (PHASES, Some(&u64::MAX)));
+                    ended += 1;
+                } else {
+                    assert_eq!(cur.next_tick.get(i), Some(&clock.tick()));
+                }
             }
             stepped += edges;
             together += expected
@@ -1757,6 +1891,8 @@ mod tests {
         // The walks took steps, some of them at the same tick.
         assert!(stepped > 100_000, "{stepped} steps");
         assert!(together > 100, "{together} events of several steps");
+        // Axes took their last step in the block and were done, the others walking on.
+        assert!(ended > 300, "{ended} axes done");
     }
 
     #[test]
@@ -1786,7 +1922,12 @@ mod tests {
                     clock.advance();
                     compared += 1;
                 }
-                // The Cortex-M's form counts its steps (RISC-V's are counted beside the lanes).
+                // The Cortex-M's form counts its steps (RISC-V's are counted beside the lanes),
+                // and keeps the count once done.
+                assert_eq!(split.taken, 200);
+                packed.end();
+                split.end();
+                assert_eq!((packed.next(), split.next()), (u32::MAX, u32::MAX));
                 assert_eq!(split.taken, 200);
             }
         }
