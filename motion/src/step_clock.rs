@@ -433,13 +433,20 @@ fn isqrt(w: u64) -> u32 {
     r
 }
 
-/// `√w` within a unit, for `w < 2^62`: single precision's root, within 2⁻²³ of `√w` and so at
-/// most 2⁸ units off, then one Newton step `r + (w − r²)/2r` in a 32-bit division, the error
-/// and the divisor shifted alike to fit it (the divisor keeps at least 23 bits).
+/// `√w` within a unit, for `w < 2^62`: single precision's root of `w` in single precision
+/// ([`crate::fpu::approx_f32`], within 2⁻²²), so within 2⁻²² of `√w` and at most 2⁹ units
+/// off, then one Newton step `r + (w − r²)/2r` in a 32-bit division, the error and the divisor
+/// shifted alike to fit it (the divisor keeps at least 23 bits).
 /// The estimate is at most one unit from `⌊√w⌋`.
 #[inline(always)]
 fn root_estimate(w: u64) -> u32 {
-    let r = (crate::fpu::sqrtf(w as f32) as u32).min(MAX_ROOT);
+    root_estimate_from(w, crate::fpu::approx_f32(w))
+}
+
+/// [`root_estimate`] of `w`, given `w` in single precision (`w_f32`, within 2⁻²² of it).
+#[inline(always)]
+fn root_estimate_from(w: u64, w_f32: f32) -> u32 {
+    let r = (crate::fpu::sqrtf(w_f32) as u32).min(MAX_ROOT);
     let sq = u64::from(r) * u64::from(r);
     let error = w.abs_diff(sq);
     let twice = 2 * u64::from(r);
@@ -504,6 +511,12 @@ mod tests {
                 assert!(k * k <= w && (k + 1) * (k + 1) > w, "{w}");
                 let estimate = u64::from(root_estimate(w));
                 assert!(estimate.abs_diff(k) <= 1, "{w}: {estimate} for {k}");
+                // As on hard-float Arm, from the conversion by halves.
+                let estimate = u64::from(root_estimate_from(w, crate::fpu::split_f32(w)));
+                assert!(
+                    estimate.abs_diff(k) <= 1,
+                    "{w}: {estimate} for {k} (by halves)"
+                );
             }
             assert!(k < 1 << 31);
         }
