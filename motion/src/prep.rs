@@ -1588,6 +1588,16 @@ impl<const N: usize> Prep<N> {
             }
             // The axis whose step comes first.
             let (i, tick) = cur.first_step();
+            // A step past the horizon waits for the next top-up while the queue holds half the
+            // lead before it (that top-up comes before the queue runs down to it): a top-up ends
+            // at the horizon, not with one step past it.
+            if tick != u64::MAX
+                && tick >= horizon
+                && self.em.cursor() + u64::from(lead_ticks / 2) >= horizon
+            {
+                self.refilling = false;
+                break Fill::Pending;
+            }
             if tick != u64::MAX {
                 let _t = self.em.rise(tx, i, cur.neg & (1 << i), tick);
                 #[cfg(debug_assertions)]
