@@ -47,7 +47,7 @@ pub(crate) fn sqrtf(x: f32) -> f32 {
 
 /// `w` in single precision, within 2⁻²² of it (three roundings): for estimates. On hard-float
 /// Arm, two of the FPU's 32-bit conversions, a multiplication and an addition
-/// ([`split_f32`]), where the exact 64-bit conversion is a software routine of about 30
+/// (`split_f32`), where the exact 64-bit conversion is a software routine of about 30
 /// instructions; elsewhere that routine, which the FPU-less cores need for 32 bits too.
 #[inline(always)]
 pub(crate) fn approx_f32(w: u64) -> f32 {

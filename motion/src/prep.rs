@@ -112,7 +112,7 @@ impl AxisSteps {
 }
 
 /// One axis in [`Current::run_cruises`], in the form each core's registers hold best (see
-/// [`PackedLane`] and [`SplitLane`]). Measured on the other core, each form costs the walk 4
+/// `PackedLane` and `SplitLane`). Measured on the other core, each form costs the walk 4
 /// to 8 instructions a step more.
 #[cfg(not(target_arch = "arm"))]
 type Lane = PackedLane;
@@ -619,7 +619,9 @@ impl<const N: usize> Current<N> {
     /// low before its next step: the axes' clocks are merged with their state in a local
     /// copy, in 32-bit ticks from the last event, each step checked only against one stop
     /// tick (the horizon's, or the last step of an axis's phase if sooner) and the last event
-    /// (an edge at the same tick joins it on the general path). At most `max_steps` steps;
+    /// (an edge at the same tick joins it on the general path). At the stop, an axis whose
+    /// phase ends its steps in the block takes that last step and is done, and the walk goes
+    /// on with the others ([`end_lane`], [`next_stop`]). At most `max_steps` steps;
     /// returns how many it took, or `None` when the axes are not all such (the step-by-step
     /// loop takes them). Out of line: its loop's registers stay its own.
     ///
@@ -984,7 +986,7 @@ fn first_lane<const N: usize>(lanes: &[Lane; N]) -> (usize, u32) {
 /// one, and the step is counted. As in [`first_lane`], by constant indices.
 ///
 /// The steps are counted in `taken` on RISC-V, where a count in each lane kept the lanes in
-/// memory, and in the lanes on the Cortex-M ([`SplitLane`]), where each count kept apart was
+/// memory, and in the lanes on the Cortex-M (`SplitLane`), where each count kept apart was
 /// stored twice ([`lane_taken`] reads them).
 #[inline(always)]
 fn step_lane<const N: usize>(lanes: &mut [Lane; N], taken: &mut [u32; N], i: usize, t: u32) {
