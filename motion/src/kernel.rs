@@ -1370,10 +1370,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         // Before `until`, and by no more than the lead: an instant left from long ago (the
         // clock wraps) is not taken for one to come.
         let left = until.ticks().wrapping_sub(now.ticks());
-        if left == 0
-            || left > self.lead_ticks
-            || self.tx.shared().stops.load(Ordering::Acquire) != self.stops_seen
-        {
+        if left == 0 || left > self.lead_ticks || self.interrupt_stopped() {
             return false;
         }
         debug_assert!(
@@ -1383,6 +1380,13 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         // What the queue holds at the least: it holds half the lead at `until`.
         self.prep.note_queued(left + self.lead_ticks / 2);
         true
+    }
+
+    /// Whether the interrupt has stopped motion on its own since the thread side last saw it
+    /// (`Kernel::poll_fully` reports it).
+    #[inline(always)]
+    fn interrupt_stopped(&self) -> bool {
+        self.tx.shared().stops.load(Ordering::Acquire) != self.stops_seen
     }
 
     /// Whether a cycle (homing, probing, an arc or drilling cycle being cut), a flush or a stop
@@ -1405,11 +1409,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// until it may not are quiet ([`Kernel::is_quiet`]).
     #[inline(always)]
     fn has_nothing_to_do(&mut self, now: Instant) -> bool {
-        let q = self.tx.shared();
-        if q.stops.load(Ordering::Acquire) != self.stops_seen
-            || self.has_thread_side_work()
-            || self.isr_idle()
-        {
+        if self.interrupt_stopped() || self.has_thread_side_work() || self.isr_idle() {
             return false;
         }
         let ahead = self.prep.ahead_of(&self.tx, now, true);

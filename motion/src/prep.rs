@@ -656,7 +656,7 @@ impl<const N: usize> Current<N> {
         // event's delay of the last event (`bound`), and before the last step of each axis's
         // phase (the general path's), so that every step it takes needs no check but the
         // stop's. An axis whose phase ends its steps in the block takes that last step here
-        // and is done ([`Current::end_lane`]): the walk goes on with the others.
+        // and is done (`end_lane`): the walk goes on with the others.
         let origin = em.last_tick;
         let bound = StepClock::span(origin, horizon).min(MAX_DELTA);
         // The walk stops at `hard`: the bound, or the last step of a phase its axis has more

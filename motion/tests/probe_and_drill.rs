@@ -212,8 +212,9 @@ fn a_cycle_asked_for_while_the_machine_moves_is_served_from_the_next_poll() {
     // nothing to do.
     s.send("G1 X40 F600").expect("ok");
     s.advance(u64::from(HZ) / 2);
-    // 42 pecks (from R at 1 mm to -20 mm, 0.5 mm each), more moves than the planner holds: the cycle waits on the thread side,
-    // which every poll from the next serves (debug builds check that no poll passes it by).
+    // 42 pecks (from R at 1 mm to -20 mm, 0.5 mm each), more moves than the planner holds:
+    // the cycle waits on the thread side, which every poll from the next serves (debug builds
+    // check that no poll passes it by).
     s.send("G99 G83 X40 Y0 Z-20 R1 Q0.5 F300").expect("pecks");
     assert!(s.run_until_idle(600 * u64::from(HZ)));
     assert_eq!(s.positions(), [xy_steps(40.0), 0, z_steps(1.0)]);
