@@ -28,7 +28,7 @@ use core::sync::atomic::Ordering;
 
 use forja_hal_abstraction::time::Instant;
 
-use crate::bound::{at_least, at_least_zero};
+use crate::bound::{at_least, at_least_zero, half, is_zero, product};
 use crate::planner::{Block, BlockKind, Planner};
 use crate::profile::{PHASES, Profile, Shape};
 use crate::queue::{Event, MAX_DELTA, Producer};
@@ -65,6 +65,33 @@ fn speed_of(square: f32) -> f64 {
     f64::from(crate::fpu::sqrtf(square))
 }
 
+/// Ticks to change speed by 1 mm/s at acceleration `accel` ([`Current`]'s `ticks_per_speed`),
+/// worked out into `cached` at the block's first call.
+#[inline(always)]
+fn ticks_per_speed(cached: &mut f64, ticks_per_s: f64, accel: f64) -> f64 {
+    if is_zero(*cached) {
+        *cached = ticks_per_s / accel;
+    }
+    *cached
+}
+
+/// The last step (of an axis `per_mm` steps a mm, its step `j` at `(j − ½ + offset)/per_mm`
+/// mm past the anchor) in phase `phase` of `profile`, a phase that ends before the profile or
+/// a profile that stops. Its own call: inlined, its arithmetic was worked out ahead of the
+/// branch that needs it, for every phase.
+#[inline(never)]
+fn last_step_in(profile: &Profile, phase: usize, per_mm: f64, offset: f64) -> u64 {
+    let end = profile.phase_end(phase);
+    if phase + 1 < PHASES {
+        // The last step before the phase's end.
+        ceil_u64(end * per_mm + offset).saturating_sub(1)
+    } else {
+        // Within rounding of a hold's stopping point, a step is at it.
+        let end = end * (1.0 + 1e-9) + 1e-12;
+        floor_u64(end * per_mm + offset)
+    }
+}
+
 /// How an axis's steps are timed in its current phase.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Timing {
@@ -95,7 +122,12 @@ struct AxisSteps {
 impl AxisSteps {
     /// Where step `j` is along the block, mm: the half-step point `step_mm·(j − ½)`.
     fn step_mm_at(&self, j: u32) -> f64 {
-        self.step_mm * (f64::from(j) - 0.5)
+        if j == 1 {
+            // The same value, without the conversion, the subtraction and the multiplication.
+            half(self.step_mm)
+        } else {
+            product(self.step_mm, f64::from(j) - 0.5)
+        }
     }
 
     /// When every step of the block is emitted: past the last phase, no next step (`next`,
@@ -229,7 +261,9 @@ struct Current<const N: usize> {
     neg: u8,
     mm: f64,
     accel: f64,
-    /// Ticks to change speed by 1 mm/s at the block's acceleration: `ticks_per_s / accel`.
+    /// Ticks to change speed by 1 mm/s at the block's acceleration, `ticks_per_s / accel`,
+    /// once a phase that changes speed needs it (0 until then: a block at one speed, the most
+    /// common in a chain of short moves, goes without the division).
     ticks_per_speed: f64,
     nominal: f64,
     s_anchor: f64,
@@ -366,9 +400,9 @@ impl<const N: usize> Current<N> {
         // until the block is planned again on its way (a hold, an override, a new exit speed):
         // in software double precision, its products and sums are only worked out then (here
         // and below, the same to the bit).
-        let anchored = self.s_anchor != 0.0;
+        let anchored = !is_zero(self.s_anchor);
         let offset = if anchored {
-            self.s_anchor * per_mm + 0.5
+            product(self.s_anchor, per_mm) + 0.5
         } else {
             0.5
         };
@@ -379,15 +413,8 @@ impl<const N: usize> Current<N> {
                 a.phase += 1;
                 continue;
             }
-            let ph = self.profile.phase(a.phase);
-            let stops = self.profile.stops();
-            let last = if a.phase + 1 < PHASES && (stops || !self.profile.ends_with(a.phase)) {
-                // The last step before the phase's end.
-                ceil_u64(ph.end * per_mm + offset).saturating_sub(1)
-            } else if stops {
-                // Within rounding of a hold's stopping point, a step is at it.
-                let end = ph.end * (1.0 + 1e-9) + 1e-12;
-                floor_u64(end * per_mm + offset)
+            let last = if self.profile.stops() || !self.profile.ends_with(a.phase) {
+                last_step_in(&self.profile, a.phase, per_mm, offset)
             } else {
                 // The phase that ends the profile, not at a stop, ends at the block's end:
                 // `ceil(end·per_mm + offset) − 1` is the block's last step.
@@ -404,19 +431,24 @@ impl<const N: usize> Current<N> {
             return;
         }
         let ph = self.profile.phase(a.phase);
+        // The block's first step, in a phase from its start, is half a step into it (`half`:
+        // exact, as `× 0.5` is, without the multiplication).
+        let first_half_step = !anchored && a.j == 1 && is_zero(ph.start);
         // How far into the phase the next step is, mm.
-        let x = if anchored || a.j != 1 || ph.start != 0.0 {
-            at_least_zero(a.step_mm_at(a.j) - self.s_anchor - ph.start)
+        let x = if first_half_step {
+            half(h)
         } else {
-            // The block's first step, in a phase from its start: half a step in.
-            at_least_zero(a.step_mm * 0.5)
+            // Less the anchor only when there is one (`s − 0` is `s`).
+            let s = a.step_mm_at(a.j);
+            let s = if anchored { s - self.s_anchor } else { s };
+            at_least_zero(s - ph.start)
         };
         let steps = a.phase_last - a.j + 1;
         // The phase's start, found by the first axis that enters it.
         let PhaseStart { base, rel, rate } = match self.starts.get(a.phase).copied().flatten() {
             Some(start) => start,
             None => {
-                let start = if ph.t_start == 0.0 {
+                let start = if is_zero(ph.t_start) {
                     self.t_anchor
                 } else {
                     self.t_anchor + ph.t_start * ticks_per_s
@@ -424,7 +456,10 @@ impl<const N: usize> Current<N> {
                 let base = floor_u64(start);
                 let rate = match ph.shape {
                     Shape::Cruise => ticks_per_s / ph.v_start,
-                    Shape::Up | Shape::Down => self.ticks_per_speed * ph.v_start,
+                    Shape::Up | Shape::Down => {
+                        ticks_per_speed(&mut self.ticks_per_speed, ticks_per_s, self.accel)
+                            * ph.v_start
+                    }
                 };
                 let found = PhaseStart {
                     base,
@@ -440,11 +475,20 @@ impl<const N: usize> Current<N> {
         let clock = match ph.shape {
             Shape::Cruise => {
                 let ticks_per_mm = rate;
-                StepClock::cruise(base, rel + ticks_per_mm * x, ticks_per_mm * h, steps)
+                let interval = ticks_per_mm * h;
+                // `ticks_per_mm · (h / 2)` is `(ticks_per_mm · h) / 2`, to the bit.
+                let first = if first_half_step {
+                    half(interval)
+                } else {
+                    product(ticks_per_mm, x)
+                };
+                StepClock::cruise(base, rel + first, interval, steps)
             }
             shape => {
                 let c = rate;
-                let k = 2.0 * ticks_per_s * self.ticks_per_speed;
+                let k = 2.0
+                    * ticks_per_s
+                    * ticks_per_speed(&mut self.ticks_per_speed, ticks_per_s, self.accel);
                 let up = shape == Shape::Up;
                 let (c, y) = if up {
                     (rel - c, c * c + k * x)
@@ -1699,7 +1743,7 @@ impl<const N: usize> Prep<N> {
         cur.neg = neg;
         cur.mm = mm;
         cur.accel = f64::from(block.accel);
-        cur.ticks_per_speed = self.ticks_per_s / f64::from(block.accel);
+        cur.ticks_per_speed = 0.0;
         cur.nominal = speed_of(block.nominal_sqr);
         cur.s_anchor = 0.0;
         cur.t_anchor = self.t_plan;

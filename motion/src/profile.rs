@@ -8,7 +8,7 @@
 
 use libm::sqrt;
 
-use crate::bound::{at_least, at_least_zero, at_most};
+use crate::bound::{at_least, at_least_zero, at_most, is_zero};
 
 /// Phases of a profile: [`Profile::phase`] takes `0..PHASES`.
 pub(crate) const PHASES: usize = 3;
@@ -24,12 +24,11 @@ pub(crate) enum Shape {
     Down,
 }
 
-/// One phase of a [`Profile`]: from `start` to `end` mm past the anchor, entered at `t_start`
-/// s at `v_start` mm/s.
+/// One phase of a [`Profile`]: from `start` mm past the anchor (to [`Profile::phase_end`]),
+/// entered at `t_start` s at `v_start` mm/s.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Phase {
     pub start: f64,
-    pub end: f64,
     pub t_start: f64,
     pub v_start: f64,
     pub shape: Shape,
@@ -156,27 +155,35 @@ impl Profile {
         }
     }
 
+    /// Where phase `p` ([`Profile::phase`]) ends, mm past the anchor: apart from the phase, as
+    /// its sum is needed only for a phase that does not end the profile.
+    pub(crate) fn phase_end(&self, p: usize) -> f64 {
+        match p {
+            0 => self.d1,
+            1 => self.d1 + self.d2,
+            _ => self.length(),
+        }
+    }
+
     /// Phase `p` (0, 1 or 2 of [`PHASES`]): the ramp from the anchor speed, the cruise, the
-    /// ramp down. A phase that does not occur is empty (`end == start`).
+    /// ramp down. A phase that does not occur is empty (its end, [`Profile::phase_end`], is
+    /// its start).
     pub(crate) fn phase(&self, p: usize) -> Phase {
         match p {
             0 => Phase {
                 start: 0.0,
-                end: self.d1,
                 t_start: 0.0,
                 v_start: self.v0,
                 shape: if self.up1 { Shape::Up } else { Shape::Down },
             },
             1 => Phase {
                 start: self.d1,
-                end: self.d1 + self.d2,
                 t_start: self.t1,
                 v_start: self.v1,
                 shape: Shape::Cruise,
             },
             _ => Phase {
                 start: self.d1 + self.d2,
-                end: self.length(),
                 t_start: self.t1 + self.t2,
                 v_start: self.v1,
                 shape: Shape::Down,
@@ -193,7 +200,7 @@ impl Profile {
             1 => self.d2,
             _ => self.d3,
         };
-        length.to_bits() << 1 == 0
+        is_zero(length)
     }
 
     /// Whether every phase after `p` is empty ([`Profile::is_empty`]): `p` ends the profile.
