@@ -7,8 +7,8 @@
 //! comparison alone is about 20). Segment preparation bounds several values per phase of
 //! every block. The value bounded is the first argument: a NaN there gives the bound, as
 //! `f64::min` and `f64::max` do. A bound at 0, the most common, is an integer comparison.
-//! So are a test for 0 and a halving ([`is_zero`], [`half`]), and [`product`] keeps a
-//! multiplication in the branch that needs it.
+//! So are a test for 0 or above it and a halving ([`is_zero`], [`is_positive`], [`half`]);
+//! [`product`], [`sum`] and [`difference`] keep an operation in the branch that needs it.
 
 /// `x`, or `cap` when `x` is above it or NaN.
 #[inline(always)]
@@ -65,6 +65,25 @@ pub(crate) fn product(x: f64, y: f64) -> f64 {
     x * y
 }
 
+/// `x + y` where a branch needs it, as [`product`] is.
+#[inline(never)]
+pub(crate) fn sum(x: f64, y: f64) -> f64 {
+    x + y
+}
+
+/// `x − y` where a branch needs it, as [`product`] is.
+#[inline(never)]
+pub(crate) fn difference(x: f64, y: f64) -> f64 {
+    x - y
+}
+
+/// Whether `x > 0` (up to +∞; not −0 nor NaN): one integer comparison of the bits, where a
+/// software comparison is a call.
+#[inline(always)]
+pub(crate) fn is_positive(x: f64) -> bool {
+    x.to_bits().wrapping_sub(1) < f64::INFINITY.to_bits()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -89,8 +108,12 @@ mod tests {
             assert_eq!(is_zero(x), x == 0.0, "{x}");
             assert_eq!(half(x).to_bits(), (x * 0.5).to_bits(), "{x}");
             assert_eq!(product(x, 3.0).to_bits(), (x * 3.0).to_bits(), "{x}");
+            assert_eq!(difference(x, 1.5).to_bits(), (x - 1.5).to_bits(), "{x}");
+            assert_eq!(sum(x, 1.5).to_bits(), (x + 1.5).to_bits(), "{x}");
+            assert_eq!(is_positive(x), x > 0.0, "{x}");
         }
         assert!(half(f64::NAN).is_nan());
+        assert!(!is_positive(f64::NAN) && !is_positive(-f64::NAN));
     }
 
     #[test]

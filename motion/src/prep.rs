@@ -28,7 +28,7 @@ use core::sync::atomic::Ordering;
 
 use forja_hal_abstraction::time::Instant;
 
-use crate::bound::{at_least, at_least_zero, half, is_zero, product};
+use crate::bound::{at_least, at_least_zero, difference, half, is_zero, product};
 use crate::planner::{Block, BlockKind, Planner};
 use crate::profile::{PHASES, Profile, Shape};
 use crate::queue::{Event, MAX_DELTA, Producer};
@@ -75,12 +75,23 @@ fn ticks_per_speed(cached: &mut f64, ticks_per_s: f64, accel: f64) -> f64 {
     *cached
 }
 
-/// The last step (of an axis `per_mm` steps a mm, its step `j` at `(j − ½ + offset)/per_mm`
-/// mm past the anchor) in phase `phase` of `profile`, a phase that ends before the profile or
-/// a profile that stops. Its own call: inlined, its arithmetic was worked out ahead of the
-/// branch that needs it, for every phase.
+/// The last step of axis `a` in phase `phase` of `profile`, anchored `s_anchor` mm into its
+/// block of `mm`: for a phase that ends before the profile, or a profile that stops. Step `j`
+/// is at `h·(j − ½)` mm into the block. Its own call, which the compiler does not work out
+/// ahead of the branch that needs it (for every phase, inlined). The axis's steps per mm are
+/// worked out at its first call of the block: a block at one speed has no such phase, and
+/// goes without the division.
 #[inline(never)]
-fn last_step_in(profile: &Profile, phase: usize, per_mm: f64, offset: f64) -> u64 {
+fn last_step_in(a: &mut AxisSteps, profile: &Profile, phase: usize, mm: f64, s_anchor: f64) -> u64 {
+    if is_zero(a.per_mm) {
+        a.per_mm = f64::from(a.n) / mm;
+    }
+    let per_mm = a.per_mm;
+    let offset = if is_zero(s_anchor) {
+        0.5
+    } else {
+        product(s_anchor, per_mm) + 0.5
+    };
     let end = profile.phase_end(phase);
     if phase + 1 < PHASES {
         // The last step before the phase's end.
@@ -114,7 +125,8 @@ struct AxisSteps {
     phase_last: u32,
     /// Path length of one step (mm; 0 when the axis has none).
     step_mm: f64,
-    /// Its inverse, steps per mm of path (0 when the axis has none).
+    /// Its inverse, steps per mm of path, once a phase's bound needed it ([`last_step_in`]);
+    /// 0 until then.
     per_mm: f64,
     timing: Timing,
 }
@@ -243,8 +255,8 @@ impl SplitLane {
 
 /// Where a phase starts on the step clocks' timeline, the same for every axis that steps in
 /// it ([`Current::enter_phase`]): the tick the clocks count from, the start's fraction of a
-/// tick past it, and the phase's rate (a cruise's ticks per mm, a ramp's ticks from speed 0 to
-/// its start speed).
+/// tick past it (a cruise's plus ½, the rounding its clock adds to each step's time), and the
+/// phase's rate (a cruise's ticks per mm, a ramp's ticks from speed 0 to its start speed).
 #[derive(Debug, Clone, Copy)]
 struct PhaseStart {
     base: u64,
@@ -328,7 +340,11 @@ impl<const N: usize> Current<N> {
     }
 
     fn profile_for(&self, v0: f64, exit_sqr: f32, hold: bool) -> Profile {
-        let rest = self.mm - self.s_anchor;
+        let rest = if is_zero(self.s_anchor) {
+            self.mm
+        } else {
+            difference(self.mm, self.s_anchor)
+        };
         if hold {
             Profile::hold(rest, v0, self.accel)
         } else {
@@ -395,17 +411,11 @@ impl<const N: usize> Current<N> {
             return;
         }
         let h = a.step_mm;
-        let per_mm = a.per_mm;
         // Step j is at h·(j − ½) − s_anchor along the profile. The anchor is the block's start
         // until the block is planned again on its way (a hold, an override, a new exit speed):
         // in software double precision, its products and sums are only worked out then (here
         // and below, the same to the bit).
         let anchored = !is_zero(self.s_anchor);
-        let offset = if anchored {
-            product(self.s_anchor, per_mm) + 0.5
-        } else {
-            0.5
-        };
         while a.phase < PHASES {
             // An empty phase before the last holds no step: passed over without its bounds
             // (a multiplication, an addition and a `ceil` in software double precision).
@@ -414,7 +424,7 @@ impl<const N: usize> Current<N> {
                 continue;
             }
             let last = if self.profile.stops() || !self.profile.ends_with(a.phase) {
-                last_step_in(&self.profile, a.phase, per_mm, offset)
+                last_step_in(a, &self.profile, a.phase, self.mm, self.s_anchor)
             } else {
                 // The phase that ends the profile, not at a stop, ends at the block's end:
                 // `ceil(end·per_mm + offset) − 1` is the block's last step.
@@ -451,21 +461,19 @@ impl<const N: usize> Current<N> {
                 let start = if is_zero(ph.t_start) {
                     self.t_anchor
                 } else {
-                    self.t_anchor + ph.t_start * ticks_per_s
+                    self.t_anchor + product(ph.t_start, ticks_per_s)
                 };
                 let base = floor_u64(start);
-                let rate = match ph.shape {
-                    Shape::Cruise => ticks_per_s / ph.v_start,
-                    Shape::Up | Shape::Down => {
+                let rel = start - base as f64;
+                let (rel, rate) = match ph.shape {
+                    Shape::Cruise => (rel + 0.5, ticks_per_s / ph.v_start),
+                    Shape::Up | Shape::Down => (
+                        rel,
                         ticks_per_speed(&mut self.ticks_per_speed, ticks_per_s, self.accel)
-                            * ph.v_start
-                    }
+                            * ph.v_start,
+                    ),
                 };
-                let found = PhaseStart {
-                    base,
-                    rel: start - base as f64,
-                    rate,
-                };
+                let found = PhaseStart { base, rel, rate };
                 if let Some(slot) = self.starts.get_mut(a.phase) {
                     *slot = Some(found);
                 }
@@ -482,7 +490,7 @@ impl<const N: usize> Current<N> {
                 } else {
                     product(ticks_per_mm, x)
                 };
-                StepClock::cruise(base, rel + first, interval, steps)
+                StepClock::cruise_from(base, rel + first, interval, steps)
             }
             shape => {
                 let c = rate;
@@ -1734,9 +1742,7 @@ impl<const N: usize> Prep<N> {
         // to the compiler), at a hundred instructions each in software double precision.
         for_each_axis(moving, |i| {
             if let Some(a) = cur.axes.get_mut(i) {
-                let n = f64::from(a.n);
-                a.step_mm = mm / n;
-                a.per_mm = n / mm;
+                a.step_mm = mm / f64::from(a.n);
             }
         });
         cur.next_tick = [u64::MAX; N];

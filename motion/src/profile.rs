@@ -8,7 +8,7 @@
 
 use libm::sqrt;
 
-use crate::bound::{at_least, at_least_zero, at_most, is_zero};
+use crate::bound::{at_least, at_least_zero, at_most, is_positive, is_zero, sum};
 
 /// Phases of a profile: [`Profile::phase`] takes `0..PHASES`.
 pub(crate) const PHASES: usize = 3;
@@ -57,7 +57,8 @@ impl Profile {
     pub(crate) fn plan(r: f64, v0: f64, vn: f64, ve: f64, a: f64) -> Self {
         // Entered, cruised and left at one speed (a chain of short moves at one feed): all of
         // it a cruise, as `plan_ramps` finds, without its divisions.
-        if v0 == vn && ve == vn {
+        // Compared by their bits (equal bits, equal speeds), where a comparison is a call.
+        if v0.to_bits() == vn.to_bits() && ve.to_bits() == vn.to_bits() {
             return Self::from_phases(v0, a, 0.0, true, vn, at_least_zero(r), 0.0, ve, false);
         }
         Self::plan_ramps(r, v0, vn, ve, a)
@@ -136,9 +137,17 @@ impl Profile {
         v3: f64,
         stops: bool,
     ) -> Self {
-        let t1 = if d1 > 0.0 { 2.0 * d1 / (v0 + v1) } else { 0.0 };
-        let t2 = if d2 > 0.0 { d2 / v1 } else { 0.0 };
-        let t3 = if d3 > 0.0 { 2.0 * d3 / (v1 + v3) } else { 0.0 };
+        let t1 = if is_positive(d1) {
+            2.0 * d1 / (v0 + v1)
+        } else {
+            0.0
+        };
+        let t2 = if is_positive(d2) { d2 / v1 } else { 0.0 };
+        let t3 = if is_positive(d3) {
+            2.0 * d3 / (v1 + v3)
+        } else {
+            0.0
+        };
         Self {
             v0,
             a,
@@ -221,7 +230,16 @@ impl Profile {
 
     /// Time to cover the profile, s.
     pub(crate) fn duration(&self) -> f64 {
-        self.t1 + self.t2 + self.t3
+        // `t1 + t2 + t3` without the additions of the phases that take no time (a block at
+        // one speed has one phase): `x + 0` is `x`.
+        let mut t = self.t2;
+        if !is_zero(self.t1) {
+            t = sum(self.t1, t);
+        }
+        if !is_zero(self.t3) {
+            t = sum(t, self.t3);
+        }
+        t
     }
 
     /// Speed at the end, mm/s.

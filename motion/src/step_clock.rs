@@ -73,11 +73,20 @@ pub(crate) enum StepClock {
 impl StepClock {
     /// A clock for `steps` steps at constant speed: the first one at `first` ticks after
     /// `base` (exact, `≥ −½`), the others `interval` ticks apart. `None` beyond its range.
+    #[cfg(test)]
     pub(crate) fn cruise(base: u64, first: f64, interval: f64, steps: u32) -> Option<Self> {
+        Self::cruise_from(base, first + 0.5, interval, steps)
+    }
+
+    /// A clock for `steps` steps at constant speed, given `start`, the first step's time
+    /// after `base` plus ½ (`≥ 0`: the ½ a step's tick is rounded with, added once by the
+    /// caller for all the axes of a phase), the others `interval` ticks apart. `None` beyond
+    /// its range.
+    #[inline]
+    pub(crate) fn cruise_from(base: u64, start: f64, interval: f64, steps: u32) -> Option<Self> {
         // The range is checked in the clock's own integers: the first step's `time` not
         // below 0, the interval not negative, the last step's `time` below `2^32 − ½` ticks
         // (its tick below `base + 2^32 − 1`).
-        let start = first + 0.5;
         if start.is_sign_negative() || interval.is_sign_negative() {
             return None;
         }
