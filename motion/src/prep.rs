@@ -50,6 +50,10 @@ const WORK_PER_FILL: u32 = 48;
 const PROFILE_WORK: u32 = 24;
 /// What setting up an axis's step clock for a phase counts, in steps.
 const PHASE_WORK: u32 = 24;
+/// What setting up an axis's step clock for a cruise counts, in steps: a few products and
+/// sums, without a ramp's square root or a bound of its phase (about 700 instructions on the
+/// Cortex-M4, the work of four steps on the general path).
+const CRUISE_PHASE_WORK: u32 = 8;
 /// What a step timed by a full square root (or in double precision) counts, in steps.
 const ROOT_WORK: u32 = 3;
 /// Steps of the cruising axes' merged walk ([`Current::run_cruises`]) that count as one: such
@@ -401,14 +405,15 @@ impl<const N: usize> Current<N> {
     }
 
     /// Find the phase of axis `i`'s next step, from the one it is in, and set up its timing.
+    /// Returns the work it counts ([`PHASE_WORK`], or [`CRUISE_PHASE_WORK`] for a cruise).
     #[inline(never)]
-    fn enter_phase(&mut self, i: usize, ticks_per_s: f64) {
+    fn enter_phase(&mut self, i: usize, ticks_per_s: f64) -> u32 {
         let (Some(a), Some(next)) = (self.axes.get_mut(i), self.next_tick.get_mut(i)) else {
-            return;
+            return 1;
         };
         *next = u64::MAX;
         if a.end_if_done(next) {
-            return;
+            return 1;
         }
         let h = a.step_mm;
         // Step j is at h·(j − ½) − s_anchor along the profile. The anchor is the block's start
@@ -438,7 +443,7 @@ impl<const N: usize> Current<N> {
             a.phase += 1;
         }
         if a.phase >= PHASES {
-            return;
+            return PHASE_WORK;
         }
         let ph = self.profile.phase(a.phase);
         // The block's first step, in a phase from its start, is half a step into it (`half`:
@@ -510,6 +515,11 @@ impl<const N: usize> Current<N> {
             Some(clock) => {
                 a.timing = Timing::Clock(clock);
                 *next = clock.tick();
+                if ph.shape == Shape::Cruise {
+                    CRUISE_PHASE_WORK
+                } else {
+                    PHASE_WORK
+                }
             }
             None => {
                 a.timing = Timing::Exact;
@@ -517,6 +527,7 @@ impl<const N: usize> Current<N> {
                 if let Some(next) = self.next_tick.get_mut(i) {
                     *next = tick;
                 }
+                PHASE_WORK
             }
         }
     }
@@ -547,8 +558,7 @@ impl<const N: usize> Current<N> {
         a.j += 1;
         if a.j > a.phase_last {
             a.phase += 1;
-            self.enter_phase(i, ticks_per_s);
-            return 1 + PHASE_WORK;
+            return 1 + self.enter_phase(i, ticks_per_s);
         }
         let (tick, rooted) = match &mut a.timing {
             Timing::Clock(clock) => clock.advance(),
@@ -1623,8 +1633,7 @@ impl<const N: usize> Prep<N> {
             if cur.unset != 0 {
                 let i = cur.unset.trailing_zeros() as usize;
                 cur.unset &= !(1 << i);
-                cur.enter_phase(i, tps);
-                work += PHASE_WORK;
+                work += cur.enter_phase(i, tps);
                 continue;
             }
             #[cfg(debug_assertions)]
