@@ -1349,7 +1349,11 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// dozen step events (under 20,000 instructions on a Cortex-M4, `docs/performance.md`),
     /// and a motion starts once its lead is prepared.
     pub fn poll(&mut self, now: Instant) -> Option<Instant> {
-        if self.is_quiet(now) || self.has_nothing_to_do(now) {
+        // A quiet poll follows one that found nothing to do, which left `prep_more` false.
+        if self.is_quiet(now) {
+            return None;
+        }
+        if self.has_nothing_to_do(now) {
             self.prep_more = false;
             return None;
         }
@@ -1374,7 +1378,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
             return false;
         }
         debug_assert!(
-            !self.has_thread_side_work(),
+            !self.has_thread_side_work() && !self.prep_more,
             "work left behind a quiet poll"
         );
         // What the queue holds at the least: it holds half the lead at `until`.

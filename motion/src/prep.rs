@@ -281,7 +281,9 @@ struct Current<const N: usize> {
     /// once a phase that changes speed needs it (0 until then: a block at one speed, the most
     /// common in a chain of short moves, goes without the division).
     ticks_per_speed: f64,
+    /// The block's nominal speed (mm/s), and its square as the planner holds it.
     nominal: f64,
+    nominal_sqr: f32,
     s_anchor: f64,
     /// Exact time of the anchor, ticks.
     t_anchor: f64,
@@ -323,6 +325,7 @@ impl<const N: usize> Current<N> {
             accel: 1.0,
             ticks_per_speed: 0.0,
             nominal: 0.0,
+            nominal_sqr: 0.0,
             s_anchor: 0.0,
             t_anchor: 0.0,
             last_axis: NO_AXIS,
@@ -352,7 +355,14 @@ impl<const N: usize> Current<N> {
         if hold {
             Profile::hold(rest, v0, self.accel)
         } else {
-            Profile::plan(rest, v0, self.nominal, speed_of(exit_sqr), self.accel)
+            // A block left at its nominal speed (a chain of moves at one feed) has that speed
+            // already: its square root is not taken again.
+            let exit = if exit_sqr.to_bits() == self.nominal_sqr.to_bits() {
+                self.nominal
+            } else {
+                speed_of(exit_sqr)
+            };
+            Profile::plan(rest, v0, self.nominal, exit, self.accel)
         }
     }
 
@@ -1480,6 +1490,7 @@ impl<const N: usize> Prep<N> {
         if self.loaded {
             let cur = &mut self.cur;
             cur.nominal = speed_of(nominal_sqr);
+            cur.nominal_sqr = nominal_sqr;
             // Never equal to the planner's exit: the next fill re-anchors.
             cur.exit_used = f32::NAN;
         }
@@ -1760,6 +1771,7 @@ impl<const N: usize> Prep<N> {
         cur.accel = f64::from(block.accel);
         cur.ticks_per_speed = 0.0;
         cur.nominal = speed_of(block.nominal_sqr);
+        cur.nominal_sqr = block.nominal_sqr;
         cur.s_anchor = 0.0;
         cur.t_anchor = self.t_plan;
         cur.last_axis = NO_AXIS;
