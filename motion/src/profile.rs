@@ -212,6 +212,11 @@ impl Profile {
         is_zero(length)
     }
 
+    /// Whether the profile is one cruise: its ramps are empty.
+    pub(crate) fn is_cruise(&self) -> bool {
+        self.is_empty(0) && self.is_empty(2)
+    }
+
     /// Whether every phase after `p` is empty ([`Profile::is_empty`]): `p` ends the profile.
     pub(crate) fn ends_with(&self, p: usize) -> bool {
         (p + 1..PHASES).all(|q| self.is_empty(q))
