@@ -603,7 +603,8 @@ impl<const N: usize> Current<N> {
     /// and as long low after its axis's last rising edge, in the direction its line already
     /// has, not the last of its phase, by a step clock, and before `horizon`. Stops at the
     /// first step that is not such (the general path takes it), at `max_work` or when the
-    /// queue's room is used. Returns the work done (0: nothing emitted).
+    /// queue's room is used. `first` is the axis whose step comes first and its tick
+    /// ([`Current::first_step`]). Returns the work done (0: nothing emitted, nothing changed).
     ///
     /// This is the inner loop of preparation: one axis stepping alone runs in
     /// [`Current::run_alone`], several that all cruise in [`Current::run_cruises`]; the others
@@ -616,6 +617,7 @@ impl<const N: usize> Current<N> {
         horizon: u64,
         max_work: u32,
         ticks_per_s: f64,
+        first: (usize, u64),
     ) -> u32 {
         let room = em.room.saturating_sub(SLOTS_PER_STEP + 2);
         let room = room.min(u32::MAX as usize) as u32;
@@ -624,7 +626,7 @@ impl<const N: usize> Current<N> {
             return self.run_alone(i, em, tx, horizon, limit, ticks_per_s);
         }
         let cruise_steps = max_work.saturating_mul(MERGED_STEPS_PER_WORK).min(room);
-        if let Some(steps) = self.run_cruises(em, tx, horizon, cruise_steps, ticks_per_s) {
+        if let Some(steps) = self.run_cruises(em, tx, horizon, cruise_steps, ticks_per_s, first) {
             return steps.div_ceil(MERGED_STEPS_PER_WORK);
         }
         // Step by step, the axis whose step comes first: the axes are kept in the order of
@@ -711,12 +713,12 @@ impl<const N: usize> Current<N> {
         horizon: u64,
         max_steps: u32,
         ticks_per_s: f64,
+        (first, at): (usize, u64),
     ) -> Option<u32> {
         let _ = ticks_per_s;
-        // The first step needs the general path (an edge at the last event's tick, the last
-        // step of a phase the axis has more steps after, the horizon): found before the
-        // set-up, which would be wasted.
-        let (first, at) = self.first_step();
+        // The first step (`first`'s, at `at`: [`Current::first_step`]) needs the general path
+        // (an edge at the last event's tick, the last step of a phase the axis has more steps
+        // after, the horizon): found before the set-up, which would be wasted.
         if at == em.last_tick
             || at >= horizon
             || self
@@ -1658,17 +1660,27 @@ impl<const N: usize> Prep<N> {
             {
                 cur.burst_error = 0.0;
             }
-            let burst = cur.burst(&mut self.em, tx, horizon, WORK_PER_FILL - work, tps);
-            if burst > 0 {
-                #[cfg(debug_assertions)]
-                {
-                    self.worst_error = self.worst_error.max(cur.burst_error);
-                }
-                work += burst;
-                continue;
-            }
-            // The axis whose step comes first.
+            // The axis whose step comes first. Past the horizon (or none: the block is done),
+            // a run of steps would find nothing to do.
             let (i, tick) = cur.first_step();
+            if tick < horizon {
+                let burst = cur.burst(
+                    &mut self.em,
+                    tx,
+                    horizon,
+                    WORK_PER_FILL - work,
+                    tps,
+                    (i, tick),
+                );
+                if burst > 0 {
+                    #[cfg(debug_assertions)]
+                    {
+                        self.worst_error = self.worst_error.max(cur.burst_error);
+                    }
+                    work += burst;
+                    continue;
+                }
+            }
             // A step past the horizon waits for the next top-up while the queue holds half the
             // lead before it (that top-up comes before the queue runs down to it): a top-up ends
             // at the horizon, not with one step past it.
@@ -1939,7 +1951,8 @@ mod tests {
             let max_steps = 1 + (xorshift(&mut seed) % 700) as u32;
             let mut cur = start;
             let (steps, written) = events_of(&mut cur, |cur, em, tx| {
-                cur.run_cruises::<1024>(em, tx, horizon, max_steps, 8e6)
+                let first = cur.first_step();
+                cur.run_cruises::<1024>(em, tx, horizon, max_steps, 8e6, first)
             });
             let expected = reference(&start, cur_origin(&start), horizon, max_steps);
             let edges: u32 = expected.iter().map(|(_, rise)| rise.count_ones()).sum();
