@@ -180,8 +180,10 @@ pub struct MachineConfig<const N: usize> {
     pub default_feed_mm_min: f32,
     /// How much motion the kernel keeps prepared in the step queue, ms
     /// ([`DEFAULT_QUEUE_LEAD_MS`] by default). It bounds how long a feed hold takes to start
-    /// decelerating; the thread side must poll again within half of it, or sooner when the
-    /// queue fills up first (`Kernel::poll_within_ms`).
+    /// decelerating (to five quarters of it: a top-up of the queue runs on to the end of a
+    /// block that ends within a quarter of the lead after it); the thread side must poll
+    /// again within half of it, or sooner when the queue fills up first
+    /// (`Kernel::poll_within_ms`).
     pub queue_lead_ms: u16,
 }
 

@@ -290,6 +290,9 @@ struct Current<const N: usize> {
     s_anchor: f64,
     /// Exact time of the anchor, ticks.
     t_anchor: f64,
+    /// Exact time of the profile's end, ticks (the block's end, or a hold's stop):
+    /// `t_anchor` plus the profile's duration, worked out with the profile.
+    t_end: f64,
     /// The axis of the last emitted step ([`NO_AXIS`]: none since the anchor).
     last_axis: u8,
     /// The one axis that steps, when only one does.
@@ -331,6 +334,7 @@ impl<const N: usize> Current<N> {
             nominal_sqr: 0.0,
             s_anchor: 0.0,
             t_anchor: 0.0,
+            t_end: 0.0,
             last_axis: NO_AXIS,
             only_axis: None,
             unset: 0,
@@ -343,9 +347,26 @@ impl<const N: usize> Current<N> {
         }
     }
 
-    /// Take `profile` from the anchor on: the phases' starts are found anew.
-    fn set_profile(&mut self, profile: Profile) {
+    /// The horizon of a top-up that has just loaded this block: `horizon`, or past the block's
+    /// end when it comes within a quarter of the lead after it. With the end of a block
+    /// within a quarter of the lead before the horizon, where a top-up stops ([`Prep::fill`]),
+    /// top-ups end with blocks: where blocks are about as long as half the lead (a chain of
+    /// short moves), each top-up took a few steps of one block and the rest of the next, each
+    /// run of steps with a set-up of its own. The queue then holds up to five quarters of the
+    /// lead.
+    fn horizon_to_end(&self, horizon: u64, lead_ticks: u32) -> u64 {
+        let end = ceil_u64(self.t_end);
+        if end > horizon && end - horizon <= u64::from(lead_ticks / 4) {
+            end + 1
+        } else {
+            horizon
+        }
+    }
+
+    /// Take `profile` from the anchor on: the phases' starts are found anew, and its end.
+    fn set_profile(&mut self, profile: Profile, ticks_per_s: f64) {
         self.profile = profile;
+        self.t_end = self.t_anchor + profile.duration() * ticks_per_s;
         self.starts = [None; PHASES];
     }
 
@@ -399,7 +420,7 @@ impl<const N: usize> Current<N> {
         self.last_axis = NO_AXIS;
         self.exit_used = exit_sqr;
         self.hold_used = hold;
-        self.set_profile(self.profile_for(v, exit_sqr, hold));
+        self.set_profile(self.profile_for(v, exit_sqr, hold), ticks_per_s);
         for a in self.axes.iter_mut() {
             a.phase = 0;
         }
@@ -1505,11 +1526,16 @@ impl<const N: usize> Prep<N> {
     /// 0 at rest: the speed now, `queue_lead_ms` ahead), that speed as a fraction of the
     /// block's nominal speed, whether the block is a rapid, and its spindle speed (rpm).
     pub(crate) fn motion(&self) -> Option<(f64, f64, bool, u32)> {
-        if !self.loaded {
-            return None;
-        }
         let cur = &self.cur;
-        let v = cur.profile.speed_at(cur.last_s() - cur.s_anchor);
+        let v = if self.loaded {
+            cur.profile.speed_at(cur.last_s() - cur.s_anchor)
+        } else if self.v_carry > 0.0 {
+            // Between two blocks (a top-up ends with a block): the last prepared step is the
+            // last block's last, at its exit speed; the block it belongs to is still `cur`.
+            self.v_carry
+        } else {
+            return None;
+        };
         let fraction = if cur.nominal > 0.0 {
             v / cur.nominal
         } else {
@@ -1563,9 +1589,10 @@ impl<const N: usize> Prep<N> {
     /// Whether the queue, holding `ahead` ticks, needs no top-up now; if so, records what it
     /// holds. Topped up to the lead, the queue runs down to half of it before the next top-up:
     /// a call in between prepares nothing and costs little, and each top-up prepares many
-    /// steps for one call's set-up. The queue never holds more than the lead (a feed hold
-    /// still starts decelerating within it), and the board polls again within half of what it
-    /// holds, so it never runs dry.
+    /// steps for one call's set-up. The queue never holds more than five quarters of the lead
+    /// (a top-up runs on to the end of a block that ends within a quarter of the lead after
+    /// it, [`Current::horizon_to_end`]), so a feed hold still starts decelerating within
+    /// that, and the board polls again within half of what it holds, so it never runs dry.
     #[inline(always)]
     pub(crate) fn holds_enough(&mut self, ahead: u32, lead_ticks: u32, running: bool) -> bool {
         let enough = !self.refilling && running && ahead >= lead_ticks / 2;
@@ -1591,8 +1618,9 @@ impl<const N: usize> Prep<N> {
             return Fill::Pending;
         }
         self.refilling = true;
-        // Events go up to this tick: `lead_ticks` of motion ahead of now.
-        let horizon = self.em.last_tick + u64::from(lead_ticks.saturating_sub(ahead));
+        // Events go up to this tick: `lead_ticks` of motion ahead of now (or to the end of a
+        // block that ends a little after, `Current::horizon_to_end`).
+        let mut horizon = self.em.last_tick + u64::from(lead_ticks.saturating_sub(ahead));
         let tps = self.ticks_per_s;
         let mut work = self.check_plan(planner);
         self.em.room = tx.free();
@@ -1645,6 +1673,7 @@ impl<const N: usize> Prep<N> {
                         } else {
                             PROFILE_WORK
                         };
+                        horizon = self.cur.horizon_to_end(horizon, lead_ticks);
                     }
                 }
                 continue;
@@ -1701,16 +1730,23 @@ impl<const N: usize> Prep<N> {
                 work += cur.advance(i, tps);
             } else if cur.done() {
                 // Block done: the next one starts where this profile ends.
-                self.t_plan = cur.t_anchor + cur.profile.duration() * tps;
+                self.t_plan = cur.t_end;
                 self.v_carry = cur.profile.exit_speed();
                 self.loaded = false;
                 planner.retire_tail();
+                // A top-up that ends a block within a quarter of the lead before its horizon
+                // ends there: the next top-up starts with the next block (see
+                // `Current::horizon_to_end`).
+                if self.em.cursor() + u64::from(lead_ticks / 4) >= horizon {
+                    self.refilling = false;
+                    break Fill::Pending;
+                }
             } else {
                 // A hold came to rest inside the block: anchor there, at zero speed.
                 cur.s_anchor += cur.profile.length();
-                cur.t_anchor += cur.profile.duration() * tps;
+                cur.t_anchor = cur.t_end;
                 cur.last_axis = NO_AXIS;
-                cur.set_profile(Profile::hold(0.0, 0.0, cur.accel));
+                cur.set_profile(Profile::hold(0.0, 0.0, cur.accel), tps);
                 self.t_plan = cur.t_anchor;
                 self.held = true;
                 self.em.finish_rest(tx);
@@ -1803,7 +1839,10 @@ impl<const N: usize> Prep<N> {
         {
             cur.burst_error = 0.0;
         }
-        cur.set_profile(cur.profile_for(self.v_carry, exit_sqr, self.hold));
+        cur.set_profile(
+            cur.profile_for(self.v_carry, exit_sqr, self.hold),
+            self.ticks_per_s,
+        );
         cur.unset = moving;
         self.loaded = true;
         self.line = block.line;

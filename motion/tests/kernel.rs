@@ -769,3 +769,46 @@ fn a_diagonal_steps_both_axes_together() {
         assert!(e <= 1.0, "a step {e} ticks from its exact time");
     }
 }
+
+/// A top-up of the step queue may end with a block, the next block loaded by the next top-up
+/// (blocks about half the lead long, as in a chain of short moves): between the two, the
+/// speed reported is the last block's exit speed, never 0 while the machine moves (grbl's
+/// `FS:` shows it, and a laser's power follows it).
+#[test]
+fn the_speed_reported_along_a_chain_of_short_moves_stays_at_the_feed_between_blocks() {
+    let mut q = StepQueue::<3, 256>::new();
+    let mut s = sim(&mut q, machine(), HZ);
+    // 0.5 mm segments at 3,000 mm/min: 10 ms each, half the default lead of 20 ms.
+    let mut sent = 0u32;
+    let send_more = |s: &mut common::KernelSim<'_, 3, 32, 256>, sent: &mut u32| {
+        while *sent < 400 && s.kernel.can_accept() {
+            *sent += 1;
+            let x = f64::from(*sent) * 0.5;
+            s.send(&format!("G1 X{x:.1} F3000")).expect("ok");
+        }
+    };
+    send_more(&mut s, &mut sent);
+    // Up to speed (3,000 mm/min at 800 mm/s²: 0.03 s), then sampled every millisecond for
+    // a second, the planner kept fed.
+    s.advance(u64::from(HZ) / 5);
+    let mut samples = 0;
+    for _ in 0..1000 {
+        send_more(&mut s, &mut sent);
+        s.advance(u64::from(HZ) / 1000);
+        let speed = s.kernel.speed_mm_min();
+        assert!(
+            (speed - 3000.0).abs() < 30.0,
+            "{speed} mm/min at {} µs",
+            s.now()
+        );
+        samples += 1;
+    }
+    assert_eq!(samples, 1000);
+    while sent < 400 {
+        sent += 1;
+        s.send(&format!("G1 X{:.1} F3000", f64::from(sent) * 0.5))
+            .expect("ok");
+    }
+    assert!(s.run_until_idle(60 * u64::from(HZ)));
+    assert_eq!(s.positions()[0], steps(200.0));
+}
