@@ -72,14 +72,15 @@ fn speed_of(square: f32) -> f64 {
     f64::from(crate::fpu::sqrtf(square))
 }
 
-/// Ticks to change speed by 1 mm/s at acceleration `accel` ([`Current`]'s `ticks_per_speed`),
-/// worked out into `cached` at the block's first call.
+/// The value kept in `slot`, worked out by `compute` at the first call while the slot holds
+/// 0 (a block's values that only some of its phases need: [`Current`]'s `ticks_per_speed`,
+/// an axis's `per_mm`).
 #[inline(always)]
-fn ticks_per_speed(cached: &mut f64, ticks_per_s: f64, accel: f64) -> f64 {
-    if is_zero(*cached) {
-        *cached = ticks_per_s / accel;
+fn once_needed(slot: &mut f64, compute: impl FnOnce() -> f64) -> f64 {
+    if is_zero(*slot) {
+        *slot = compute();
     }
-    *cached
+    *slot
 }
 
 /// The last step of axis `a` in phase `phase` of `profile`, anchored `s_anchor` mm into its
@@ -90,10 +91,8 @@ fn ticks_per_speed(cached: &mut f64, ticks_per_s: f64, accel: f64) -> f64 {
 /// goes without the division.
 #[inline(never)]
 fn last_step_in(a: &mut AxisSteps, profile: &Profile, phase: usize, mm: f64, s_anchor: f64) -> u64 {
-    if is_zero(a.per_mm) {
-        a.per_mm = f64::from(a.n) / mm;
-    }
-    let per_mm = a.per_mm;
+    let n = a.n;
+    let per_mm = once_needed(&mut a.per_mm, || f64::from(n) / mm);
     let offset = if is_zero(s_anchor) {
         0.5
     } else {
@@ -508,7 +507,7 @@ impl<const N: usize> Current<N> {
                     Shape::Cruise => (rel + 0.5, ticks_per_s / ph.v_start),
                     Shape::Up | Shape::Down => (
                         rel,
-                        ticks_per_speed(&mut self.ticks_per_speed, ticks_per_s, self.accel)
+                        once_needed(&mut self.ticks_per_speed, || ticks_per_s / self.accel)
                             * ph.v_start,
                     ),
                 };
@@ -535,7 +534,7 @@ impl<const N: usize> Current<N> {
                 let c = rate;
                 let k = 2.0
                     * ticks_per_s
-                    * ticks_per_speed(&mut self.ticks_per_speed, ticks_per_s, self.accel);
+                    * once_needed(&mut self.ticks_per_speed, || ticks_per_s / self.accel);
                 let up = shape == Shape::Up;
                 let (c, y) = if up {
                     (rel - c, c * c + k * x)

@@ -192,7 +192,7 @@ impl Profile {
                 shape: Shape::Cruise,
             },
             _ => Phase {
-                start: self.d1 + self.d2,
+                start: self.phase_end(1),
                 t_start: self.t1 + self.t2,
                 v_start: self.v1,
                 shape: Shape::Down,
