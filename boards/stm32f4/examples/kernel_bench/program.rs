@@ -271,15 +271,21 @@ impl Bench {
         let mut text = LineText::new();
         let mut pending = lines(&mut text);
         loop {
+            // As the firmware's loop (`Controller::poll`): the thread side runs again in the
+            // same period only when a line was taken.
+            let mut took = false;
             while pending && self.kernel.can_accept() {
                 if !bench_line(&mut self.kernel, text.bytes()) {
                     break;
                 }
                 taken += 1;
+                took = true;
                 text.clear();
                 pending = lines(&mut text);
             }
-            self.poll();
+            if took {
+                self.poll();
+            }
             self.run_period();
             if !pending && self.kernel.is_idle() {
                 break;
