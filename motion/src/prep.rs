@@ -205,6 +205,24 @@ impl PackedLane {
         self.at = self.at.wrapping_add(self.interval);
     }
 
+    /// The tick of the step before its next (after at least one [`PackedLane::step`]).
+    #[inline(always)]
+    fn previous(&self) -> u32 {
+        (self.at.wrapping_sub(self.interval) >> 32) as u32
+    }
+
+    /// [`PackedLane::step`] (this form counts no steps).
+    #[inline(always)]
+    fn step_uncounted(&mut self, tick: u32) {
+        self.step(tick);
+    }
+
+    /// This form counts no steps (see [`step_lane`]).
+    #[inline(always)]
+    fn count(&mut self, steps: u32) {
+        let _ = steps;
+    }
+
     /// No step left: never the first again.
     #[inline(always)]
     fn end(&mut self) {
@@ -248,8 +266,26 @@ impl SplitLane {
     /// Move on past its next step, which is at `tick`, and count it.
     #[inline(always)]
     fn step(&mut self, tick: u32) {
+        self.step_uncounted(tick);
+        self.count(1);
+    }
+
+    /// The tick of the step before its next (after at least one step).
+    #[inline(always)]
+    fn previous(&self) -> u32 {
+        self.gaps.before(self.next)
+    }
+
+    /// Move on past its next step, which is at `tick`, counted later ([`SplitLane::count`]).
+    #[inline(always)]
+    fn step_uncounted(&mut self, tick: u32) {
         self.next = self.gaps.after(tick);
-        self.taken += 1;
+    }
+
+    /// Count `steps` steps taken by [`SplitLane::step_uncounted`].
+    #[inline(always)]
+    fn count(&mut self, steps: u32) {
+        self.taken += steps;
     }
 
     /// No step left: never the first again (the steps it took stay counted).
@@ -257,6 +293,15 @@ impl SplitLane {
     fn end(&mut self) {
         self.next = u32::MAX;
     }
+}
+
+/// How far a [`Current::run_cruises`] walk has come: the tick of its last step (from the
+/// walk's origin), the steps it took, and the axis of the last.
+#[derive(Debug, Clone, Copy)]
+struct Walk {
+    last: u32,
+    steps: u32,
+    last_axis: u8,
 }
 
 /// Where a phase starts on the step clocks' timeline, the same for every axis that steps in
@@ -796,11 +841,33 @@ impl<const N: usize> Current<N> {
         // The steps each axis took.
         let mut taken = [0u32; N];
         let written_before = tx.written();
+        // Two axes walking (a diagonal, a curve in a plane): their own loop first.
+        let exact = (origin, ticks_per_s);
+        let mut walk = Walk {
+            last: 0,
+            steps: 0,
+            last_axis: self.last_axis,
+        };
+        let rest = walking & walking.wrapping_sub(1);
+        if rest != 0 && rest & rest.wrapping_sub(1) == 0 {
+            let pair = (
+                walking.trailing_zeros() as usize,
+                rest.trailing_zeros() as usize,
+            );
+            self.walk_pair(
+                tx, &mut lanes, &mut taken, pair, stop, max_steps, &mut walk, exact,
+            );
+        }
+        // The general loop's own copies, whose addresses stay its own: they can live in
+        // registers.
+        let (mut lanes, mut taken) = (lanes, taken);
         // Steps taken, the tick of the last and its axis.
         let (steps, last, last_axis) = tx.in_run(|tx| {
-            let mut last = 0u32;
-            let mut steps = 0u32;
-            let mut last_axis = self.last_axis;
+            let Walk {
+                mut last,
+                mut steps,
+                mut last_axis,
+            } = walk;
             while steps < max_steps {
                 // The axis whose step comes first (of two at the same tick, the lower).
                 let (i, t) = first_lane(&lanes);
@@ -860,6 +927,128 @@ impl<const N: usize> Current<N> {
             em.wrote_run(origin + u64::from(last), written);
         }
         Some(steps)
+    }
+
+    /// [`Current::run_cruises`]'s walk while exactly two lanes walk, `a` before `b` (a
+    /// diagonal or a curve in a plane, the other axes idle): the earlier of their next steps,
+    /// or both at one tick as one event, with the two lanes in registers and no scan of the
+    /// others. It stops before `stop`, at a write that fails, and one step short of
+    /// `max_steps` (a step of both counts two); the general loop goes on from where it
+    /// stopped, with the same lanes and counts, and takes the steps at and past `stop`.
+    #[inline(never)]
+    #[allow(clippy::too_many_arguments)]
+    fn walk_pair<const Q: usize>(
+        &mut self,
+        tx: &mut Producer<'_, N, Q>,
+        lanes: &mut [Lane; N],
+        taken: &mut [u32; N],
+        (a, b): (usize, usize),
+        stop: u32,
+        max_steps: u32,
+        walk: &mut Walk,
+        exact: (u64, f64),
+    ) {
+        let _ = exact;
+        let (Some(&first), Some(&second)) = (lanes.get(a), lanes.get(b)) else {
+            return;
+        };
+        let (mut la, mut lb) = (first, second);
+        // Only the walk's first step can be at the last event's tick (a lane's steps are
+        // apart by its gaps, and a step of both at one tick is one event): the general
+        // loop's, which joins it to that event.
+        if la.next().min(lb.next()) == walk.last || walk.steps + 1 >= max_steps {
+            return;
+        }
+        let (edge_a, edge_b) = (1u8 << a, 1u8 << b);
+        let mut last = walk.last;
+        // Steps left to the general loop's last (a step of both counts two), and the steps
+        // `a` took; `b` took the others.
+        let mut left = max_steps - walk.steps - 1;
+        let mut took_a = 0u32;
+        #[cfg(debug_assertions)]
+        let (origin, ticks_per_s) = exact;
+        #[cfg(debug_assertions)]
+        let counted = [lane_taken(lanes, taken, a), lane_taken(lanes, taken, b)];
+        #[cfg(debug_assertions)]
+        let took_b = |left: u32, took_a: u32| max_steps - walk.steps - 1 - left - took_a;
+        tx.in_run(|tx| {
+            while left > 0 {
+                let (ta, tb) = (la.next(), lb.next());
+                if ta < tb {
+                    if ta >= stop || !tx.write_rise(ta.wrapping_sub(last), edge_a) {
+                        break;
+                    }
+                    #[cfg(debug_assertions)]
+                    self.note_walk_error(
+                        a,
+                        counted[0] + took_a,
+                        origin + u64::from(ta),
+                        ticks_per_s,
+                    );
+                    la.step_uncounted(ta);
+                    took_a += 1;
+                    left -= 1;
+                    last = ta;
+                } else if tb < ta {
+                    if tb >= stop || !tx.write_rise(tb.wrapping_sub(last), edge_b) {
+                        break;
+                    }
+                    #[cfg(debug_assertions)]
+                    self.note_walk_error(
+                        b,
+                        counted[1] + took_b(left, took_a),
+                        origin + u64::from(tb),
+                        ticks_per_s,
+                    );
+                    lb.step_uncounted(tb);
+                    left -= 1;
+                    last = tb;
+                } else {
+                    if left < 2
+                        || ta >= stop
+                        || !tx.write_rise(ta.wrapping_sub(last), edge_a | edge_b)
+                    {
+                        break;
+                    }
+                    #[cfg(debug_assertions)]
+                    {
+                        let t = origin + u64::from(ta);
+                        self.note_walk_error(a, counted[0] + took_a, t, ticks_per_s);
+                        self.note_walk_error(b, counted[1] + took_b(left, took_a), t, ticks_per_s);
+                    }
+                    la.step_uncounted(ta);
+                    lb.step_uncounted(ta);
+                    took_a += 1;
+                    left -= 2;
+                    last = ta;
+                }
+            }
+        });
+        let steps = max_steps - 1 - left;
+        let took = steps - walk.steps;
+        if took == 0 {
+            return;
+        }
+        // The last event raised `b`'s line (and `a`'s too, at one tick) when `b`'s last step
+        // is at its tick.
+        let b_last = took > took_a && lb.previous() == last;
+        for (k, mut lane, took) in [(a, la, took_a), (b, lb, took - took_a)] {
+            lane.count(took);
+            if let Some(slot) = lanes.get_mut(k) {
+                *slot = lane;
+            }
+            #[cfg(not(target_arch = "arm"))]
+            if let Some(count) = taken.get_mut(k) {
+                *count += took;
+            }
+        }
+        #[cfg(target_arch = "arm")]
+        let _ = taken;
+        *walk = Walk {
+            last,
+            steps,
+            last_axis: if b_last { b as u8 } else { a as u8 },
+        };
     }
 
     /// Debug builds: the step of axis `i` at `tick`, `taken` steps into a walk, is measured
@@ -1896,6 +2085,16 @@ mod tests {
             }
             cur.next_tick[1] = cur.next_tick[0];
         }
+        // A third of them have an axis with no step left: two axes walk
+        // ([`Current::walk_pair`]).
+        if xorshift(seed).is_multiple_of(3) {
+            let k = (xorshift(seed) % 3) as usize;
+            if let (Some(a), Some(next)) = (cur.axes.get_mut(k), cur.next_tick.get_mut(k)) {
+                a.j = a.n + 1;
+                a.phase = PHASES;
+                *next = u64::MAX;
+            }
+        }
         cur
     }
 
@@ -1951,6 +2150,10 @@ mod tests {
             let Timing::Clock(mut clock) = a.timing else {
                 panic!("a clock");
             };
+            if a.j > a.n {
+                // No step left.
+                continue;
+            }
             for _ in a.j..a.phase_last {
                 steps.push((clock.tick(), i));
                 clock.advance();
@@ -1981,8 +2184,8 @@ mod tests {
     #[test]
     fn the_cruises_walk_writes_each_clocks_steps_in_order() {
         let mut seed = 0x5eed_cafe_u64;
-        let (mut stepped, mut together, mut ended) = (0, 0, 0);
-        for round in 0..2_000 {
+        let (mut stepped, mut together, mut ended, mut pairs) = (0, 0, 0, 0);
+        for round in 0..3_000 {
             let origin = 1_000 + xorshift(&mut seed) % 1_000_000;
             let start = cruises(&mut seed, origin);
             let horizon = origin + 500 + xorshift(&mut seed) % 100_000;
@@ -1994,6 +2197,9 @@ mod tests {
             });
             let expected = reference(&start, cur_origin(&start), horizon, max_steps);
             let edges: u32 = expected.iter().map(|(_, rise)| rise.count_ones()).sum();
+            if start.axes.iter().filter(|a| a.j <= a.n).count() == 2 && edges > 1 {
+                pairs += 1;
+            }
             assert_eq!(steps, Some(edges), "round {round}");
             let events: Vec<(u32, u8)> = written
                 .iter()
@@ -2002,6 +2208,11 @@ mod tests {
                 .map(|ev| (ev.delta(), ev.rise()))
                 .collect();
             assert_eq!(events, expected, "round {round}");
+            // The last step's axis (of several at its tick, the highest, taken last).
+            if let Some((_, rise)) = expected.last() {
+                let highest = 7 - rise.leading_zeros() as u8;
+                assert_eq!(cur.last_axis, highest, "round {round}");
+            }
             // Each axis's clock moved on by the steps it took.
             for (i, (a, b)) in start.axes.iter().zip(cur.axes.iter()).enumerate() {
                 let took: u32 = expected
@@ -2015,7 +2226,10 @@ mod tests {
                     clock.advance();
                 }
                 assert_eq!((b.j, b.timing), (a.j + took, Timing::Clock(clock)));
-                if b.j > b.n {
+                if a.j > a.n {
+                    // It had no step left, and took none.
+                    assert_eq!((took, cur.next_tick.get(i)), (0, Some(&u64::MAX)));
+                } else if b.j > b.n {
                     // Its last step in the block taken: the axis is done.
                     assert_eq!((b.phase, cur.next_tick.get(i)), (PHASES, Some(&u64::MAX)));
                     ended += 1;
@@ -2034,6 +2248,8 @@ mod tests {
         assert!(together > 100, "{together} events of several steps");
         // Axes took their last step in the block and were done, the others walking on.
         assert!(ended > 300, "{ended} axes done");
+        // Walks of two axes, the third done.
+        assert!(pairs > 500, "{pairs} walks of two axes");
     }
 
     #[test]
@@ -2060,6 +2276,11 @@ mod tests {
                     );
                     packed.step(packed.next());
                     split.step(split.next());
+                    // Each finds the tick of the step it moved on from.
+                    assert_eq!(
+                        (u64::from(packed.previous()), u64::from(split.previous())),
+                        (at, at)
+                    );
                     clock.advance();
                     compared += 1;
                 }

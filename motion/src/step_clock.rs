@@ -225,6 +225,15 @@ impl CruiseGaps {
         tick.wrapping_add(self.whole).wrapping_add(u32::from(carry))
     }
 
+    /// The tick of the step before the one at `tick`, which [`CruiseGaps::after`] moved on
+    /// to (its fraction is the gaps' now, past a carry when it is below the interval's).
+    #[cfg(any(test, target_arch = "arm"))]
+    #[inline(always)]
+    pub(crate) fn before(&self, tick: u32) -> u32 {
+        let carry = self.frac < self.part;
+        tick.wrapping_sub(self.whole).wrapping_sub(u32::from(carry))
+    }
+
     /// The step at `tick` and the interval, each as one 32.32 number of ticks: the interval
     /// added to the step gives the next, as [`CruiseGaps::after`] does.
     #[cfg(any(test, not(target_arch = "arm")))]
