@@ -296,12 +296,15 @@ impl SplitLane {
 }
 
 /// How far a [`Current::run_cruises`] walk has come: the tick of its last step (from the
-/// walk's origin), the steps it took, and the axis of the last.
+/// walk's origin), the steps it took, the axis of the last, where it stops next (`stop`,
+/// see [`next_stop`]) and the axes still walking (a mask).
 #[derive(Debug, Clone, Copy)]
 struct Walk {
     last: u32,
     steps: u32,
     last_axis: u8,
+    stop: u32,
+    walking: u8,
 }
 
 /// Where a phase starts on the step clocks' timeline, the same for every axis that steps in
@@ -847,6 +850,8 @@ impl<const N: usize> Current<N> {
             last: 0,
             steps: 0,
             last_axis: self.last_axis,
+            stop,
+            walking,
         };
         let rest = walking & walking.wrapping_sub(1);
         if rest != 0 && rest & rest.wrapping_sub(1) == 0 {
@@ -854,8 +859,9 @@ impl<const N: usize> Current<N> {
                 walking.trailing_zeros() as usize,
                 rest.trailing_zeros() as usize,
             );
+            let limits = (hard, max_steps);
             self.walk_pair(
-                tx, &mut lanes, &mut taken, pair, stop, max_steps, &mut walk, exact,
+                tx, &mut lanes, &mut taken, pair, &ends, limits, &mut walk, exact,
             );
         }
         // The general loop's own copies, whose addresses stay its own: they can live in
@@ -867,6 +873,8 @@ impl<const N: usize> Current<N> {
                 mut last,
                 mut steps,
                 mut last_axis,
+                mut stop,
+                mut walking,
             } = walk;
             while steps < max_steps {
                 // The axis whose step comes first (of two at the same tick, the lower).
@@ -932,9 +940,11 @@ impl<const N: usize> Current<N> {
     /// [`Current::run_cruises`]'s walk while exactly two lanes walk, `a` before `b` (a
     /// diagonal or a curve in a plane, the other axes idle): the earlier of their next steps,
     /// or both at one tick as one event, with the two lanes in registers and no scan of the
-    /// others. It stops before `stop`, at a write that fails, and one step short of
+    /// others. At the stop, as in the general loop, an axis's last step in the block (its
+    /// `ends`) is taken and the axis is done (its lane never first again), and the walk goes
+    /// on with the other. It ends at `hard`, at a write that fails, and one step short of
     /// `max_steps` (a step of both counts two); the general loop goes on from where it
-    /// stopped, with the same lanes and counts, and takes the steps at and past `stop`.
+    /// stopped, with the same lanes, counts and stop.
     #[inline(never)]
     #[allow(clippy::too_many_arguments)]
     fn walk_pair<const Q: usize>(
@@ -943,8 +953,8 @@ impl<const N: usize> Current<N> {
         lanes: &mut [Lane; N],
         taken: &mut [u32; N],
         (a, b): (usize, usize),
-        stop: u32,
-        max_steps: u32,
+        ends: &[u32; N],
+        (hard, max_steps): (u32, u32),
         walk: &mut Walk,
         exact: (u64, f64),
     ) {
@@ -959,12 +969,18 @@ impl<const N: usize> Current<N> {
         if la.next().min(lb.next()) == walk.last || walk.steps + 1 >= max_steps {
             return;
         }
+        let (end_a, end_b) = (
+            ends.get(a).copied().unwrap_or(0),
+            ends.get(b).copied().unwrap_or(0),
+        );
         let (edge_a, edge_b) = (1u8 << a, 1u8 << b);
-        let mut last = walk.last;
+        let (mut last, mut stop, mut walking) = (walk.last, walk.stop, walk.walking);
         // Steps left to the general loop's last (a step of both counts two), and the steps
         // `a` took; `b` took the others.
         let mut left = max_steps - walk.steps - 1;
         let mut took_a = 0u32;
+        // The tick of `b`'s last step in the block, once taken (its lane is done then).
+        let mut b_ended = None;
         #[cfg(debug_assertions)]
         let (origin, ticks_per_s) = exact;
         #[cfg(debug_assertions)]
@@ -972,55 +988,111 @@ impl<const N: usize> Current<N> {
         #[cfg(debug_assertions)]
         let took_b = |left: u32, took_a: u32| max_steps - walk.steps - 1 - left - took_a;
         tx.in_run(|tx| {
-            while left > 0 {
+            loop {
+                while left > 0 {
+                    let (ta, tb) = (la.next(), lb.next());
+                    if ta < tb {
+                        if ta >= stop || !tx.write_rise(ta.wrapping_sub(last), edge_a) {
+                            break;
+                        }
+                        #[cfg(debug_assertions)]
+                        self.note_walk_error(
+                            a,
+                            counted[0] + took_a,
+                            origin + u64::from(ta),
+                            ticks_per_s,
+                        );
+                        la.step_uncounted(ta);
+                        took_a += 1;
+                        left -= 1;
+                        last = ta;
+                    } else if tb < ta {
+                        if tb >= stop || !tx.write_rise(tb.wrapping_sub(last), edge_b) {
+                            break;
+                        }
+                        #[cfg(debug_assertions)]
+                        self.note_walk_error(
+                            b,
+                            counted[1] + took_b(left, took_a),
+                            origin + u64::from(tb),
+                            ticks_per_s,
+                        );
+                        lb.step_uncounted(tb);
+                        left -= 1;
+                        last = tb;
+                    } else {
+                        if left < 2
+                            || ta >= stop
+                            || !tx.write_rise(ta.wrapping_sub(last), edge_a | edge_b)
+                        {
+                            break;
+                        }
+                        #[cfg(debug_assertions)]
+                        {
+                            let t = origin + u64::from(ta);
+                            self.note_walk_error(a, counted[0] + took_a, t, ticks_per_s);
+                            self.note_walk_error(
+                                b,
+                                counted[1] + took_b(left, took_a),
+                                t,
+                                ticks_per_s,
+                            );
+                        }
+                        la.step_uncounted(ta);
+                        lb.step_uncounted(ta);
+                        took_a += 1;
+                        left -= 2;
+                        last = ta;
+                    }
+                }
+                // At the stop and before `hard`: the steps at its tick, one of them an axis's
+                // last in the block, which is then done.
                 let (ta, tb) = (la.next(), lb.next());
-                if ta < tb {
-                    if ta >= stop || !tx.write_rise(ta.wrapping_sub(last), edge_a) {
-                        break;
+                let t = ta.min(tb);
+                let (at_a, at_b) = (ta == t, tb == t);
+                let steps = u32::from(at_a) + u32::from(at_b);
+                if t < stop || t >= hard || left < steps {
+                    break;
+                }
+                let rise = if at_a { edge_a } else { 0 } | if at_b { edge_b } else { 0 };
+                if !tx.write_rise(t.wrapping_sub(last), rise) {
+                    break;
+                }
+                #[cfg(debug_assertions)]
+                {
+                    let at = origin + u64::from(t);
+                    if at_a {
+                        self.note_walk_error(a, counted[0] + took_a, at, ticks_per_s);
                     }
-                    #[cfg(debug_assertions)]
-                    self.note_walk_error(
-                        a,
-                        counted[0] + took_a,
-                        origin + u64::from(ta),
-                        ticks_per_s,
-                    );
-                    la.step_uncounted(ta);
+                    if at_b {
+                        self.note_walk_error(b, counted[1] + took_b(left, took_a), at, ticks_per_s);
+                    }
+                }
+                if at_a {
+                    la.step_uncounted(t);
                     took_a += 1;
-                    left -= 1;
-                    last = ta;
-                } else if tb < ta {
-                    if tb >= stop || !tx.write_rise(tb.wrapping_sub(last), edge_b) {
-                        break;
+                    if t == end_a {
+                        la.end();
+                        walking &= !edge_a;
                     }
-                    #[cfg(debug_assertions)]
-                    self.note_walk_error(
-                        b,
-                        counted[1] + took_b(left, took_a),
-                        origin + u64::from(tb),
-                        ticks_per_s,
-                    );
-                    lb.step_uncounted(tb);
-                    left -= 1;
-                    last = tb;
-                } else {
-                    if left < 2
-                        || ta >= stop
-                        || !tx.write_rise(ta.wrapping_sub(last), edge_a | edge_b)
-                    {
-                        break;
+                }
+                if at_b {
+                    lb.step_uncounted(t);
+                    if t == end_b {
+                        lb.end();
+                        walking &= !edge_b;
+                        b_ended = Some(t);
                     }
-                    #[cfg(debug_assertions)]
-                    {
-                        let t = origin + u64::from(ta);
-                        self.note_walk_error(a, counted[0] + took_a, t, ticks_per_s);
-                        self.note_walk_error(b, counted[1] + took_b(left, took_a), t, ticks_per_s);
-                    }
-                    la.step_uncounted(ta);
-                    lb.step_uncounted(ta);
-                    took_a += 1;
-                    left -= 2;
-                    last = ta;
+                }
+                left -= steps;
+                last = t;
+                // The next stop: `hard`, or the end of the axis still walking if sooner.
+                stop = hard;
+                if walking & edge_a != 0 {
+                    stop = stop.min(end_a);
+                }
+                if walking & edge_b != 0 {
+                    stop = stop.min(end_b);
                 }
             }
         });
@@ -1031,7 +1103,8 @@ impl<const N: usize> Current<N> {
         }
         // The last event raised `b`'s line (and `a`'s too, at one tick) when `b`'s last step
         // is at its tick.
-        let b_last = took > took_a && lb.previous() == last;
+        let b_at = b_ended.unwrap_or_else(|| lb.previous());
+        let b_last = took > took_a && b_at == last;
         for (k, mut lane, took) in [(a, la, took_a), (b, lb, took - took_a)] {
             lane.count(took);
             if let Some(slot) = lanes.get_mut(k) {
@@ -1048,6 +1121,8 @@ impl<const N: usize> Current<N> {
             last,
             steps,
             last_axis: if b_last { b as u8 } else { a as u8 },
+            stop,
+            walking,
         };
     }
 
