@@ -309,11 +309,13 @@ struct Walk {
 
 /// Where a phase starts on the step clocks' timeline, the same for every axis that steps in
 /// it ([`Current::enter_phase`]): the tick the clocks count from, the start's fraction of a
-/// tick past it (a cruise's plus ½, the rounding its clock adds to each step's time), and the
-/// phase's rate (a cruise's ticks per mm, a ramp's ticks from speed 0 to its start speed).
+/// tick past it (for a cruise in its clock's fixed point, `fraction`, for a ramp as a
+/// double, `rel`; the other is 0), and the phase's rate (a cruise's ticks per mm, a ramp's
+/// ticks from speed 0 to its start speed).
 #[derive(Debug, Clone, Copy)]
 struct PhaseStart {
     base: u64,
+    fraction: u64,
     rel: f64,
     rate: f64,
 }
@@ -541,7 +543,12 @@ impl<const N: usize> Current<N> {
         };
         let steps = a.phase_last - a.j + 1;
         // The phase's start, found by the first axis that enters it.
-        let PhaseStart { base, rel, rate } = match self.starts.get(a.phase).copied().flatten() {
+        let PhaseStart {
+            base,
+            fraction,
+            rel,
+            rate,
+        } = match self.starts.get(a.phase).copied().flatten() {
             Some(start) => start,
             None => {
                 let start = if is_zero(ph.t_start) {
@@ -549,17 +556,29 @@ impl<const N: usize> Current<N> {
                 } else {
                     self.t_anchor + product(ph.t_start, ticks_per_s)
                 };
-                let base = floor_u64(start);
-                let rel = start - base as f64;
-                let (rel, rate) = match ph.shape {
-                    Shape::Cruise => (rel + 0.5, ticks_per_s / ph.v_start),
-                    Shape::Up | Shape::Down => (
-                        rel,
-                        once_needed(&mut self.ticks_per_speed, || ticks_per_s / self.accel)
-                            * ph.v_start,
-                    ),
+                let found = match ph.shape {
+                    Shape::Cruise => {
+                        let (base, fraction) = StepClock::phase_start(start);
+                        let rate = ticks_per_s / ph.v_start;
+                        PhaseStart {
+                            base,
+                            fraction,
+                            rel: 0.0,
+                            rate,
+                        }
+                    }
+                    Shape::Up | Shape::Down => {
+                        let base = floor_u64(start);
+                        let ticks_per_speed =
+                            once_needed(&mut self.ticks_per_speed, || ticks_per_s / self.accel);
+                        PhaseStart {
+                            base,
+                            fraction: 0,
+                            rel: start - base as f64,
+                            rate: ticks_per_speed * ph.v_start,
+                        }
+                    }
                 };
-                let found = PhaseStart { base, rel, rate };
                 if let Some(slot) = self.starts.get_mut(a.phase) {
                     *slot = Some(found);
                 }
@@ -576,7 +595,7 @@ impl<const N: usize> Current<N> {
                 } else {
                     product(ticks_per_mm, x)
                 };
-                StepClock::cruise_from(base, rel + first, interval, steps)
+                StepClock::cruise_from(base, fraction, first, interval, steps)
             }
             shape => {
                 let c = rate;
@@ -871,12 +890,14 @@ impl<const N: usize> Current<N> {
         let (steps, last, last_axis) = tx.in_run(|tx| {
             let Walk {
                 mut last,
-                mut steps,
+                steps,
                 mut last_axis,
                 mut stop,
                 mut walking,
             } = walk;
-            while steps < max_steps {
+            // Counted down: the count and its limit in one register.
+            let mut left = max_steps.saturating_sub(steps);
+            while left > 0 {
                 // The axis whose step comes first (of two at the same tick, the lower).
                 let (i, t) = first_lane(&lanes);
                 // At the stop, the last step of an axis whose steps in the block end with it is
@@ -886,7 +907,7 @@ impl<const N: usize> Current<N> {
                 if at_stop && t >= hard {
                     break;
                 }
-                if !write_step(tx, last, steps, i, t) {
+                if !write_step(tx, last, i, t) {
                     break;
                 }
                 #[cfg(debug_assertions)]
@@ -898,7 +919,7 @@ impl<const N: usize> Current<N> {
                 );
                 last = t;
                 last_axis = i as u8;
-                steps += 1;
+                left -= 1;
                 step_lane(&mut lanes, &mut taken, i, t);
                 if at_stop && ends.get(i) == Some(&t) {
                     end_lane(&mut lanes, i);
@@ -906,7 +927,7 @@ impl<const N: usize> Current<N> {
                     stop = next_stop(hard, &ends, walking);
                 }
             }
-            (steps, last, last_axis)
+            (max_steps.max(steps) - left, last, last_axis)
         });
         if steps > 0 {
             // Each clock moves on by the steps its axis took (from the steps it had left), in
@@ -1396,14 +1417,14 @@ fn next_stop<const N: usize>(hard: u32, ends: &[u32; N], walking: u8) -> u32 {
 }
 
 /// Write the rising edge of axis `i` at tick `t` of a [`Current::run_cruises`] walk, whose
-/// last event is at `last` after `steps` steps: a new event, or at the tick of an event this
-/// walk wrote (two axes stepping together, as on a diagonal) the edge joins it (an earlier
-/// event is the general path's to join). `false` when it cannot be written.
+/// last step is at `last` ticks from its origin: a new event, or at the tick of an event this
+/// walk wrote (two axes stepping together, as on a diagonal) the edge joins it. At the
+/// origin's tick (`last` 0: the walk's steps are all past it), the event is the last one
+/// before the walk, the general path's to join. `false` when it cannot be written.
 #[inline(always)]
 fn write_step<const N: usize, const Q: usize>(
     tx: &mut Producer<'_, N, Q>,
     last: u32,
-    steps: u32,
     i: usize,
     t: u32,
 ) -> bool {
@@ -1411,7 +1432,7 @@ fn write_step<const N: usize, const Q: usize>(
     debug_assert!(delta <= MAX_DELTA);
     let edge = 1u8 << i;
     if delta == 0 {
-        steps > 0
+        last > 0
             && tx.amend_last(&Event {
                 rise: edge,
                 ..Event::default()

@@ -26,7 +26,7 @@
 use libm::round;
 
 use crate::bound::at_most;
-use crate::whole::{round_up_half, round_up_half_scaled};
+use crate::whole::{floor_and_fraction, round_up_half, round_up_half_scaled};
 
 /// Fraction bits of a ramp's times: `R` counts sixteenths of a tick.
 const RAMP_BITS: u32 = 4;
@@ -75,22 +75,45 @@ impl StepClock {
     /// `base` (exact, `≥ −½`), the others `interval` ticks apart. `None` beyond its range.
     #[cfg(test)]
     pub(crate) fn cruise(base: u64, first: f64, interval: f64, steps: u32) -> Option<Self> {
-        Self::cruise_from(base, first + 0.5, interval, steps)
+        if first + 0.5 < 0.0 {
+            return None;
+        }
+        let start = round_up_half_scaled(first + 0.5, CRUISE_BITS) - Self::HALF;
+        Self::cruise_from(base, start, 0.0, interval, steps)
     }
 
-    /// A clock for `steps` steps at constant speed, given `start`, the first step's time
-    /// after `base` plus ½ (`≥ 0`: the ½ a step's tick is rounded with, added once by the
-    /// caller for all the axes of a phase), the others `interval` ticks apart. `None` beyond
-    /// its range.
+    /// ½ tick in the cruise's fixed point: each step's time is rounded with it.
+    const HALF: u64 = 1 << (CRUISE_BITS - 1);
+
+    /// Where a phase that starts at `start` ticks counts its cruises from: the whole tick
+    /// (`base`) and the fraction past it, in the cruise's fixed point ([`StepClock::cruise_from`]).
     #[inline]
-    pub(crate) fn cruise_from(base: u64, start: f64, interval: f64, steps: u32) -> Option<Self> {
+    pub(crate) fn phase_start(start: f64) -> (u64, u64) {
+        floor_and_fraction(start, CRUISE_BITS)
+    }
+
+    /// A clock for `steps` steps at constant speed: the first one `first` ticks (`≥ 0`) after
+    /// the phase's start, which is `start` (a fraction of a tick in fixed point,
+    /// [`StepClock::phase_start`]) after `base`; the others `interval` ticks apart. The start
+    /// is shared by the phase's axes, the fraction and the ½ of rounding added here in
+    /// integers. `None` beyond its range.
+    #[inline]
+    pub(crate) fn cruise_from(
+        base: u64,
+        start: u64,
+        first: f64,
+        interval: f64,
+        steps: u32,
+    ) -> Option<Self> {
         // The range is checked in the clock's own integers: the first step's `time` not
         // below 0, the interval not negative, the last step's `time` below `2^32 − ½` ticks
         // (its tick below `base + 2^32 − 1`).
-        if start.is_sign_negative() || interval.is_sign_negative() {
+        if first.is_sign_negative() || interval.is_sign_negative() {
             return None;
         }
-        let time = round_up_half_scaled(start, CRUISE_BITS);
+        let time = round_up_half_scaled(first, CRUISE_BITS)
+            .checked_add(start)?
+            .checked_add(Self::HALF)?;
         let interval = round_up_half_scaled(interval, CRUISE_BITS);
         let last = interval
             .checked_mul(u64::from(steps.saturating_sub(1)))?

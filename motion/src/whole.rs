@@ -80,6 +80,33 @@ pub(crate) fn round_up_half_scaled(x: f64, scale: u32) -> u64 {
     }
 }
 
+/// `⌊x⌋`, and `x − ⌊x⌋` as an integer in fixed point with `scale` fraction bits, rounded as
+/// [`round_up_half_scaled`] rounds (it can reach `2^scale`): the whole and the fraction of a
+/// time apart, each exact to its last bit, without a conversion back and a subtraction in
+/// software double precision. Saturating as [`floor_u64`] (with no fraction then).
+#[inline]
+pub(crate) fn floor_and_fraction(x: f64, scale: u32) -> (u64, u64) {
+    match split(x, 0) {
+        Ok(whole) => (whole, 0),
+        Err((mantissa, shift)) => {
+            let whole = mantissa.checked_shr(shift).unwrap_or(0);
+            // The mantissa's bits below the point, `shift` of them: all of it past 63.
+            let below = match 1u64.checked_shl(shift) {
+                Some(one) => mantissa & (one - 1),
+                None => mantissa,
+            };
+            let fraction = if shift <= scale {
+                below << (scale - shift)
+            } else {
+                below
+                    .checked_shr(shift - scale - 1)
+                    .map_or(0, |halves| (halves + 1) >> 1)
+            };
+            (whole, fraction)
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -119,6 +146,36 @@ mod tests {
             assert_eq!(ceil_u64(x), libm::ceil(x) as u64, "{x}");
         }
         assert_eq!(floor_u64(f64::NAN), u64::MAX);
+    }
+
+    #[test]
+    fn a_value_splits_into_its_floor_and_its_fraction_rounded_in_fixed_point() {
+        // `x − ⌊x⌋` is exact in double precision, and so is its product by a power of two.
+        let expected = |x: f64, scale: u32| {
+            let floor = libm::floor(x);
+            let fraction = (x - floor) * libm::exp2(f64::from(scale));
+            (floor as u64, round_up_half(fraction))
+        };
+        let mut fractions = 0;
+        for x in samples() {
+            for scale in [32, 20] {
+                assert_eq!(floor_and_fraction(x, scale), expected(x, scale), "{x}");
+            }
+            fractions += u32::from(floor_and_fraction(x, 32).1 != 0);
+        }
+        assert!(fractions > 100_000, "{fractions} with a fraction");
+        for x in [0.0, 5e-324, 0.5, 0.999_999_999_999_999_9, 1.0, 2.5e9 + 0.25] {
+            assert_eq!(floor_and_fraction(x, 32), expected(x, 32), "{x}");
+        }
+        // Saturated or negative: no fraction.
+        for (x, whole) in [
+            (-0.0, 0),
+            (-2.5, 0),
+            (f64::INFINITY, u64::MAX),
+            (1e20, u64::MAX),
+        ] {
+            assert_eq!(floor_and_fraction(x, 32), (whole, 0), "{x}");
+        }
     }
 
     #[test]
