@@ -108,7 +108,7 @@ const CORES: &[Core] = &[
         clock_hz: 168e6,
         budgets: true,
         line_target_held: true,
-        whole_target_held: &[1, 2],
+        whole_target_held: &[1, 2, 3],
         note: "",
     },
     Core {
@@ -139,7 +139,7 @@ const CORES: &[Core] = &[
         clock_hz: 160e6,
         budgets: true,
         line_target_held: true,
-        whole_target_held: &[1, 2],
+        whole_target_held: &[1, 2, 3],
         note: "The budgets are the Cortex-M4's, held here too; the rate is at the \
                ESP32-C3's 160 MHz. The image\nhas no chip HAL (no ESP32-C3 emulator): the \
                program alone, in one RAM region, with the ESP32\nfirmware's release profile. \
