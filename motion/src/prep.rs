@@ -791,7 +791,8 @@ impl<const N: usize> Current<N> {
     ///
     /// The merge finds the first axis by a scan of the lanes ([`first_lane`]), which are
     /// matched by constant indices only, so that they stay in registers (all of them on
-    /// RISC-V's 31; on the Cortex-M4's 13, the most used).
+    /// RISC-V's 31; on the Cortex-M4's 13, the most used). Exactly two lanes walking go
+    /// through [`Current::walk_pair`] first, which needs no scan.
     #[inline(never)]
     fn run_cruises<const Q: usize>(
         &mut self,
