@@ -205,6 +205,18 @@ impl PackedLane {
         self.at = self.at.wrapping_add(self.interval);
     }
 
+    /// The most steps it can take before `stop`: its steps are at least its interval's whole
+    /// ticks apart (at least one), the first at its next.
+    #[inline(always)]
+    fn most_before(&self, stop: u32) -> u32 {
+        let (next, gap) = (self.next(), (self.interval >> 32) as u32);
+        if next >= stop {
+            0
+        } else {
+            (stop - next - 1) / gap.max(1) + 1
+        }
+    }
+
     /// The tick of the step before its next (after at least one [`PackedLane::step`]).
     #[inline(always)]
     fn previous(&self) -> u32 {
@@ -274,6 +286,16 @@ impl SplitLane {
     #[inline(always)]
     fn previous(&self) -> u32 {
         self.gaps.before(self.next)
+    }
+
+    /// The most steps it can take before `stop` (see [`PackedLane::most_before`]).
+    #[inline(always)]
+    fn most_before(&self, stop: u32) -> u32 {
+        if self.next >= stop {
+            0
+        } else {
+            (stop - self.next - 1) / self.gaps.shortest() + 1
+        }
     }
 
     /// Move on past its next step, which is at `tick`, counted later ([`SplitLane::count`]).
@@ -1007,14 +1029,19 @@ impl<const N: usize> Current<N> {
         let (origin, ticks_per_s) = exact;
         #[cfg(debug_assertions)]
         let counted = [lane_taken(lanes, taken, a), lane_taken(lanes, taken, b)];
+        // Events of both lanes' steps, in a loop that does not count them as it goes.
+        let mut both = 0u32;
         #[cfg(debug_assertions)]
-        let took_b = |left: u32, took_a: u32| max_steps - walk.steps - 1 - left - took_a;
-        tx.in_run(|tx| {
-            loop {
-                while left > 0 {
+        let mut took_b = 0u32;
+        // The steps before the stop, the earlier of the two lanes' next each time, or both at
+        // one tick as one event; `$counted`: with the count of steps left checked and kept at
+        // each step, else with none (the stop comes first), the steps counted afterwards.
+        macro_rules! steps_before_stop {
+            ($tx:ident, $counted:literal) => {
+                while !$counted || left > 0 {
                     let (ta, tb) = (la.next(), lb.next());
                     if ta < tb {
-                        if ta >= stop || !tx.write_rise(ta.wrapping_sub(last), edge_a) {
+                        if ta >= stop || !$tx.write_rise(ta.wrapping_sub(last), edge_a) {
                             break;
                         }
                         #[cfg(debug_assertions)]
@@ -1026,46 +1053,62 @@ impl<const N: usize> Current<N> {
                         );
                         la.step_uncounted(ta);
                         took_a += 1;
-                        left -= 1;
+                        if $counted {
+                            left -= 1;
+                        }
                         last = ta;
                     } else if tb < ta {
-                        if tb >= stop || !tx.write_rise(tb.wrapping_sub(last), edge_b) {
+                        if tb >= stop || !$tx.write_rise(tb.wrapping_sub(last), edge_b) {
                             break;
                         }
                         #[cfg(debug_assertions)]
-                        self.note_walk_error(
-                            b,
-                            counted[1] + took_b(left, took_a),
-                            origin + u64::from(tb),
-                            ticks_per_s,
-                        );
+                        {
+                            let at = origin + u64::from(tb);
+                            self.note_walk_error(b, counted[1] + took_b, at, ticks_per_s);
+                            took_b += 1;
+                        }
                         lb.step_uncounted(tb);
-                        left -= 1;
+                        if $counted {
+                            left -= 1;
+                        }
                         last = tb;
                     } else {
-                        if left < 2
+                        if ($counted && left < 2)
                             || ta >= stop
-                            || !tx.write_rise(ta.wrapping_sub(last), edge_a | edge_b)
+                            || !$tx.write_rise(ta.wrapping_sub(last), edge_a | edge_b)
                         {
                             break;
                         }
                         #[cfg(debug_assertions)]
                         {
-                            let t = origin + u64::from(ta);
-                            self.note_walk_error(a, counted[0] + took_a, t, ticks_per_s);
-                            self.note_walk_error(
-                                b,
-                                counted[1] + took_b(left, took_a),
-                                t,
-                                ticks_per_s,
-                            );
+                            let at = origin + u64::from(ta);
+                            self.note_walk_error(a, counted[0] + took_a, at, ticks_per_s);
+                            self.note_walk_error(b, counted[1] + took_b, at, ticks_per_s);
+                            took_b += 1;
                         }
                         la.step_uncounted(ta);
                         lb.step_uncounted(ta);
                         took_a += 1;
-                        left -= 2;
+                        if $counted {
+                            left -= 2;
+                        } else {
+                            both += 1;
+                        }
                         last = ta;
                     }
+                }
+            };
+        }
+        tx.in_run(|tx| {
+            loop {
+                // At most the steps each lane can take before the stop, at its shortest gap
+                // apart: when they are within `left`, the loop need not count them.
+                if la.most_before(stop) + lb.most_before(stop) <= left {
+                    let (written, before) = (tx.written(), both);
+                    steps_before_stop!(tx, false);
+                    left -= tx.written().wrapping_sub(written) + (both - before);
+                } else {
+                    steps_before_stop!(tx, true);
                 }
                 // At the stop and before `hard`: the steps at its tick, one of them an axis's
                 // last in the block, which is then done.
@@ -1087,7 +1130,8 @@ impl<const N: usize> Current<N> {
                         self.note_walk_error(a, counted[0] + took_a, at, ticks_per_s);
                     }
                     if at_b {
-                        self.note_walk_error(b, counted[1] + took_b(left, took_a), at, ticks_per_s);
+                        self.note_walk_error(b, counted[1] + took_b, at, ticks_per_s);
+                        took_b += 1;
                     }
                 }
                 if at_a {
@@ -2365,6 +2409,20 @@ mod tests {
                 };
                 let (mut packed, mut split) =
                     (PackedLane::new(tick, gaps), SplitLane::new(tick, gaps));
+                // The most steps before a stop bound the steps the clock takes before it.
+                let stop = tick + (xorshift(&mut seed) % 20_000) as u32;
+                let mut ahead = clock;
+                let mut before = 0;
+                while ahead.tick() - origin < u64::from(stop) {
+                    before += 1;
+                    ahead.advance();
+                }
+                let most = packed.most_before(stop);
+                assert_eq!(split.most_before(stop), most);
+                assert!(
+                    most >= before && most <= before + before / 4 + 1,
+                    "{most} {before}"
+                );
                 for _ in 0..200 {
                     let at = clock.tick() - origin;
                     assert_eq!(

@@ -248,6 +248,13 @@ impl CruiseGaps {
         tick.wrapping_add(self.whole).wrapping_add(u32::from(carry))
     }
 
+    /// The fewest whole ticks from one step to the next, at least one.
+    #[cfg(any(test, target_arch = "arm"))]
+    #[inline(always)]
+    pub(crate) fn shortest(&self) -> u32 {
+        self.whole.max(1)
+    }
+
     /// The tick of the step before the one at `tick`, which [`CruiseGaps::after`] moved on
     /// to (its fraction is the gaps' now, past a carry when it is below the interval's).
     #[cfg(any(test, target_arch = "arm"))]
