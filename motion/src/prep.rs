@@ -941,7 +941,6 @@ impl<const N: usize> Current<N> {
                     ticks_per_s,
                 );
                 last = t;
-                last_axis = i as u8;
                 left -= 1;
                 step_lane(&mut lanes, &mut taken, i, t);
                 if at_stop && ends.get(i) == Some(&t) {
@@ -949,6 +948,11 @@ impl<const N: usize> Current<N> {
                     walking &= !(1 << i);
                     stop = next_stop(hard, &ends, walking);
                 }
+            }
+            // The last step's axis, found once: of the steps at its tick, the highest axis's
+            // was taken last.
+            if left < max_steps.saturating_sub(steps) {
+                last_axis = last_stepped(&lanes, &ends, walking, last);
             }
             (max_steps.max(steps) - left, last, last_axis)
         });
@@ -1485,6 +1489,41 @@ fn write_step<const N: usize, const Q: usize>(
     } else {
         tx.write_rise(delta, edge)
     }
+}
+
+/// The highest axis of [`Current::run_cruises`] whose last step is at tick `last`: a lane
+/// still `walking` whose previous step is there, or one done whose end (`ends`) is. Lanes
+/// that took no step find no tick of theirs there (the walk's steps are all past its origin,
+/// and `last` is a step of the walk). As in [`first_lane`], by constant indices.
+#[inline(always)]
+fn last_stepped<const N: usize>(lanes: &[Lane; N], ends: &[u32; N], walking: u8, last: u32) -> u8 {
+    #[inline(always)]
+    fn check<const N: usize>(
+        (lanes, ends, walking, last): (&[Lane; N], &[u32; N], u8, u32),
+        k: usize,
+        found: &mut u8,
+    ) {
+        let at = if walking & (1 << k) != 0 {
+            lanes.get(k).map(|lane| lane.previous())
+        } else {
+            ends.get(k).copied()
+        };
+        if at == Some(last) {
+            *found = k as u8;
+        }
+    }
+    let args = (lanes, ends, walking, last);
+    let mut found = NO_AXIS;
+    check(args, 0, &mut found);
+    check(args, 1, &mut found);
+    check(args, 2, &mut found);
+    check(args, 3, &mut found);
+    check(args, 4, &mut found);
+    check(args, 5, &mut found);
+    for k in 6..N {
+        check(args, k, &mut found);
+    }
+    found
 }
 
 /// Lane `i` of [`Current::run_cruises`] has taken its last step in the block: it is done
