@@ -75,11 +75,16 @@ impl StepClock {
     /// `base` (exact, `≥ −½`), the others `interval` ticks apart. `None` beyond its range.
     #[cfg(test)]
     pub(crate) fn cruise(base: u64, first: f64, interval: f64, steps: u32) -> Option<Self> {
-        if first + 0.5 < 0.0 {
+        let start = first + 0.5;
+        if start.is_sign_negative() {
             return None;
         }
-        let start = round_up_half_scaled(first + 0.5, CRUISE_BITS) - Self::HALF;
-        Self::cruise_from(base, start, 0.0, interval, steps)
+        Self::cruise_at(
+            base,
+            round_up_half_scaled(start, CRUISE_BITS),
+            interval,
+            steps,
+        )
     }
 
     /// ½ tick in the cruise's fixed point: each step's time is rounded with it.
@@ -105,15 +110,24 @@ impl StepClock {
         interval: f64,
         steps: u32,
     ) -> Option<Self> {
-        // The range is checked in the clock's own integers: the first step's `time` not
-        // below 0, the interval not negative, the last step's `time` below `2^32 − ½` ticks
-        // (its tick below `base + 2^32 − 1`).
-        if first.is_sign_negative() || interval.is_sign_negative() {
+        if first.is_sign_negative() {
             return None;
         }
         let time = round_up_half_scaled(first, CRUISE_BITS)
             .checked_add(start)?
             .checked_add(Self::HALF)?;
+        Self::cruise_at(base, time, interval, steps)
+    }
+
+    /// A cruise whose first step's time, plus ½, is `time` after `base` in its fixed point,
+    /// the others `interval` ticks apart. `None` beyond its range.
+    #[inline(always)]
+    fn cruise_at(base: u64, time: u64, interval: f64, steps: u32) -> Option<Self> {
+        // The range is checked in the clock's own integers: the interval not negative, the
+        // last step's `time` below `2^32 − ½` ticks (its tick below `base + 2^32 − 1`).
+        if interval.is_sign_negative() {
+            return None;
+        }
         let interval = round_up_half_scaled(interval, CRUISE_BITS);
         let last = interval
             .checked_mul(u64::from(steps.saturating_sub(1)))?
@@ -625,6 +639,12 @@ mod tests {
         let clock = clock.expect("in range");
         check(clock, 10_000, |m| 1000.0 + 12.25 + 123.456 * f64::from(m));
         assert!(StepClock::cruise(0, 0.0, 1e6, 10_000).is_none());
+        // A first step up to ½ tick before the base is in range (its tick rounds to the base).
+        for first in [-0.5, -0.25] {
+            let clock = StepClock::cruise(1000, first, 10.0, 5).map(|c| c.tick());
+            assert_eq!(clock, Some(1000), "{first}");
+        }
+        assert!(StepClock::cruise(1000, -0.75, 10.0, 5).is_none());
     }
 
     /// Ramps from rest and between speeds, up and down, on 1 MHz and 8 MHz clocks and a
