@@ -73,11 +73,16 @@ pub(crate) fn round_up_half(x: f64) -> u64 {
 pub(crate) fn round_up_half_scaled(x: f64, scale: u32) -> u64 {
     match split(x, scale) {
         Ok(whole) => whole,
-        // Shifted right to keep one bit below the point, then rounded up on it.
-        Err((mantissa, shift)) => mantissa
-            .checked_shr(shift - 1)
-            .map_or(0, |halves| (halves + 1) >> 1),
+        Err((mantissa, shift)) => shifted_rounding_up_half(mantissa, shift),
     }
+}
+
+/// `m / 2^shift` (`shift ≥ 1`) rounded to the nearest integer, halves up: shifted right to
+/// keep one bit below the point, then rounded up on it.
+#[inline(always)]
+fn shifted_rounding_up_half(m: u64, shift: u32) -> u64 {
+    m.checked_shr(shift - 1)
+        .map_or(0, |halves| (halves + 1) >> 1)
 }
 
 /// `⌊x⌋`, and `x − ⌊x⌋` as an integer in fixed point with `scale` fraction bits, rounded as
@@ -98,9 +103,7 @@ pub(crate) fn floor_and_fraction(x: f64, scale: u32) -> (u64, u64) {
             let fraction = if shift <= scale {
                 below << (scale - shift)
             } else {
-                below
-                    .checked_shr(shift - scale - 1)
-                    .map_or(0, |halves| (halves + 1) >> 1)
+                shifted_rounding_up_half(below, shift - scale)
             };
             (whole, fraction)
         }
