@@ -919,7 +919,8 @@ impl<const N: usize> Current<N> {
                 mut walking,
             } = walk;
             // Counted down: the count and its limit in one register.
-            let mut left = max_steps.saturating_sub(steps);
+            let budget = max_steps.saturating_sub(steps);
+            let mut left = budget;
             while left > 0 {
                 // The axis whose step comes first (of two at the same tick, the lower).
                 let (i, t) = first_lane(&lanes);
@@ -951,10 +952,10 @@ impl<const N: usize> Current<N> {
             }
             // The last step's axis, found once: of the steps at its tick, the highest axis's
             // was taken last.
-            if left < max_steps.saturating_sub(steps) {
+            if left < budget {
                 last_axis = last_stepped(&lanes, &ends, walking, last);
             }
-            (max_steps.max(steps) - left, last, last_axis)
+            (steps + (budget - left), last, last_axis)
         });
         if steps > 0 {
             // Each clock moves on by the steps its axis took (from the steps it had left), in
