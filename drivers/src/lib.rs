@@ -29,7 +29,7 @@
 //! | [`program_flash`] | [`SlotProgramStore`](program_flash::SlotProgramStore) | `ProgramStore` | thread: one flash read per line read; may block for a sector erase while a program is loaded |
 //! | [`flash_files`] | [`FlashFileStore`](flash_files::FlashFileStore) | `FileStore` | thread: one map-entry read and one read per 256 bytes per file read; may block for a sector erase while a file is written or removed |
 //! | [`ram_flash`] | [`RamNorFlash`](ram_flash::RamNorFlash) | `embedded_storage::nor_flash::NorFlash` | a simulated flash for the host simulator and tests |
-//! | `sd_card` (feature `sd-card`) | `SdFileStore`: files on a FAT16/FAT32 SD card (embedded-sdmmc, over SPI) | `FileStore` | thread: blocks for the card's block transfers |
+//! | `sd_card` (feature `sd-card`) | `SdFileStore`: files on a FAT16/FAT32 SD card (embedded-sdmmc's block device, over SPI) | `FileStore` | thread: blocks for the card's block transfers |
 //! | [`shared_store`] | [`StoreSlot`](shared_store::StoreSlot), [`SharedStore`](shared_store::SharedStore) | `RecordStorage` | thread: one store (settings and program) shared by two users through a `static` slot |
 //!
 //! "Interrupt" methods are integer-only, allocation-free, panic-free and constant-time: a pin
@@ -66,7 +66,7 @@
 //! |---|---|
 //! | `alloc` | `PortLink` for `Box<T>` (with `embedded-io`'s and `LinkStatus`'s own), for a board that serves links of several types; it allocates nothing itself |
 //! | `embassy-net` | the `tcp` module: a TCP host link over an `embassy-net` stack (embassy-sync queues, embassy-time time-outs), for boards with a network; no executor is named; and the `web` module beside it (the operator's page, `forja-web`) |
-//! | `sd-card` | the `sd_card` module: the named-file store (`FileStore`) on a FAT16/FAT32 SD card, over embedded-sdmmc (without its logging) |
+//! | `sd-card` | the `sd_card` module: the named-file store (`FileStore`) on a FAT16/FAT32 SD card, over embedded-sdmmc's SD-over-SPI block device (without its logging) |
 //!
 //! ## Writing a driver
 //!

@@ -17,17 +17,14 @@
 //! }
 //! ```
 //!
-//! embedded-sdmmc (re-exported as [`embedded_sdmmc`]) reads and writes the files' data and
-//! allocates their clusters. What it lacks for the contract, the store does itself on the
-//! card's directory and FAT, through the same block device: renaming a directory entry,
-//! freeing the clusters of a removed file (embedded-sdmmc only marks its entry deleted, which
-//! would leak its space), removing long-name entries, and reading the long names and the
-//! small-letter flags of short names.
+//! The store reads and writes the card's FAT structures itself, through the block device:
+//! the boot block, the root directory (short and long names), the FAT chains, the files'
+//! data. From embedded-sdmmc (re-exported as [`embedded_sdmmc`]) it takes the block device:
+//! its [`SdCard`] speaks to the card over SPI.
 //!
 //! # Names
 //!
-//! embedded-sdmmc cannot write long file names ([`FileStore::writes_long_names`] is `false`),
-//! so [`FileStore::create`] takes 8.3 names only ([`is_short_name`]): 1 to 8 characters, an
+//! The store writes no long file names ([`FileStore::writes_long_names`] is `false`), so [`FileStore::create`] takes 8.3 names only ([`is_short_name`]): 1 to 8 characters, an
 //! optional `.` and 1 to 3 more, of letters, digits and ``! # $ % & ' ( ) - @ ^ _ ` { } ~``;
 //! not a DOS device name (`CON`, `PRN`, `AUX`, `NUL`, `COM1`–`COM9`, `LPT1`–`LPT9`), not one of
 //! the store's own temporaries ([`WRITING`], [`REMOVING`]), and not the name of a directory,
@@ -68,7 +65,7 @@
 //! ([`SdFileStore::mount`], which every operation does first) finishes the cleanup: a
 //! temporary whose clusters another entry now owns is deleted alone, any other temporary is
 //! deleted with its clusters, and long-name entries that belong to no file (a removal's, or
-//! those that other implementations leave: embedded-sdmmc's own delete does) are deleted. A
+//! those that other implementations leave: embedded-sdmmc's delete does) are deleted. A
 //! write in progress is forgotten.
 //!
 //! What a power cut can leave is at most one cluster allocated but unused (a "lost cluster",
@@ -101,8 +98,9 @@
 //! - [`FileStore::size`], [`FileStore::remove`], [`FileStore::create`], [`FileStore::finish`],
 //!   a read of another file than the last, and mounting: reading the root directory once or a
 //!   few times.
-//! - [`FileStore::append`]: the blocks written, a FAT block (both copies) per cluster added,
-//!   and once per file the directory entry.
+//! - [`FileStore::append`]: the blocks written (and read first, the block the last append
+//!   ended in, unless it is the block last read or written), two FAT blocks (both copies)
+//!   read and written per cluster added, and once per file the directory entry.
 //! - [`FileStore::finish`] and [`FileStore::remove`]: a few directory blocks written, and the
 //!   FAT blocks (both copies) that hold the freed clusters' entries: 128 entries a block on
 //!   FAT32, 256 on FAT16.
@@ -115,15 +113,14 @@
 //! # Errors
 //!
 //! A failed transfer and a card that cannot be mounted are [`FileError::Device`]
-//! ([`SdFileStore::mount`] tells which: [`MountError`]); a full card or a full root directory
-//! is [`FileError::Full`]; names are checked before anything is written. A failed operation
+//! ([`SdFileStore::mount`] tells which: [`MountError`]); a full card or a full FAT16 root
+//! directory is [`FileError::Full`] (a FAT32 root directory grows by a cluster); names are checked before anything is written. A failed operation
 //! changes nothing that is seen, and a write in progress goes on as it was (when the card has
 //! lost what was appended, the write can only be abandoned: [`FileError::Device`] until
 //! then). Once a commit is done, the operation succeeds: a cleanup that fails after it is
 //! finished by the next mount, create, finish or removal. The store's own code does not panic
-//! on any card contents, and checks the boot block before embedded-sdmmc reads it;
-//! embedded-sdmmc trusts the FAT chains of a corrupted card (a cluster number 0 or 1 in a
-//! chain is an arithmetic overflow in its debug builds).
+//! on any card contents: a FAT chain that ends before its file's length is
+//! [`FileError::Device`].
 //!
 //! # Card changes
 //!
@@ -140,10 +137,7 @@ use core::fmt;
 use core::ops::ControlFlow;
 
 pub use embedded_sdmmc;
-use embedded_sdmmc::{
-    Block, BlockDevice, BlockIdx, Mode, RawDirectory, RawFile, RawVolume, ShortFileName,
-    TimeSource, Timestamp, VolumeIdx, VolumeManager,
-};
+use embedded_sdmmc::{Block, BlockDevice, BlockIdx, TimeSource, Timestamp};
 use forja_hal_abstraction::files::{FileError, FileInfo, FileName, FileStore, MAX_NAME_LEN};
 use forja_hal_abstraction::{Error, ErrorKind};
 
@@ -323,12 +317,35 @@ fn write_block<D: BlockDevice>(d: &D, buf: &[Block; 1], at: u32) -> Result<(), F
     d.write(buf, BlockIdx(at)).map_err(|_| FileError::Device)
 }
 
-/// An embedded-sdmmc error as the contract has it.
-fn fs_error<E: core::error::Error>(e: embedded_sdmmc::Error<E>) -> FileError {
-    match e {
-        embedded_sdmmc::Error::DiskFull | embedded_sdmmc::Error::NotEnoughSpace => FileError::Full,
-        _ => FileError::Device,
+/// `t` as a directory entry stores a time and a date (bytes 22..26 of an entry).
+fn fat_stamp(t: &Timestamp) -> [u8; 4] {
+    let time = (u16::from(t.hours) << 11) | (u16::from(t.minutes) << 5) | u16::from(t.seconds / 2);
+    let date = (u16::from(t.year_since_1970.saturating_sub(10)) << 9)
+        | (u16::from(t.zero_indexed_month + 1) << 5)
+        | u16::from(t.zero_indexed_day + 1);
+    let [t0, t1] = time.to_le_bytes();
+    let [d0, d1] = date.to_le_bytes();
+    [t0, t1, d0, d1]
+}
+
+/// A new directory entry: the short name `sfn`, an archive, created and written at `stamp`,
+/// holding the chain from `cluster` and `size` bytes.
+fn new_entry(sfn: &[u8; 11], stamp: [u8; 4], fat32: bool, cluster: u32, size: u32) -> [u8; SLOT] {
+    let mut raw = [0u8; SLOT];
+    let (name, rest) = raw.split_at_mut(11);
+    name.copy_from_slice(sfn);
+    if let Some(attr) = rest.first_mut() {
+        *attr = ARCHIVE;
     }
+    // Created (14..18), last read (18..20) and last written (22..26) at `stamp`.
+    for (at, bytes) in [(14, &stamp[..]), (18, &stamp[2..]), (22, &stamp[..])] {
+        if let Some(dst) = raw.get_mut(at..at + bytes.len()) {
+            dst.copy_from_slice(bytes);
+        }
+    }
+    set_cluster(&mut raw, fat32, cluster);
+    put32(&mut raw, 28, size);
+    raw
 }
 
 /// Where the volume's structures are, in absolute blocks.
@@ -354,7 +371,7 @@ struct Geometry {
 
 impl Geometry {
     /// Read the partition table and the first partition's boot block, checked as far as the
-    /// store and embedded-sdmmc rely on them.
+    /// store relies on them.
     fn read<D: BlockDevice>(d: &D) -> Result<Self, MountError> {
         let mut buf = [Block::new()];
         read_block(d, &mut buf, 0).map_err(|_| MountError::Device)?;
@@ -443,9 +460,8 @@ impl Geometry {
         })
     }
 
-    /// Mark the FAT32 count of free clusters unknown (PCs count them when they need it). The
-    /// store frees clusters behind embedded-sdmmc, whose count would go wrong; embedded-sdmmc
-    /// keeps no count when the card has none.
+    /// Mark the FAT32 count of free clusters unknown (PCs count them when they need it): the
+    /// store keeps no count as it takes and frees clusters.
     fn forget_free_count<D: BlockDevice>(&self, d: &D) -> Result<(), MountError> {
         if !self.fat32 {
             return Ok(());
@@ -588,26 +604,46 @@ fn free_chain<D: BlockDevice>(d: &D, g: &Geometry, head: u32) -> Result<(), File
     Ok(())
 }
 
-/// Keep the first `keep` (at least 1) clusters of the chain from `head` and free the rest.
-fn cut_chain<D: BlockDevice>(d: &D, g: &Geometry, head: u32, keep: u32) -> Result<(), FileError> {
-    let mut last = head;
-    for _ in 1..keep {
-        let next = fat_get(d, g, last)?;
-        if !g.is_cluster(next) {
-            return Ok(());
+/// Set cluster `c`'s FAT entry to `v`, in every FAT.
+fn fat_set<D: BlockDevice>(d: &D, g: &Geometry, c: u32, v: u32) -> Result<(), FileError> {
+    let mut buf = [Block::new()];
+    let (block, at) = g.fat_place(c);
+    read_block(d, &mut buf, block)?;
+    let [b] = &mut buf;
+    g.set_fat_entry(&mut b.contents, at, v);
+    write_fat(d, g, &buf, block)
+}
+
+/// Take a free cluster, the first from `hint` on (round the volume), marked as a chain's last.
+/// Errors: [`FileError::Full`], the volume has none.
+fn allocate<D: BlockDevice>(d: &D, g: &Geometry, hint: u32) -> Result<u32, FileError> {
+    let mut buf = [Block::new()];
+    let mut loaded = None;
+    let first = if g.is_cluster(hint) { hint - 2 } else { 0 };
+    for k in 0..g.clusters {
+        let c = 2 + (first + k) % g.clusters;
+        let (block, at) = g.fat_place(c);
+        if loaded != Some(block) {
+            read_block(d, &mut buf, block)?;
+            loaded = Some(block);
         }
-        last = next;
+        let [b] = &mut buf;
+        if g.fat_entry(&b.contents, at) == 0 {
+            g.set_fat_entry(&mut b.contents, at, g.end_of_chain());
+            write_fat(d, g, &buf, block)?;
+            return Ok(c);
+        }
     }
+    Err(FileError::Full)
+}
+
+/// Make `last` the end of its chain and free the clusters after it, if any.
+fn cut_after<D: BlockDevice>(d: &D, g: &Geometry, last: u32) -> Result<(), FileError> {
     let rest = fat_get(d, g, last)?;
     if !g.is_cluster(rest) {
         return Ok(());
     }
-    let mut buf = [Block::new()];
-    let (block, at) = g.fat_place(last);
-    read_block(d, &mut buf, block)?;
-    let [b] = &mut buf;
-    g.set_fat_entry(&mut b.contents, at, g.end_of_chain());
-    write_fat(d, g, &buf, block)?;
+    fat_set(d, g, last, g.end_of_chain())?;
     free_chain(d, g, rest)
 }
 
@@ -620,8 +656,8 @@ struct Pos {
     slot: u8,
 }
 
-/// Call `f` with each entry of the root directory from `from` on, up to the directory's end
-/// mark, until it breaks.
+/// Call `f` with each entry of the root directory from `from` on, until it breaks or the
+/// directory ends (past its end mark, whose first byte is 0, every entry is free).
 fn walk<D, F>(d: &D, g: &Geometry, from: Pos, mut f: F) -> Result<(), FileError>
 where
     D: BlockDevice,
@@ -639,9 +675,6 @@ where
             .enumerate()
             .skip(usize::from(pos.slot))
         {
-            if raw.first() == Some(&0) {
-                return Ok(());
-            }
             let here = Pos {
                 slot: i as u8,
                 ..pos
@@ -714,6 +747,42 @@ fn delete_slots<D: BlockDevice>(
         }
     })?;
     result
+}
+
+/// Write the new root directory entry `raw` in the first free one, and return its place. A
+/// FAT32 root directory without a free entry grows by a cluster. Errors:
+/// [`FileError::Full`], a FAT16 root directory (or the volume) has no room.
+fn add_entry<D: BlockDevice>(d: &D, g: &Geometry, raw: &[u8; SLOT]) -> Result<Pos, FileError> {
+    let mut free = None;
+    let mut last = g.root();
+    walk(d, g, g.root(), |p, slot| {
+        last = p;
+        if matches!(slot.first(), Some(&(0 | DELETED))) {
+            free = Some(p);
+            return ControlFlow::Break(());
+        }
+        ControlFlow::Continue(())
+    })?;
+    let pos = match free {
+        Some(p) => p,
+        None if g.fat32 => {
+            // A cluster of free entries, zeroed before the directory's chain takes it in.
+            let c = allocate(d, g, last.cluster)?;
+            let zero = [Block::new()];
+            for block in 0..g.cluster_blocks {
+                write_block(d, &zero, g.cluster_block(c) + block)?;
+            }
+            fat_set(d, g, last.cluster, c)?;
+            Pos {
+                cluster: c,
+                block: 0,
+                slot: 0,
+            }
+        }
+        None => return Err(FileError::Full),
+    };
+    patch(d, g, pos, |slot| slot.copy_from_slice(raw))?;
+    Ok(pos)
 }
 
 /// The checksum of a short name that its long-name entries carry.
@@ -884,27 +953,6 @@ impl Entry {
             && (self.long.and_then(|run| run.name()) == Some(*name)
                 || self.short_name() == Some(*name))
     }
-
-    /// The short name as embedded-sdmmc takes it.
-    fn crate_name(&self) -> Option<ShortFileName> {
-        let mut text = [0u8; 12];
-        let mut len = 0;
-        let (base, ext) = self.sfn.split_at(8);
-        for &b in base.iter().take_while(|&&b| b != b' ') {
-            *text.get_mut(len)? = b;
-            len += 1;
-        }
-        if ext.first().is_some_and(|&b| b != b' ') {
-            *text.get_mut(len)? = b'.';
-            len += 1;
-            for &b in ext.iter().take_while(|&&b| b != b' ') {
-                *text.get_mut(len)? = b;
-                len += 1;
-            }
-        }
-        let text = core::str::from_utf8(text.get(..len)?).ok()?;
-        ShortFileName::create_from_str(text).ok()
-    }
 }
 
 /// Call `f` with each short entry of the root directory from `from` on (after it, with
@@ -939,10 +987,13 @@ where
     let mut skip = after;
     let mut stopped = false;
     walk(d, g, from, |pos, raw| {
+        let first = raw.first().copied().unwrap_or(0);
+        if first == 0 {
+            return ControlFlow::Break(());
+        }
         if core::mem::take(&mut skip) {
             return ControlFlow::Continue(());
         }
-        let first = raw.first().copied().unwrap_or(0);
         let attr = raw.get(11).copied().unwrap_or(0);
         if first != DELETED && attr & 0x3F == LONG_NAME {
             run = LongRun::step(run, pos, raw);
@@ -1073,33 +1124,37 @@ fn set_cluster(slot: &mut [u8], fat32: bool, c: u32) {
     put16(slot, 26, c as u16);
 }
 
-/// The mounted volume.
-#[derive(Clone, Copy)]
-struct Mounted {
-    volume: RawVolume,
-    root: RawDirectory,
-    geometry: Geometry,
-}
-
 /// The file being written.
+#[derive(Clone, Copy)]
 struct Writing {
     name: FileName,
     sfn: [u8; 11],
     case: u8,
-    /// [`WRITING`], while it is open.
-    file: Option<RawFile>,
-    /// Bytes appended (embedded-sdmmc's length may be more after a failed append).
+    /// The place of its [`WRITING`] entry.
+    pos: Pos,
+    /// The chain's first cluster (0: none yet).
+    head: u32,
+    /// The cluster that holds the last byte appended (0: none appended).
+    last: u32,
+    /// Bytes appended.
     len: u32,
     /// The directory entry holds the first cluster, so that a cleanup finds the clusters.
     anchored: bool,
-    /// The temporary lost bytes that were appended: the write can only be abandoned.
+    /// A failed append may have left clusters past `last` in the chain.
+    spare: bool,
+    /// The temporary is gone from the card: the write can only be abandoned.
     lost: bool,
 }
 
-/// The file last read, still open.
+/// The file last read, and how far into its chain the reading got.
+#[derive(Clone, Copy)]
 struct Reading {
     name: FileName,
-    file: RawFile,
+    size: u32,
+    head: u32,
+    /// The cluster reached, and the file's byte at its start.
+    cluster: u32,
+    start: u32,
 }
 
 /// A [`FileStore`] on a FAT16 or FAT32 SD card. See the [module documentation](self).
@@ -1107,12 +1162,17 @@ struct Reading {
 /// `D` is the card ([`SdCard`](embedded_sdmmc::SdCard) over SPI), `T` the clock that dates the
 /// files written.
 pub struct SdFileStore<D: BlockDevice, T: TimeSource = FixedTime> {
-    volumes: VolumeManager<D, T, 1, 2, 1>,
-    mounted: Option<Mounted>,
+    card: D,
+    time: T,
+    mounted: Option<Geometry>,
     writing: Option<Writing>,
     reading: Option<Reading>,
     /// The file last listed: its index and its entry's place.
     listed: Option<(usize, Pos)>,
+    /// A block of file data, as the card holds it, and its number: the next read or append in
+    /// the same block needs no transfer. Appends write through it.
+    cache: [Block; 1],
+    cached: Option<u32>,
 }
 
 impl<D: BlockDevice> SdFileStore<D, FixedTime> {
@@ -1128,11 +1188,14 @@ impl<D: BlockDevice, T: TimeSource> SdFileStore<D, T> {
     /// first operation.
     pub fn with_time(card: D, time: T) -> Self {
         Self {
-            volumes: VolumeManager::new_with_limits(card, time, 1),
+            card,
+            time,
             mounted: None,
             writing: None,
             reading: None,
             listed: None,
+            cache: [Block::new()],
+            cached: None,
         }
     }
 
@@ -1147,36 +1210,11 @@ impl<D: BlockDevice, T: TimeSource> SdFileStore<D, T> {
         if self.mounted.is_some() {
             return Ok(());
         }
-        let geometry = self.volumes.device(|d| {
-            let g = Geometry::read(d)?;
-            g.forget_free_count(d)?;
-            Ok(g)
-        })?;
-        let volume = self
-            .volumes
-            .open_raw_volume(VolumeIdx(0))
-            .map_err(|e| match e {
-                embedded_sdmmc::Error::DeviceError(_) => MountError::Device,
-                _ => MountError::NotFat,
-            })?;
-        let root = match self.volumes.open_root_dir(volume) {
-            Ok(root) => root,
-            Err(_) => {
-                let _ = self.volumes.close_volume(volume);
-                return Err(MountError::Device);
-            }
-        };
-        let cleaned = self.volumes.device(|d| tidy(d, &geometry));
-        if cleaned.is_err() {
-            let _ = self.volumes.close_dir(root);
-            let _ = self.volumes.close_volume(volume);
-            return Err(MountError::Device);
-        }
-        self.mounted = Some(Mounted {
-            volume,
-            root,
-            geometry,
-        });
+        self.cached = None;
+        let g = Geometry::read(&self.card)?;
+        g.forget_free_count(&self.card)?;
+        tidy(&self.card, &g).map_err(|_| MountError::Device)?;
+        self.mounted = Some(g);
         self.listed = None;
         Ok(())
     }
@@ -1195,10 +1233,7 @@ impl<D: BlockDevice, T: TimeSource> SdFileStore<D, T> {
     pub fn unmount(&mut self) {
         let _ = self.abandon();
         self.close_reading();
-        if let Some(m) = self.mounted.take() {
-            let _ = self.volumes.close_dir(m.root);
-            let _ = self.volumes.close_volume(m.volume);
-        }
+        self.mounted = None;
         self.listed = None;
     }
 
@@ -1208,97 +1243,157 @@ impl<D: BlockDevice, T: TimeSource> SdFileStore<D, T> {
     ///
     /// Thread; blocks for what `f` does.
     pub fn device<R>(&mut self, f: impl FnOnce(&mut D) -> R) -> R {
-        self.volumes.device(f)
+        self.cached = None;
+        f(&mut self.card)
     }
 
     /// The geometry of the mounted card, mounting it first.
     fn geometry(&mut self) -> Result<Geometry, FileError> {
         self.mount().map_err(|_| FileError::Device)?;
-        self.mounted.map(|m| m.geometry).ok_or(FileError::Device)
-    }
-
-    fn root(&self) -> Result<RawDirectory, FileError> {
-        self.mounted.map(|m| m.root).ok_or(FileError::Device)
+        self.mounted.ok_or(FileError::Device)
     }
 
     fn close_reading(&mut self) {
-        if let Some(r) = self.reading.take() {
-            let _ = self.volumes.close_file(r.file);
-        }
+        self.reading = None;
+        self.cached = None;
     }
 
-    /// The open file for reading `name`, opening it (and closing another) if needed.
-    fn reader(&mut self, name: &FileName) -> Result<RawFile, FileError> {
-        if let Some(r) = self.reading.as_ref().filter(|r| r.name == *name) {
-            return Ok(r.file);
+    /// The file `name` being read, found (and another forgotten) if needed.
+    fn reader(&mut self, g: &Geometry, name: &FileName) -> Result<Reading, FileError> {
+        if let Some(r) = self.reading.filter(|r| r.name == *name) {
+            return Ok(r);
         }
         self.close_reading();
-        let g = self.geometry()?;
-        let root = self.root()?;
-        let found = self.volumes.device(|d| survey(d, &g, Some(name), None))?;
-        let entry = found.file.ok_or(FileError::NotFound)?;
+        let entry = survey(&self.card, g, Some(name), None)?
+            .file
+            .ok_or(FileError::NotFound)?;
         if entry.size > 0 && !g.is_cluster(entry.cluster) {
             return Err(FileError::Device);
         }
-        let short = entry.crate_name().ok_or(FileError::Device)?;
-        let file = self
-            .volumes
-            .open_file_in_dir(root, short, Mode::ReadOnly)
-            .map_err(fs_error)?;
-        self.reading = Some(Reading { name: *name, file });
-        Ok(file)
+        let r = Reading {
+            name: *name,
+            size: entry.size,
+            head: entry.cluster,
+            cluster: entry.cluster,
+            start: 0,
+        };
+        self.reading = Some(r);
+        Ok(r)
     }
 
-    /// The open temporary of the write in progress, opening it again after a failed finish.
-    fn writer(&mut self) -> Result<RawFile, FileError> {
-        let root = self.root()?;
-        let w = self.writing.as_mut().ok_or(FileError::NotWriting)?;
-        if w.lost {
-            return Err(FileError::Device);
+    /// Block `block` of file data into the cache, read unless it is there.
+    fn load(&mut self, block: u32) -> Result<&mut Block, FileError> {
+        if self.cached != Some(block) {
+            self.cached = None;
+            read_block(&self.card, &mut self.cache, block)?;
+            self.cached = Some(block);
         }
-        if let Some(file) = w.file {
-            return Ok(file);
+        let [b] = &mut self.cache;
+        Ok(b)
+    }
+
+    /// Copy the bytes of the file `r` from `offset` (inside it) into `buf`, as many as fit and
+    /// the file has, following its chain from the cluster reached.
+    fn read_from(
+        &mut self,
+        g: &Geometry,
+        r: &mut Reading,
+        offset: u32,
+        buf: &mut [u8],
+    ) -> Result<usize, FileError> {
+        if offset < r.start {
+            (r.cluster, r.start) = (r.head, 0);
         }
-        let file = self
-            .volumes
-            .open_file_in_dir(root, WRITING, Mode::ReadWriteAppend)
-            .map_err(|_| FileError::Device)?;
-        let kept = self.volumes.file_length(file).map_err(fs_error)?;
-        if kept < w.len || self.volumes.file_seek_from_start(file, w.len).is_err() {
-            let _ = self.volumes.close_file(file);
-            w.lost = true;
-            return Err(FileError::Device);
+        let want = buf.len().min((r.size - offset) as usize);
+        let mut done = 0;
+        while done < want {
+            let at = offset + done as u32;
+            while at - r.start >= g.cluster_bytes() {
+                let next = fat_get(&self.card, g, r.cluster)?;
+                if !g.is_cluster(next) {
+                    return Err(FileError::Device);
+                }
+                r.cluster = next;
+                r.start += g.cluster_bytes();
+            }
+            let block = g.cluster_block(r.cluster) + (at - r.start) / BLOCK as u32;
+            let from = at as usize % BLOCK;
+            let n = (BLOCK - from).min(want - done);
+            let data = self.load(block)?;
+            if let (Some(dst), Some(src)) = (
+                buf.get_mut(done..done + n),
+                data.contents.get(from..from + n),
+            ) {
+                dst.copy_from_slice(src);
+            }
+            done += n;
         }
-        w.file = Some(file);
-        w.anchored = true;
-        Ok(file)
+        Ok(done)
+    }
+
+    /// Write `bytes` after the `w.len` bytes of the file `w`, taking the clusters it needs
+    /// (those a failed append left first), and write each block through the cache.
+    fn put(&mut self, g: &Geometry, w: &mut Writing, bytes: &[u8]) -> Result<(), FileError> {
+        let mut done = 0;
+        while done < bytes.len() {
+            if w.len.is_multiple_of(g.cluster_bytes()) {
+                let spare = match w.last {
+                    0 => w.head,
+                    last => Some(fat_get(&self.card, g, last)?)
+                        .filter(|&c| g.is_cluster(c))
+                        .unwrap_or(0),
+                };
+                w.last = match (spare, w.last) {
+                    (0, 0) => {
+                        w.head = allocate(&self.card, g, 0)?;
+                        w.head
+                    }
+                    (0, last) => {
+                        let c = allocate(&self.card, g, last)?;
+                        fat_set(&self.card, g, last, c)?;
+                        c
+                    }
+                    (c, _) => c,
+                };
+            }
+            let at = w.len % g.cluster_bytes();
+            let block = g.cluster_block(w.last) + at / BLOCK as u32;
+            let from = at as usize % BLOCK;
+            let n = (BLOCK - from).min(bytes.len() - done);
+            let data = if from == 0 {
+                self.cached = Some(block);
+                let [b] = &mut self.cache;
+                b.contents.fill(0);
+                b
+            } else {
+                self.load(block)?
+            };
+            if let (Some(dst), Some(src)) = (
+                data.contents.get_mut(from..from + n),
+                bytes.get(done..done + n),
+            ) {
+                dst.copy_from_slice(src);
+            }
+            let written = write_block(&self.card, &self.cache, block);
+            if written.is_err() {
+                self.cached = None;
+            }
+            written?;
+            done += n;
+            w.len += n as u32;
+        }
+        Ok(())
     }
 
     /// Create the [`REMOVING`] entry holding `old`'s clusters. `Ok(false)`: the root
     /// directory has no room for it.
     fn hold_clusters(&mut self, g: &Geometry, old: &Entry) -> Result<bool, FileError> {
-        let root = self.root()?;
-        match self
-            .volumes
-            .open_file_in_dir(root, REMOVING, Mode::ReadWriteCreate)
-        {
-            Ok(file) => self.volumes.close_file(file).map_err(fs_error)?,
-            Err(e) => {
-                return match fs_error(e) {
-                    FileError::Full => Ok(false),
-                    other => Err(other),
-                };
-            }
+        let raw = new_entry(&REMOVING_SFN, old.stamp, g.fat32, old.cluster, old.size);
+        match add_entry(&self.card, g, &raw) {
+            Ok(_) => Ok(true),
+            Err(FileError::Full) => Ok(false),
+            Err(e) => Err(e),
         }
-        self.volumes.device(|d| {
-            let found = survey(d, g, None, None)?;
-            let removing = found.removing.ok_or(FileError::Device)?;
-            patch(d, g, removing.pos, |slot| {
-                set_cluster(slot, g.fat32, old.cluster);
-                put32(slot, 28, old.size);
-            })
-        })?;
-        Ok(true)
     }
 }
 
@@ -1310,81 +1405,81 @@ impl<D: BlockDevice, T: TimeSource> FileStore for SdFileStore<D, T> {
             _ => (0, g.root(), false),
         };
         let mut found = None;
-        self.volumes.device(|d| {
-            entries(d, &g, from, after, |e| match e.listed() {
-                Some(name) if at == index => {
-                    found = Some((FileInfo { name, size: e.size }, e.pos));
-                    ControlFlow::Break(())
-                }
-                Some(_) => {
-                    at += 1;
-                    ControlFlow::Continue(())
-                }
-                None => ControlFlow::Continue(()),
-            })
+        entries(&self.card, &g, from, after, |e| match e.listed() {
+            Some(name) if at == index => {
+                found = Some((FileInfo { name, size: e.size }, e.pos));
+                ControlFlow::Break(())
+            }
+            Some(_) => {
+                at += 1;
+                ControlFlow::Continue(())
+            }
+            None => ControlFlow::Continue(()),
         })?;
         self.listed = found.map(|(_, pos)| (index, pos));
         Ok(found.map(|(info, _)| info))
     }
 
     fn size(&mut self, name: &FileName) -> Result<u32, FileError> {
-        if let Some(r) = self.reading.as_ref().filter(|r| r.name == *name) {
-            return self.volumes.file_length(r.file).map_err(fs_error);
+        if let Some(r) = self.reading.filter(|r| r.name == *name) {
+            return Ok(r.size);
         }
         let g = self.geometry()?;
-        let found = self.volumes.device(|d| survey(d, &g, Some(name), None))?;
+        let found = survey(&self.card, &g, Some(name), None)?;
         found.file.map(|e| e.size).ok_or(FileError::NotFound)
     }
 
     fn read(&mut self, name: &FileName, offset: u32, buf: &mut [u8]) -> Result<usize, FileError> {
-        let file = self.reader(name)?;
-        let result = self.volumes.file_length(file).and_then(|len| {
-            if offset >= len || buf.is_empty() {
-                return Ok(0);
+        let g = self.geometry()?;
+        let mut r = self.reader(&g, name)?;
+        if offset >= r.size || buf.is_empty() {
+            return Ok(0);
+        }
+        match self.read_from(&g, &mut r, offset, buf) {
+            Ok(n) => {
+                self.reading = Some(r);
+                Ok(n)
             }
-            self.volumes.file_seek_from_start(file, offset)?;
-            self.volumes.read(file, buf)
-        });
-        result.map_err(|e| {
-            self.close_reading();
-            fs_error(e)
-        })
+            Err(e) => {
+                self.close_reading();
+                Err(e)
+            }
+        }
     }
 
     fn remove(&mut self, name: &FileName) -> Result<(), FileError> {
         let g = self.geometry()?;
         self.close_reading();
         self.listed = None;
-        self.volumes.device(|d| {
-            let found = survey(d, &g, Some(name), None)?;
-            let file = found.file.ok_or(FileError::NotFound)?;
-            if let Some(t) = found.removing {
-                discard(d, &g, &t)?;
+        let d = &self.card;
+        let found = survey(d, &g, Some(name), None)?;
+        let file = found.file.ok_or(FileError::NotFound)?;
+        if let Some(t) = found.removing {
+            discard(d, &g, &t)?;
+        }
+        // The commit: the file is no longer seen, its clusters are held by the entry.
+        patch(d, &g, file.pos, |slot| {
+            if let Some(sfn) = slot.get_mut(..11) {
+                sfn.copy_from_slice(&REMOVING_SFN);
             }
-            // The commit: the file is no longer seen, its clusters are held by the entry.
-            patch(d, &g, file.pos, |slot| {
-                if let Some(sfn) = slot.get_mut(..11) {
-                    sfn.copy_from_slice(&REMOVING_SFN);
-                }
-                if let Some(case) = slot.get_mut(12) {
-                    *case &= !(SMALL_BASE | SMALL_EXT);
-                }
-            })?;
-            // Cleanup: a failure here is finished at the next mount or removal.
-            if let Some(run) = file.long {
-                let _ = delete_slots(d, &g, run.first, usize::from(run.slots));
+            if let Some(case) = slot.get_mut(12) {
+                *case &= !(SMALL_BASE | SMALL_EXT);
             }
-            let _ = discard(
-                d,
-                &g,
-                &Entry {
-                    sfn: REMOVING_SFN,
-                    long: None,
-                    ..file
-                },
-            );
-            Ok(())
-        })
+        })?;
+        // Cleanup: a failure here is finished at the next mount or removal.
+        if let Some(run) = file.long {
+            let _ = delete_slots(d, &g, run.first, usize::from(run.slots));
+        }
+        let _ = discard(
+            d,
+            &g,
+            &Entry {
+                sfn: REMOVING_SFN,
+                long: None,
+                ..file
+            },
+        );
+        Ok(())
     }
 
     fn create(&mut self, name: &FileName) -> Result<(), FileError> {
@@ -1393,168 +1488,164 @@ impl<D: BlockDevice, T: TimeSource> FileStore for SdFileStore<D, T> {
         }
         let (sfn, case) = short_name(name).ok_or(FileError::BadName)?;
         let g = self.geometry()?;
-        let root = self.root()?;
-        self.volumes.device(|d| {
-            let found = survey(d, &g, None, Some(sfn))?;
-            if found.clash {
-                return Err(FileError::BadName);
-            }
-            for t in [found.writing, found.removing].iter().flatten() {
-                discard(d, &g, t)?;
-            }
-            Ok(())
-        })?;
-        let file = self
-            .volumes
-            .open_file_in_dir(root, WRITING, Mode::ReadWriteCreate)
-            .map_err(fs_error)?;
+        let d = &self.card;
+        let found = survey(d, &g, None, Some(sfn))?;
+        if found.clash {
+            return Err(FileError::BadName);
+        }
+        for t in [found.writing, found.removing].iter().flatten() {
+            discard(d, &g, t)?;
+        }
+        let stamp = fat_stamp(&self.time.get_timestamp());
+        let pos = add_entry(d, &g, &new_entry(&WRITING_SFN, stamp, g.fat32, 0, 0))?;
         self.writing = Some(Writing {
             name: *name,
             sfn,
             case,
-            file: Some(file),
+            pos,
+            head: 0,
+            last: 0,
             len: 0,
             anchored: false,
+            spare: false,
             lost: false,
         });
         Ok(())
     }
 
     fn append(&mut self, bytes: &[u8]) -> Result<(), FileError> {
-        let len = self.writing.as_ref().ok_or(FileError::NotWriting)?.len;
-        if u64::from(len) + bytes.len() as u64 > MAX_FILE {
+        let w = self.writing.ok_or(FileError::NotWriting)?;
+        if w.lost {
+            return Err(FileError::Device);
+        }
+        if u64::from(w.len) + bytes.len() as u64 > MAX_FILE {
             return Err(FileError::Full);
         }
         if bytes.is_empty() {
             return Ok(());
         }
-        let file = self.writer()?;
-        let anchored = self.writing.as_ref().is_some_and(|w| w.anchored);
-        let written = self.volumes.write(file, bytes).and_then(|()| {
-            if anchored {
-                Ok(())
-            } else {
-                self.volumes.flush_file(file)
-            }
-        });
-        if let Err(e) = written {
-            // As it was: the next append writes over what this one left.
-            if self.volumes.file_seek_from_start(file, len).is_err()
-                && let Some(w) = self.writing.as_mut()
-            {
-                w.lost = true;
-            }
-            return Err(fs_error(e));
+        let g = self.geometry()?;
+        let mut next = w;
+        let mut written = self.put(&g, &mut next, bytes);
+        if written.is_ok() && !w.anchored {
+            // The first append: the entry takes the chain, for a cleanup to find.
+            written = patch(&self.card, &g, w.pos, |slot| {
+                set_cluster(slot, g.fat32, next.head);
+                put32(slot, 28, next.len);
+            });
+            next.anchored = written.is_ok();
         }
-        if let Some(w) = self.writing.as_mut() {
-            w.len = len + bytes.len() as u32;
-            w.anchored = true;
+        if let Some(kept) = self.writing.as_mut() {
+            match written {
+                Ok(()) => *kept = next,
+                // As it was: the next append writes over what this one left, in the
+                // clusters it took.
+                Err(_) => {
+                    kept.head = next.head;
+                    kept.spare = true;
+                    // Clusters that no entry holds yet go back at once.
+                    if !w.anchored
+                        && g.is_cluster(next.head)
+                        && free_chain(&self.card, &g, next.head).is_ok()
+                    {
+                        kept.head = 0;
+                    }
+                }
+            }
         }
-        Ok(())
+        written
     }
 
     fn finish(&mut self) -> Result<(), FileError> {
-        let w = self.writing.as_mut().ok_or(FileError::NotWriting)?;
+        let w = self.writing.ok_or(FileError::NotWriting)?;
         if w.lost {
             return Err(FileError::Device);
         }
         let (name, sfn, case, len) = (w.name, w.sfn, w.case, w.len);
-        let open = w.file;
         let g = self.geometry()?;
         self.close_reading();
         self.listed = None;
-        if let Some(file) = open {
-            // Its directory entry gets the chain and the length; on failure the temporary
-            // stays open, as it was.
-            self.volumes.flush_file(file).map_err(fs_error)?;
-            let _ = self.volumes.close_file(file);
-            if let Some(w) = self.writing.as_mut() {
-                w.file = None;
+        let d = &self.card;
+        // Clusters that failed appends left past the end go first.
+        let head = match (w.spare, w.last) {
+            (false, _) => w.head,
+            (true, 0) => {
+                if g.is_cluster(w.head) {
+                    free_chain(d, &g, w.head)?;
+                }
+                0
             }
+            (true, last) => {
+                cut_after(d, &g, last)?;
+                w.head
+            }
+        };
+        if let Some(kept) = self.writing.as_mut() {
+            (kept.head, kept.spare) = (head, false);
         }
-        let found = self.volumes.device(|d| {
-            let found = survey(d, &g, Some(&name), Some(sfn))?;
-            if let Some(t) = found.removing {
-                discard(d, &g, &t)?;
+        // The entry takes the chain, the length and the time of writing.
+        let stamp = fat_stamp(&self.time.get_timestamp());
+        patch(d, &g, w.pos, |slot| {
+            set_cluster(slot, g.fat32, head);
+            put32(slot, 28, len);
+            if let Some(dst) = slot.get_mut(22..26) {
+                dst.copy_from_slice(&stamp);
             }
-            Ok::<_, FileError>(found)
         })?;
-        let Some(mut new) = found.writing else {
-            if let Some(w) = self.writing.as_mut() {
-                w.lost = true;
+        let found = survey(d, &g, Some(&name), Some(sfn))?;
+        if let Some(t) = found.removing {
+            discard(d, &g, &t)?;
+        }
+        let Some(new) = found
+            .writing
+            .filter(|e| e.pos == w.pos && e.size == len && e.cluster == head)
+        else {
+            if let Some(kept) = self.writing.as_mut() {
+                kept.lost = true;
             }
             return Err(FileError::Device);
         };
-        if new.size < len || (len > 0 && !g.is_cluster(new.cluster)) {
-            if let Some(w) = self.writing.as_mut() {
-                w.lost = true;
-            }
-            return Err(FileError::Device);
-        }
         if found.clash {
             return Err(FileError::Device);
-        }
-        if new.size != len {
-            // Bytes of failed appends: the entry first, then the clusters past `len`.
-            let keep = len.div_ceil(g.cluster_bytes());
-            self.volumes.device(|d| {
-                patch(d, &g, new.pos, |slot| {
-                    put32(slot, 28, len);
-                    if keep == 0 {
-                        set_cluster(slot, g.fat32, 0);
-                    }
-                })?;
-                match keep {
-                    0 => free_chain(d, &g, new.cluster),
-                    _ => cut_chain(d, &g, new.cluster, keep),
-                }
-            })?;
-            new.size = len;
-            if keep == 0 {
-                new.cluster = 0;
-            }
         }
         match found.file {
             None => {
                 // The commit: the temporary takes the name.
-                self.volumes.device(|d| {
-                    patch(d, &g, new.pos, |slot| {
-                        if let Some(dst) = slot.get_mut(..11) {
-                            dst.copy_from_slice(&sfn);
-                        }
-                        if let Some(flags) = slot.get_mut(12) {
-                            *flags = (*flags & !(SMALL_BASE | SMALL_EXT)) | case;
-                        }
-                    })
+                patch(d, &g, new.pos, |slot| {
+                    if let Some(dst) = slot.get_mut(..11) {
+                        dst.copy_from_slice(&sfn);
+                    }
+                    if let Some(flags) = slot.get_mut(12) {
+                        *flags = (*flags & !(SMALL_BASE | SMALL_EXT)) | case;
+                    }
                 })?;
                 self.writing = None;
             }
             Some(old) => {
                 let moved = g.is_cluster(old.cluster) && old.cluster != new.cluster;
                 let held = moved && self.hold_clusters(&g, &old)?;
+                let d = &self.card;
                 // The name written is the file's own short name, or its long name: the file
                 // takes the spelling written (its long name goes). A short name written for a
                 // file listed under another long name keeps that long name.
                 let respell = old.sfn == sfn && old.long.is_none_or(|run| run.name() == Some(name));
                 // The commit: the file's entry takes the new data.
-                self.volumes.device(|d| {
-                    patch(d, &g, old.pos, |slot| {
-                        set_cluster(slot, g.fat32, new.cluster);
-                        put32(slot, 28, new.size);
-                        if let Some(stamp) = slot.get_mut(22..26) {
-                            stamp.copy_from_slice(&new.stamp);
-                        }
-                        if let Some(attr) = slot.get_mut(11) {
-                            *attr |= ARCHIVE;
-                        }
-                        if let (true, Some(flags)) = (respell, slot.get_mut(12)) {
-                            *flags = (*flags & !(SMALL_BASE | SMALL_EXT)) | case;
-                        }
-                    })
+                patch(d, &g, old.pos, |slot| {
+                    set_cluster(slot, g.fat32, new.cluster);
+                    put32(slot, 28, new.size);
+                    if let Some(stamp) = slot.get_mut(22..26) {
+                        stamp.copy_from_slice(&new.stamp);
+                    }
+                    if let Some(attr) = slot.get_mut(11) {
+                        *attr |= ARCHIVE;
+                    }
+                    if let (true, Some(flags)) = (respell, slot.get_mut(12)) {
+                        *flags = (*flags & !(SMALL_BASE | SMALL_EXT)) | case;
+                    }
                 })?;
                 self.writing = None;
                 // Cleanup: a failure here is finished at the next mount, create or finish.
-                let _ = self.volumes.device(|d| -> Result<(), FileError> {
+                let _ = (|| -> Result<(), FileError> {
                     discard(d, &g, &new)?;
                     if held {
                         let found = survey(d, &g, None, None)?;
@@ -1568,7 +1659,7 @@ impl<D: BlockDevice, T: TimeSource> FileStore for SdFileStore<D, T> {
                         delete_slots(d, &g, run.first, usize::from(run.slots))?;
                     }
                     Ok(())
-                });
+                })();
             }
         }
         Ok(())
@@ -1578,24 +1669,23 @@ impl<D: BlockDevice, T: TimeSource> FileStore for SdFileStore<D, T> {
         let Some(w) = self.writing.take() else {
             return Ok(());
         };
-        if let Some(file) = w.file {
-            let _ = self.volumes.close_file(file);
-        }
+        self.cached = None;
         let g = self.geometry()?;
-        self.volumes.device(|d| {
-            let found = survey(d, &g, None, None)?;
-            match found.writing {
-                Some(t) => discard(d, &g, &t),
-                None => Ok(()),
-            }
-        })
+        if !w.anchored && g.is_cluster(w.head) {
+            // Clusters a failed first append took, that no entry holds.
+            free_chain(&self.card, &g, w.head)?;
+        }
+        match survey(&self.card, &g, None, None)?.writing {
+            Some(t) => discard(&self.card, &g, &t),
+            None => Ok(()),
+        }
     }
 
     fn writing(&self) -> Option<FileName> {
         self.writing.as_ref().map(|w| w.name)
     }
 
-    /// `false`: embedded-sdmmc writes 8.3 names only.
+    /// `false`: the store writes 8.3 names only.
     fn writes_long_names(&self) -> bool {
         false
     }
@@ -2372,6 +2462,39 @@ mod tests {
         assert_eq!(pc_contents(&card, "f3.g"), pattern(1500, 3));
         assert_eq!(pc_listing(&card).len(), 15);
         assert_eq!(free_clusters(&card), free + 3 - 1 + 3 - 2);
+    }
+
+    #[test]
+    fn a_full_fat32_root_directory_grows_by_a_cluster() {
+        // 512-byte clusters: 16 entries a cluster, and the formatted root has one cluster.
+        let card = card(Format::Fat32);
+        let free = free_clusters(&card);
+        let mut store = SdFileStore::new(card.clone());
+        let files: Vec<(String, Vec<u8>)> = (0..40)
+            .map(|i| (format!("f{i}.g"), pattern(100 + 37 * i, i as u32)))
+            .collect();
+        for (n, bytes) in &files {
+            write(&mut store, n, bytes);
+        }
+        let listed = listing(&mut store);
+        assert_eq!(listed.len(), 40);
+        for (n, bytes) in &files {
+            assert_eq!(&contents(&mut store, n).unwrap(), bytes);
+        }
+        store.unmount();
+        assert_eq!(pc_listing(&card).len(), 40);
+        for (n, bytes) in &files {
+            assert_eq!(&pc_contents(&card, n), bytes, "{n}");
+        }
+        // The files' clusters, and two more clusters of directory.
+        let data: u32 = files
+            .iter()
+            .map(|(_, b)| b.len().div_ceil(512) as u32)
+            .sum();
+        assert_eq!(free_clusters(&card), free - data - 2);
+        pc_write(&card, "pc.g", b"from a PC");
+        let mut store = SdFileStore::new(card.clone());
+        assert_eq!(contents(&mut store, "pc.g").unwrap(), b"from a PC");
     }
 
     /// Runs of long-name entries in the root directory that belong to no file.
