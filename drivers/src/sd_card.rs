@@ -813,15 +813,12 @@ struct LongRun {
 impl LongRun {
     /// Take in the long-name entry `raw` at `at`: a run starts at its last part and goes on in
     /// descending order.
-    fn step(run: Option<Self>, at: Pos, raw: &[u8]) -> Option<Self> {
+    fn step(run: &mut Option<Self>, at: Pos, raw: &[u8]) {
         let order = raw.first().copied().unwrap_or(0);
         let seq = order & 0x1F;
         let sum = raw.get(13).copied().unwrap_or(0);
-        let mut run = if order & 0x40 != 0 {
-            if !(1..=20).contains(&seq) {
-                return None;
-            }
-            Self {
+        if order & 0x40 != 0 {
+            *run = (1..=20).contains(&seq).then_some(Self {
                 first: at,
                 slots: 1,
                 next: seq - 1,
@@ -830,15 +827,19 @@ impl LongRun {
                 len: usize::from(seq) * 13,
                 foreign: usize::MAX,
                 lead: 0,
-            }
+            });
+        } else if let Some(r) = run.as_mut()
+            && r.next != 0
+            && seq == r.next
+            && sum == r.sum
+        {
+            r.slots += 1;
+            r.next = seq - 1;
         } else {
-            let mut run = run?;
-            if run.next == 0 || seq != run.next || sum != run.sum {
-                return None;
-            }
-            run.slots += 1;
-            run.next = seq - 1;
-            run
+            *run = None;
+        }
+        let Some(run) = run.as_mut() else {
+            return;
         };
         let base = usize::from(seq - 1) * 13;
         for (k, &offset) in LONG_CHARS.iter().enumerate() {
@@ -858,7 +859,6 @@ impl LongRun {
                 }
             }
         }
-        Some(run)
     }
 
     /// The long name, if it is a [`FileName`].
@@ -996,8 +996,11 @@ where
         }
         let attr = raw.get(11).copied().unwrap_or(0);
         if first != DELETED && attr & 0x3F == LONG_NAME {
-            run = LongRun::step(run, pos, raw);
-            pending = Some(pending.map_or((pos, 1), |(p, n)| (p, n + 1)));
+            LongRun::step(&mut run, pos, raw);
+            match &mut pending {
+                Some((_, n)) => *n += 1,
+                None => pending = Some((pos, 1)),
+            }
             return ControlFlow::Continue(());
         }
         let entry = (first != DELETED).then(|| Entry::new(pos, raw, g.fat32, run.take()));

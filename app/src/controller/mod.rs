@@ -425,16 +425,16 @@ impl Input {
             .buf
             .get(self.start..self.start.saturating_add(n).min(self.end))
             .unwrap_or(&[]);
-        if taken.len() >= FRAME_LEN {
-            if let Some(last) = taken.get(taken.len() - FRAME_LEN..) {
-                self.tail.copy_from_slice(last);
-            }
-        } else if !taken.is_empty() {
-            self.tail.copy_within(taken.len().., 0);
-            if let Some(dst) = self.tail.get_mut(FRAME_LEN - taken.len()..) {
-                dst.copy_from_slice(taken);
-            }
+        // The tail's last bytes, then the last of those taken (in a copy: a shift in place
+        // would be the image's only `memmove`).
+        let k = taken.len().min(FRAME_LEN);
+        let mut tail = [0; FRAME_LEN];
+        let (kept, new) = tail.split_at_mut(FRAME_LEN - k);
+        if let (Some(old), Some(last)) = (self.tail.get(k..), taken.get(taken.len() - k..)) {
+            kept.copy_from_slice(old);
+            new.copy_from_slice(last);
         }
+        self.tail = tail;
         self.since_event = self.since_event.saturating_add(taken.len());
         self.start += taken.len();
         if self.start >= self.end {
