@@ -852,10 +852,10 @@ impl Job {
                 Ok(Reply::Effect(e)) => {
                     self.last_fed = u32::from(index);
                     self.next_line += 1;
-                    if e == Effect::Paused {
+                    if matches!(e, Effect::Paused) {
                         self.state = JobState::Paused;
                     }
-                    if e == Effect::ProgramEnd {
+                    if matches!(e, Effect::ProgramEnd) {
                         // `M2`/`M30`: the motion before it is done (the effect waits for it);
                         // the lines after it do not run, and the next start is from line 1.
                         self.state = JobState::Finished;
@@ -938,10 +938,10 @@ impl Job {
                     run.fed(byte, number);
                     self.last_fed = byte;
                     let Reply::Effect(e) = reply else { continue };
-                    if e == Effect::Paused {
+                    if matches!(e, Effect::Paused) {
                         self.state = JobState::Paused;
                     }
-                    if e == Effect::ProgramEnd {
+                    if matches!(e, Effect::ProgramEnd) {
                         // As in a program: the lines after it do not run.
                         self.finish_file();
                     }

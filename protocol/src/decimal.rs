@@ -226,6 +226,14 @@ impl Decimal {
         self.mantissa() < 0
     }
 
+    /// The exact digits (as `Display` writes them: `1500.0`, `-3`, `0.25`) at the start of
+    /// `buf`: their length, `None` when they do not fit.
+    pub fn encode(self, buf: &mut [u8]) -> Option<usize> {
+        let mut out = crate::write::Cursor::new(buf);
+        self.write(&mut out).ok()?;
+        Some(out.len())
+    }
+
     /// Write the digits, refusing what [`Decimal::parse`] would not read back: a scale over
     /// [`MAX_SCALE`] or the mantissa `i64::MIN`.
     pub(crate) fn write_checked<S: Sink>(self, out: &mut S) -> Result<(), EncodeError> {
@@ -418,6 +426,12 @@ mod tests {
             "-9223372036854775808"
         );
         assert_eq!(Decimal::new(1, 30).to_string().len(), 32);
+        for value in [d("-0.0001"), d("1500.0"), Decimal::new(i64::MIN, 0)] {
+            let mut buf = [0u8; 24];
+            let n = value.encode(&mut buf).unwrap();
+            assert_eq!(&buf[..n], value.to_string().as_bytes());
+        }
+        assert_eq!(Decimal::new(1, 30).encode(&mut [0u8; 31]), None);
     }
 
     #[test]

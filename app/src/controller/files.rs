@@ -1,5 +1,5 @@
 //! Marlin's SD-card commands, served by the board's file store
-//! ([`Peripherals::files`](super::Peripherals::files)): printer hosts upload a job to the
+//! ([`Peripherals::files`]): printer hosts upload a job to the
 //! "card", list it, print it from there and follow its progress.
 //!
 //! | command | effect | answer (then `ok`) |
@@ -41,8 +41,6 @@
 //! Failures are told in both forms: `echo:E<code> <name> <detail>` (§7.1) and, where Marlin has
 //! one, its line (`open failed, File: <name>.`, `Deletion failed, File: <name>.`), then `ok`.
 
-use core::fmt::Write as _;
-
 use embedded_io::Write;
 use forja_hal_abstraction::files::{FileError, FileName, FileStore, MAX_NAME_LEN};
 use forja_hal_abstraction::program::ProgramStore;
@@ -73,7 +71,7 @@ impl Given {
     fn new(bytes: &[u8]) -> Self {
         let bytes = bytes.strip_prefix(b"/").unwrap_or(bytes);
         let mut text = Text::new();
-        let _ = text.write_str(core::str::from_utf8(bytes).unwrap_or("?"));
+        text.push(core::str::from_utf8(bytes).unwrap_or("?"));
         Self { text }
     }
 
@@ -188,9 +186,12 @@ impl Card {
 const SAY_LEN: usize = 160;
 
 /// One line of text (as far as it fits) and its terminator, in one write.
-fn say<W: Write>(out: &mut W, args: core::fmt::Arguments<'_>) {
-    let mut line = Text::<SAY_LEN>::new();
-    let _ = line.write_fmt(args);
+fn say<W: Write>(out: &mut W, text: &str) {
+    say_text(out, Text::<SAY_LEN>::new().push(text));
+}
+
+/// The line `line` and its terminator, in one write.
+fn say_text<W: Write>(out: &mut W, line: &Text<SAY_LEN>) {
     let text = line.as_bytes();
     let mut bytes = [b'\n'; SAY_LEN + 1];
     if let Some(head) = bytes.get_mut(..text.len()) {
@@ -199,9 +200,17 @@ fn say<W: Write>(out: &mut W, args: core::fmt::Arguments<'_>) {
     let _ = out.write_all(bytes.get(..=text.len()).unwrap_or(&[]));
 }
 
+/// `before`, the file's name as given, `after`: one line, as [`say`] writes it.
+fn say_named<W: Write>(out: &mut W, before: &str, given: &Given, after: &str) {
+    say_text(
+        out,
+        Text::new().push(before).push(given.as_str()).push(after),
+    );
+}
+
 /// The refusal of a file command without a card: `E194 no-device sd-card`.
 fn no_card() -> Refusal {
-    Refusal::with(&PeripheralError::NoDevice, format_args!("sd-card"))
+    Refusal::with(&PeripheralError::NoDevice, "sd-card")
 }
 
 /// The file's newlines before byte `end`, and whether the byte before `end` ends a line (or
@@ -249,7 +258,7 @@ where
 
     /// A file error, naming the file.
     fn file_refusal(e: FileError, given: &Given) -> Refusal {
-        Refusal::with(&FileRefusal(e), format_args!("{}", given.as_str()))
+        Refusal::with(&FileRefusal(e), given.as_str())
     }
 
     /// Whether the host asked for the card's status every period (`M27 S` above 0).
@@ -312,12 +321,9 @@ where
             FileCommand::Delete(given) => {
                 if let Err(r) = self.delete(&given) {
                     self.refused(&r, out);
-                    say(
-                        out,
-                        format_args!("Deletion failed, File: {}.", given.as_str()),
-                    );
+                    say_named(out, "Deletion failed, File: ", &given, ".");
                 } else {
-                    say(out, format_args!("File deleted:{}", given.as_str()));
+                    say_named(out, "File deleted:", &given, "");
                 }
             }
         }
@@ -352,14 +358,23 @@ where
                 "incomplete"
             };
             let (len, total) = (self.program.len(), self.program.total());
-            say(out, format_args!("program {len}/{total} {state}"));
+            let mut line = Text::new();
+            line.push("program ").push_number(len).push("/");
+            line.push_number(total).push(" ").push(state);
+            say_text(out, &line);
         }
         let mut failure = None;
         let card = self.card().is_some();
         if let Some(files) = self.card() {
             for index in 0.. {
                 match files.file(index) {
-                    Ok(Some(f)) => say(out, format_args!("{} {}", f.name, f.size)),
+                    Ok(Some(f)) => say_text(
+                        out,
+                        Text::new()
+                            .push(f.name.as_str())
+                            .push(" ")
+                            .push_number(f.size),
+                    ),
                     Ok(None) => break,
                     Err(e) => {
                         failure = Some(e);
@@ -381,10 +396,15 @@ where
     /// printed, else `Not SD printing`.
     fn report_status<W: Write>(&mut self, out: &mut W) {
         match self.job.file() {
-            Some(f) if f.printing => {
-                say(out, format_args!("SD printing byte {}/{}", f.byte, f.size))
-            }
-            _ => say(out, format_args!("Not SD printing")),
+            Some(f) if f.printing => say_text(
+                out,
+                Text::new()
+                    .push("SD printing byte ")
+                    .push_number(f.byte)
+                    .push("/")
+                    .push_number(f.size),
+            ),
+            _ => say(out, "Not SD printing"),
         }
     }
 
@@ -395,15 +415,19 @@ where
         let selected = self.try_select(given);
         match selected {
             Ok(size) => {
-                say(
+                say_text(
                     out,
-                    format_args!("File opened: {} Size: {size}", given.as_str()),
+                    Text::new()
+                        .push("File opened: ")
+                        .push(given.as_str())
+                        .push(" Size: ")
+                        .push_number(size),
                 );
-                say(out, format_args!("File selected"));
+                say(out, "File selected");
             }
             Err(r) => {
                 self.refused(&r, out);
-                say(out, format_args!("open failed, File: {}.", given.as_str()));
+                say_named(out, "open failed, File: ", given, ".");
             }
         }
         selected.is_ok()
@@ -459,7 +483,7 @@ where
         let byte = byte.min(file.size);
         let files = self.card().ok_or_else(no_card)?;
         let (newlines, _) = newlines_before(files, &file.name, byte)
-            .map_err(|e| Refusal::with(&FileRefusal(e), format_args!("{}", file.name)))?;
+            .map_err(|e| Refusal::with(&FileRefusal(e), file.name.as_str()))?;
         self.job
             .set_file_position(byte, newlines + 1)
             .map_err(|e| Refusal::new(&e))
@@ -490,12 +514,12 @@ where
         match opened {
             Ok(name) => {
                 self.card.upload = Upload::Writing(name);
-                say(out, format_args!("Writing to file: {}", given.as_str()));
+                say_named(out, "Writing to file: ", given, "");
             }
             Err(r) => {
                 self.card.upload = Upload::Refusing(r);
                 self.refused(&r, out);
-                say(out, format_args!("open failed, File: {}.", given.as_str()));
+                say_named(out, "open failed, File: ", given, ".");
             }
         }
     }
@@ -528,7 +552,7 @@ where
             self.card.upload = Upload::Off;
             if let Upload::Writing(name) = upload {
                 match self.finish_write(&name) {
-                    Ok(()) => say(out, format_args!("Done saving file.")),
+                    Ok(()) => say(out, "Done saving file."),
                     Err(r) => self.refused(&r, out),
                 }
             }
@@ -564,7 +588,7 @@ where
         let mut buf = [0u8; MAX_LINE_LEN + 16];
         let len = line
             .encode(&mut buf)
-            .map_err(|e| Refusal::with(&e, format_args!("{name}")))?;
+            .map_err(|e| Refusal::with(&e, name.as_str()))?;
         let encoded = buf.get(..len).unwrap_or(&[]);
         // `N<n> <words>*<check>`: the words alone.
         let body = match line.number() {
@@ -586,7 +610,7 @@ where
         }
         files
             .append(with_end)
-            .map_err(|e| Refusal::with(&FileRefusal(e), format_args!("{name}")))
+            .map_err(|e| Refusal::with(&FileRefusal(e), name.as_str()))
     }
 
     /// `M29`: finish the file; a selected file of the same name is deselected (it changed).
@@ -596,13 +620,13 @@ where
         let files = self.devices.parts.files().ok_or_else(no_card)?;
         if printing {
             let _ = files.abandon();
-            return Err(Refusal::with(&JobError::Busy, format_args!("{name}")));
+            return Err(Refusal::with(&JobError::Busy, name.as_str()));
         }
         let finished = files.finish();
         if finished.is_err() {
             let _ = files.abandon();
         }
-        finished.map_err(|e| Refusal::with(&FileRefusal(e), format_args!("{name}")))?;
+        finished.map_err(|e| Refusal::with(&FileRefusal(e), name.as_str()))?;
         if self.job.file().is_some_and(|f| f.name == *name) {
             let _ = self.job.select_program();
         }
@@ -632,12 +656,12 @@ where
             };
             if let Err(e) = read {
                 self.job.stop(&mut self.kernel);
-                let r = Refusal::with(&FileRefusal(e), format_args!("{}", file.name));
+                let r = Refusal::with(&FileRefusal(e), file.name.as_str());
                 self.error_frame(&r, out);
             }
         }
         if self.job.take_file_done() {
-            say(out, format_args!("Done printing file"));
+            say(out, "Done printing file");
         }
         if self.card.report_ms > 0 && self.clock.reached(self.card.next_report_ms) {
             self.card.next_report_ms = self.clock.ms.wrapping_add(self.card.report_ms);

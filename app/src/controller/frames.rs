@@ -69,10 +69,7 @@ where
             ClientMessage::SetSetting { key, value } => self.set_setting(key, value, out),
             ClientMessage::ReadSetting { key } => match Key::parse(key, self.settings.machine()) {
                 Some(k) => self.send_setting(k, out),
-                None => self.error_frame(
-                    &Refusal::with(&SettingError::UnknownKey, format_args!("{key}")),
-                    out,
-                ),
+                None => self.error_frame(&Refusal::with(&SettingError::UnknownKey, key), out),
             },
             ClientMessage::Jog { step, axis, count } => self.jog(step, axis, count, out),
             ClientMessage::Action(action) => self.action(action, out),
@@ -91,14 +88,11 @@ where
 
     fn set_setting<W: Write>(&mut self, key: &str, value: &str, out: &mut W) {
         if !self.kernel.is_idle() {
-            return self.error_frame(
-                &Refusal::with(&CommandError::NotIdle, format_args!("{key}")),
-                out,
-            );
+            return self.error_frame(&Refusal::with(&CommandError::NotIdle, key), out);
         }
         match self.store_setting(key, value) {
             Ok(k) => self.send_setting(k, out),
-            Err(e) => self.error_frame(&Refusal::with(&e, format_args!("{key}")), out),
+            Err(e) => self.error_frame(&Refusal::with(&e, key), out),
         }
     }
 
@@ -132,10 +126,9 @@ where
             return self.error_frame(&Refusal::new(&JobError::Busy), out);
         }
         match self.kernel.jog(axis, step, count) {
-            Ok(KernelReply::Busy) => self.error_frame(
-                &Refusal::with(&CommandError::NotIdle, format_args!("queue-full")),
-                out,
-            ),
+            Ok(KernelReply::Busy) => {
+                self.error_frame(&Refusal::with(&CommandError::NotIdle, "queue-full"), out)
+            }
             Ok(_) => self.taken = true,
             Err(e) => {
                 let r = text::command_refusal(&e, &self.letters());
@@ -254,10 +247,7 @@ where
             // Another program's total, then the order, then whether an upload is open.
             let current = self.load_total.unwrap_or(self.program.total());
             if current != 0 && total != current {
-                return Err(Refusal::with(
-                    &ControllerError::LoadTotal,
-                    format_args!("{index:04}"),
-                ));
+                return Err(Refusal::numbered(&ControllerError::LoadTotal, index, 4));
             }
             let expected = self.program.len().saturating_add(1);
             if index != expected {
@@ -267,20 +257,21 @@ where
                 }));
             }
             if self.load_total.is_none() {
-                return Err(Refusal::with(
+                return Err(Refusal::numbered(
                     &StoreRefusal(StoreError::NoUpload),
-                    format_args!("{index:04}"),
+                    index,
+                    4,
                 ));
             }
         }
         if let Err(e) = Line::parse(line.as_bytes()) {
-            return Err(Refusal::with(&e, format_args!("{index:04}")));
+            return Err(Refusal::numbered(&e, index, 4));
         }
         if index == 1 {
             // A refused line 1 (a total the store has no room for) keeps the old program.
             self.program
                 .begin(total)
-                .map_err(|e| Refusal::with(&StoreRefusal(e), format_args!("{total:04}")))?;
+                .map_err(|e| Refusal::numbered(&StoreRefusal(e), total, 4))?;
             self.load_total = Some(total);
             // What is uploaded now is what `Start` runs, rather than a selected file.
             let _ = self.job.select_program();
@@ -313,7 +304,7 @@ where
                 wire::frame(out, &ControllerMessage::Progress(progress.into()));
             }
             t => self.error_frame(
-                &Refusal::with(&ControllerError::BadRequest, format_args!("{t:02}")),
+                &Refusal::numbered(&ControllerError::BadRequest, t.into(), 2),
                 out,
             ),
         }
@@ -394,10 +385,7 @@ where
             Some(0) => "0",
             Some(1) => "1",
             _ => {
-                return Err(Refusal::with(
-                    &CommandError::BadValue { letter: b'S' },
-                    format_args!("S"),
-                ));
+                return Err(Refusal::with(&CommandError::BadValue { letter: b'S' }, "S"));
             }
         };
         self.store_setting("power_loss_recovery", value)

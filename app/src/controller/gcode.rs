@@ -1,7 +1,5 @@
 //! G-code lines of the link, and the effects of lines (from the link or the stored program).
 
-use core::fmt::Write as _;
-
 use embedded_io::Write;
 use forja_hal_abstraction::storage::RecordStorage;
 use forja_hal_abstraction::thermal::FULL_POWER;
@@ -60,7 +58,7 @@ enum Done {
 /// `bytes` as far as they fit `C` bytes of printable ASCII.
 fn copied<const C: usize>(bytes: &[u8]) -> Text<C> {
     let mut t = Text::new();
-    let _ = t.write_str(core::str::from_utf8(bytes).unwrap_or("?"));
+    t.push(core::str::from_utf8(bytes).unwrap_or("?"));
     t
 }
 
@@ -222,10 +220,12 @@ where
         let mut command = Text::<24>::new();
         match line.words().iter().find(|w| w.letter == letter && !w.bare) {
             Some(w) => {
-                let _ = write!(command, "{}{}", text::letter(w.letter), w.value);
+                command
+                    .push_byte(text::letter(w.letter))
+                    .push_decimal(w.value);
             }
             None => {
-                let _ = write!(command, "{}", text::letter(letter));
+                command.push_byte(text::letter(letter));
             }
         }
         let _ = wire::reply(out, &Reply::Unknown(command.as_str()));
@@ -573,8 +573,13 @@ where
         config: &ControllerConfig,
         effect: &Effect<'_>,
     ) -> Done {
-        let device = |e: PeripheralError, what: core::fmt::Arguments<'_>| {
-            Done::Refused(Refusal::with(&e, what))
+        // The refusal of a device, named by `what` and its number if it has one.
+        let device = |e: PeripheralError, what: &str, number: Option<u8>| {
+            let mut r = Refusal::with(&e, what);
+            if let Some(n) = number {
+                r.text.push(" ").push_number(n);
+            }
+            Done::Refused(r)
         };
         match *effect {
             Effect::SetTemperature {
@@ -589,7 +594,7 @@ where
                 else {
                     return Done::Refused(Refusal::with(
                         &CommandError::BadValue { letter: b'S' },
-                        format_args!("S"),
+                        "S",
                     ));
                 };
                 if mc > 0 && state == MachineState::Alarm(Alarm::EmergencyStop) {
@@ -602,10 +607,10 @@ where
                 };
                 match (devices.set_temperature(heater, mc), wait) {
                     (Err(e @ PeripheralError::NoDevice), _) => match heater {
-                        Heater::Extruder(Some(t)) => device(e, format_args!("hot end {t}")),
-                        Heater::Extruder(None) => device(e, format_args!("hot end")),
-                        Heater::Bed => device(e, format_args!("bed")),
-                        Heater::Chamber => device(e, format_args!("chamber")),
+                        Heater::Extruder(Some(t)) => device(e, "hot end", Some(t)),
+                        Heater::Extruder(None) => device(e, "hot end", None),
+                        Heater::Bed => device(e, "bed", None),
+                        Heater::Chamber => device(e, "chamber", None),
                     },
                     (Err(e), _) => Done::Refused(Refusal::new(&e)),
                     (Ok(()), TemperatureWait::No) => Done::Ok,
@@ -623,24 +628,24 @@ where
             Effect::ReportTemperatures => Done::Temperatures,
             Effect::Fan { index, duty } => match devices.set_fan(index, duty) {
                 Ok(()) => Done::Ok,
-                Err(e) => device(e, format_args!("fan {index}")),
+                Err(e) => device(e, "fan", Some(index)),
             },
             Effect::Spindle(s) => match devices.set_spindle(s) {
                 Ok(()) => Done::Ok,
-                Err(e) => device(e, format_args!("spindle")),
+                Err(e) => device(e, "spindle", None),
             },
             Effect::Coolant(c) => match devices.set_coolant(c) {
                 Ok(()) => Done::Ok,
                 // `M9` on a board without coolant: nothing is on, nothing to turn off (CAM
                 // posts end every program with it).
                 Err(PeripheralError::NoDevice) if c == Coolant::Off => Done::Ok,
-                Err(e) => device(e, format_args!("coolant")),
+                Err(e) => device(e, "coolant", None),
             },
             Effect::SetLineNumber(_) | Effect::Paused => Done::Ok,
             Effect::ToolChange(tool) => Done::ToolChange(tool),
             Effect::ProgramEnd => match devices.end_program() {
                 Ok(()) => Done::ProgramEnd,
-                Err((e, what)) => device(e, format_args!("{what}")),
+                Err((e, what)) => device(e, what, None),
             },
             Effect::ReportFirmware => Done::Firmware,
             Effect::ReportEndstops => Done::Endstops,
@@ -649,10 +654,11 @@ where
             // (grbl's and LinuxCNC's `T`); a printer selects one of its extruders.
             Effect::SelectTool(_) if config.extruders == 0 => Done::Ok,
             Effect::SelectTool(t) if t < config.extruders.max(1) => Done::Ok,
-            Effect::SelectTool(t) => Done::Refused(Refusal::with(
-                &CommandError::BadValue { letter: b'T' },
-                format_args!("T{t}"),
-            )),
+            Effect::SelectTool(t) => {
+                let mut r = Refusal::with(&CommandError::BadValue { letter: b'T' }, "T");
+                r.text.push_number(t);
+                Done::Refused(r)
+            }
             Effect::Motors { enabled, axes } => match devices.set_axis_motors(enabled, axes) {
                 Ok(()) => Done::Ok,
                 Err(e) => Done::Refused(Refusal::new(&e)),
@@ -661,18 +667,18 @@ where
             Effect::MotionDone => Done::Ok,
             Effect::Output { index, on, .. } => match devices.set_output(index, on) {
                 Ok(()) => Done::Ok,
-                Err(e) => device(e, format_args!("output {index}")),
+                Err(e) => device(e, "output", Some(index)),
             },
             Effect::PowerSupply { on } => match devices.set_power_supply(on) {
                 Ok(()) => Done::Ok,
-                Err(e) => device(e, format_args!("power-supply")),
+                Err(e) => device(e, "power-supply", None),
             },
             Effect::Tone {
                 frequency_hz,
                 duration_ms,
             } => match devices.tone(frequency_hz, duration_ms) {
                 Ok(()) => Done::Ok,
-                Err(e) => device(e, format_args!("beeper")),
+                Err(e) => device(e, "beeper", None),
             },
             Effect::QuickStop => Done::QuickStop,
             Effect::Progress {
@@ -753,20 +759,20 @@ where
     /// every line refused meanwhile says `E125 alarm-locked` or `E126 halted`.
     fn halted_notice<W: Write>(&mut self, out: &mut W) {
         let mut line = Text::<96>::new();
-        let _ = match self.kernel.state() {
+        match self.kernel.state() {
             MachineState::Alarm(a) => {
                 let r = text::alarm_refusal(&a, &self.letters());
-                write!(
-                    line,
-                    "action:notification Machine halted: E{} {}",
-                    r.code,
-                    r.text()
-                )
+                line.push("action:notification Machine halted: E")
+                    .push_number(r.code)
+                    .push(" ")
+                    .push(r.text());
             }
-            MachineState::Halted => write!(line, "action:notification Machine halted by M0"),
+            MachineState::Halted => {
+                line.push("action:notification Machine halted by M0");
+            }
             _ => return,
-        };
-        let _ = line.write_str(". Send M999 to clear.");
+        }
+        line.push(". Send M999 to clear.");
         let _ = wire::reply(out, &Reply::Debug(line.as_str()));
     }
 
@@ -826,7 +832,7 @@ where
 
     fn firmware_reply<W: Write>(&mut self, out: &mut W) {
         let mut count = Text::<4>::new();
-        let _ = write!(count, "{}", self.config.extruders);
+        count.push_number(self.config.extruders);
         let [a, b, c, d] = FORJA_CAPABILITIES;
         let full = [
             a,
@@ -870,14 +876,13 @@ where
                 _ => "min",
             };
             if !t.as_bytes().is_empty() {
-                let _ = t.write_str(" ");
+                t.push(" ");
             }
-            let _ = write!(
-                t,
-                "{}_{side}:{}",
-                char::from(axis.letter.to_ascii_lowercase()),
-                if *triggered { "TRIGGERED" } else { "open" }
-            );
+            t.push_byte(axis.letter.to_ascii_lowercase())
+                .push("_")
+                .push(side)
+                .push(":")
+                .push(if *triggered { "TRIGGERED" } else { "open" });
         }
         if t.as_bytes().is_empty() {
             return self.ok(out);

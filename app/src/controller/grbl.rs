@@ -454,15 +454,15 @@ where
     /// dialect (cycle start, `~`), `echo:` otherwise (resume: frame `Start`).
     pub(super) fn tool_change_notice<W: Write>(&mut self, tool: Option<u8>, out: &mut W) {
         let mut text = Text::<48>::new();
-        let _ = match tool {
-            Some(t) => core::fmt::Write::write_fmt(&mut text, format_args!("Change to tool T{t}")),
-            None => core::fmt::Write::write_str(&mut text, "Change the tool"),
+        match tool {
+            Some(t) => text.push("Change to tool T").push_number(t),
+            None => text.push("Change the tool"),
         };
         if self.speaks_grbl() {
-            let _ = core::fmt::Write::write_str(&mut text, ", then cycle start");
+            text.push(", then cycle start");
             say(out, &Message::Feedback(text.as_str()));
         } else {
-            let _ = core::fmt::Write::write_str(&mut text, ", then resume");
+            text.push(", then resume");
             let _ = wire::reply(out, &forja_protocol::reply::Reply::Echo(text.as_str()));
         }
     }
@@ -1048,7 +1048,7 @@ where
                     .as_integer()
                     .and_then(|v| u8::try_from(v).ok())
                     .ok_or(Error::ValueOutOfRange)?;
-                let _ = core::fmt::Write::write_fmt(&mut text, format_args!("{mask}"));
+                text.push_number(mask);
                 return self.store_grbl(Key::StatusMask, text.as_str());
             }
             GrblSetting::HomingEnable => {
@@ -1063,7 +1063,7 @@ where
                 return Err(Error::ValueOutOfRange);
             }
             GrblSetting::Homing(field) => {
-                let _ = core::fmt::Write::write_fmt(&mut text, format_args!("{value}"));
+                text.push_decimal(value);
                 let mut keys = [Key::StatusMask; 8];
                 let mut count = 0;
                 for (slot, key) in keys.iter_mut().zip(self.homing_keys(field)) {
@@ -1103,7 +1103,7 @@ where
                 (key, Decimal::new(min_um.saturating_add(travel_um), 3))
             }
         };
-        let _ = core::fmt::Write::write_fmt(&mut text, format_args!("{text_value}"));
+        text.push_decimal(text_value);
         self.store_grbl(key, text.as_str())
     }
 
@@ -1208,24 +1208,15 @@ where
             return;
         }
         let mut text = Text::<120>::new();
-        let _ = core::fmt::Write::write_str(
-            &mut text,
-            if probe.tripped {
-                "Probe: contact at"
-            } else {
-                "Probe: no contact, stopped at"
-            },
-        );
-        for (letter, um) in self.letters().iter().zip(position) {
-            let _ = core::fmt::Write::write_fmt(
-                &mut text,
-                format_args!(
-                    " {}:{}.{:03}",
-                    *letter as char,
-                    um.div_euclid(1000),
-                    um.rem_euclid(1000)
-                ),
-            );
+        text.push(if probe.tripped {
+            "Probe: contact at"
+        } else {
+            "Probe: no contact, stopped at"
+        });
+        for (&letter, um) in self.letters().iter().zip(position) {
+            text.push(" ").push_byte(letter).push(":");
+            // Millimetres with three decimals, as the position in µm is exactly.
+            text.push_decimal(Decimal::new(um, 3));
         }
         let _ = wire::reply(out, &forja_protocol::reply::Reply::Echo(text.as_str()));
     }
@@ -1234,27 +1225,26 @@ where
     fn report_parser_state<W: Write>(&mut self, out: &mut W) {
         let mut text = Text::<96>::new();
         let m = self.kernel.modal_report();
-        let _ = core::fmt::Write::write_fmt(
-            &mut text,
-            format_args!(
-                "{} {} G{} G{} G{} G94 M{} M9 T0 F{} S{}",
-                m.motion,
-                SYSTEM_NAMES
-                    .get(usize::from(m.coordinate_system))
-                    .copied()
-                    .unwrap_or("G54"),
-                m.plane,
-                if m.inches { 20 } else { 21 },
-                if m.absolute { 90 } else { 91 },
-                match self.devices.spindle_state() {
-                    Some((Rotation::Clockwise, _)) => 3,
-                    Some((Rotation::CounterClockwise, _)) => 4,
-                    None => 5,
-                },
-                m.feed_mm_min as u32,
-                self.devices.spindle_state().map_or(0, |(_, rpm)| rpm),
-            ),
+        let spindle = match self.devices.spindle_state() {
+            Some((Rotation::Clockwise, _)) => 3,
+            Some((Rotation::CounterClockwise, _)) => 4,
+            None => 5,
+        };
+        text.push(m.motion).push(" ");
+        text.push(
+            SYSTEM_NAMES
+                .get(usize::from(m.coordinate_system))
+                .copied()
+                .unwrap_or("G54"),
         );
+        text.push(" G").push_number(m.plane);
+        text.push(" G").push_number(if m.inches { 20 } else { 21 });
+        text.push(" G")
+            .push_number(if m.absolute { 90 } else { 91 });
+        text.push(" G94 M").push_number(spindle);
+        text.push(" M9 T0 F").push_number(m.feed_mm_min as u32);
+        text.push(" S")
+            .push_number(self.devices.spindle_state().map_or(0, |(_, rpm)| rpm));
         say(out, &Message::ParserState(text.as_str()));
     }
 }

@@ -10,8 +10,6 @@
 //! | `M155 S<s>` | ` T:… /… B:… /… @:… B@:…` every `s` seconds (0: off) | `ok` |
 //! | `M113 S<s>` | `echo:busy: processing` every `s` seconds (0: never) while a line waits for the machine (a homing, `M400`, a full planner; never in the grbl dialect) | `ok`; `M113` alone: `echo:M113 S<s>`, `ok` |
 
-use core::fmt::Write as _;
-
 use embedded_io::Write;
 use forja_hal_abstraction::program::ProgramStore;
 use forja_hal_abstraction::storage::RecordStorage;
@@ -112,8 +110,8 @@ where
     pub(super) fn host_message<W: Write>(&mut self, text: &[u8], out: &mut W) {
         let (prefix, message) = host_line(text);
         let mut line = Text::<HOST_LINE_LEN>::new();
-        let _ = line.write_str(prefix);
-        let _ = line.write_str(core::str::from_utf8(message).unwrap_or("?"));
+        line.push(prefix);
+        line.push(core::str::from_utf8(message).unwrap_or("?"));
         // One write, the terminator included, as every reply is written.
         let mut bytes = [b'\n'; HOST_LINE_LEN + 1];
         let text = line.as_bytes();
@@ -143,7 +141,8 @@ where
             }
             None => {
                 let mut line = Text::<16>::new();
-                let _ = write!(line, "M113 S{}", self.host.busy_interval_ms / 1000);
+                line.push("M113 S")
+                    .push_number(self.host.busy_interval_ms / 1000);
                 let _ = wire::reply(out, &Reply::Echo(line.as_str()));
             }
         }

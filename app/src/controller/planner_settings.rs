@@ -12,8 +12,6 @@
 //! A storage that fails refuses `M500` (`echo:E174 store-device`); the records written before
 //! the failure are kept (each setting is a record of its own, old or new after a power cut).
 
-use core::fmt::Write as _;
-
 use embedded_io::Write;
 use forja_hal_abstraction::program::ProgramStore;
 use forja_hal_abstraction::storage::RecordStorage;
@@ -38,7 +36,7 @@ fn records<const N: usize>(
     mut each: impl FnMut(&str, f32) -> bool,
 ) -> bool {
     for i in 0..N {
-        let letter = char::from(s.letters[i].to_ascii_lowercase());
+        let letter = s.letters[i].to_ascii_lowercase();
         let axis = [
             ("steps_per_mm", s.steps_per_mm[i]),
             ("max_rate", s.max_rate_mm_s[i] * 60.0),
@@ -46,7 +44,7 @@ fn records<const N: usize>(
         ];
         for (field, value) in axis {
             let mut key = Text::<24>::new();
-            let _ = write!(key, "{letter}.{field}");
+            key.push_byte(letter).push(".").push(field);
             if !each(key.as_str(), value) {
                 return false;
             }
@@ -175,49 +173,48 @@ where
             *line = Text::new();
         };
         let axes = |line: &mut Text<160>, command: &str, values: &[f32; N]| {
-            let _ = write!(line, "  {command}");
-            for (letter, v) in s.letters.iter().zip(values) {
-                let _ = write!(line, " {}{}", char::from(*letter), fixed(*v, 2));
+            line.push("  ").push(command);
+            for (&letter, &v) in s.letters.iter().zip(values) {
+                line.push(" ").push_byte(letter).push_decimal(fixed(v, 2));
             }
         };
-        let _ = line.write_str("; Steps per unit:");
+        line.push("; Steps per unit:");
         emit(&mut line, out);
         axes(&mut line, "M92", &s.steps_per_mm);
         emit(&mut line, out);
-        let _ = line.write_str("; Max feedrates (units/s):");
+        line.push("; Max feedrates (units/s):");
         emit(&mut line, out);
         axes(&mut line, "M203", &s.max_rate_mm_s);
         emit(&mut line, out);
-        let _ = line.write_str("; Max Acceleration (units/s2):");
+        line.push("; Max Acceleration (units/s2):");
         emit(&mut line, out);
         axes(&mut line, "M201", &s.max_accel_mm_s2);
         emit(&mut line, out);
-        let _ = line.write_str(
+        line.push(
             "; Acceleration (units/s2) (P<print-accel> R<retract-accel> T<travel-accel>), \
              none given: the per-axis limits alone:",
         );
         emit(&mut line, out);
-        let _ = line.write_str("  M204");
+        line.push("  M204");
         let p = s.path;
         for (letter, cap) in [
-            ('P', p.print_accel_mm_s2),
-            ('R', p.retract_accel_mm_s2),
-            ('T', p.travel_accel_mm_s2),
+            ("P", p.print_accel_mm_s2),
+            ("R", p.retract_accel_mm_s2),
+            ("T", p.travel_accel_mm_s2),
         ] {
             if let Some(v) = cap {
-                let _ = write!(line, " {letter}{}", fixed(v, 2));
+                line.push(" ").push(letter).push_decimal(fixed(v, 2));
             }
         }
         emit(&mut line, out);
-        let _ = line.write_str("; Advanced (S<min_feedrate> T<min_travel_feedrate> J<junc_dev>):");
+        line.push("; Advanced (S<min_feedrate> T<min_travel_feedrate> J<junc_dev>):");
         emit(&mut line, out);
-        let _ = write!(
-            line,
-            "  M205 S{} T{} J{}",
-            fixed(p.min_extruding_feed_mm_s, 2),
-            fixed(p.min_travel_feed_mm_s, 2),
-            fixed(s.junction_deviation_mm, 3)
-        );
+        line.push("  M205 S")
+            .push_decimal(fixed(p.min_extruding_feed_mm_s, 2));
+        line.push(" T")
+            .push_decimal(fixed(p.min_travel_feed_mm_s, 2));
+        line.push(" J")
+            .push_decimal(fixed(s.junction_deviation_mm, 3));
         emit(&mut line, out);
     }
 }

@@ -302,12 +302,9 @@ impl Key {
         match *self {
             Key::Axis { axis, field } => {
                 let letter = machine.axes.get(axis).map_or(b'?', |a| a.letter);
-                write!(
-                    out,
-                    "{}.{}",
-                    char::from(letter.to_ascii_lowercase()),
-                    field.name()
-                )
+                out.write_char(char::from(letter.to_ascii_lowercase()))?;
+                out.write_char('.')?;
+                out.write_str(field.name())
             }
             key => {
                 let name = GLOBALS
@@ -440,10 +437,11 @@ enum Loaded {
 /// (`80`, `0.013`), written as a decimal, not with the float formatting of `core`, which the
 /// firmware image then leaves out.
 pub(crate) fn write_number(out: &mut impl fmt::Write, v: f32) -> fmt::Result {
-    match Decimal::from_f32_significant(v) {
-        Some(d) => write!(out, "{d}"),
-        None => out.write_str("?"),
-    }
+    let mut digits = [0u8; 48];
+    let text = Decimal::from_f32_significant(v)
+        .and_then(|d| d.encode(&mut digits))
+        .and_then(|n| core::str::from_utf8(digits.get(..n)?).ok());
+    out.write_str(text.unwrap_or("?"))
 }
 
 fn encode<'b>(value: &impl Serialize, buf: &'b mut [u8]) -> Option<&'b [u8]> {
@@ -843,7 +841,7 @@ impl<const N: usize> Settings<N> {
                 SoftLimits::WhenHomed => "homed",
                 SoftLimits::Always => "always",
             }),
-            Key::KeepAliveMs => write!(out, "{}", self.keep_alive_ms),
+            Key::KeepAliveMs => super::text::write_integer(out, i64::from(self.keep_alive_ms)),
             Key::LinkSsid => out.write_str(self.ssid.as_str()),
             Key::LinkPassword => out.write_str("<hidden>"),
             Key::PowerLossRecovery => {
@@ -854,7 +852,7 @@ impl<const N: usize> Settings<N> {
             Key::TravelAccel => write_number(out, self.path.travel_accel_mm_s2.unwrap_or(0.0)),
             Key::MinPrintFeed => write_number(out, self.path.min_extruding_feed_mm_s),
             Key::MinTravelFeed => write_number(out, self.path.min_travel_feed_mm_s),
-            Key::StatusMask => write!(out, "{}", self.status_mask),
+            Key::StatusMask => super::text::write_integer(out, i64::from(self.status_mask)),
             Key::ArcTolerance => write_number(out, m.arc_tolerance_mm),
             Key::ReportInches => out.write_str(if self.report_inches { "1" } else { "0" }),
             Key::LaserMode => out.write_str(if self.laser_mode { "1" } else { "0" }),
