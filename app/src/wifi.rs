@@ -168,8 +168,8 @@ mod tests {
             b'X', 80.0, 6000.0, 500.0, 200.0,
         )]));
         let ok = |m: &MachineConfig<1>| m.validate();
-        s.set("link.ssid", ssid, &mut storage, ok).unwrap();
-        s.set("link.password", password, &mut storage, ok).unwrap();
+        s.set("link.ssid", ssid, &mut storage, &ok).unwrap();
+        s.set("link.password", password, &mut storage, &ok).unwrap();
         s
     }
 

@@ -101,7 +101,7 @@ where
     pub(super) fn store_setting(&mut self, key: &str, value: &str) -> Result<Key, SettingError> {
         let tick_hz = self.kernel.tick_hz();
         let timing = self.config.timing;
-        self.settings.set(key, value, &mut self.storage, |m| {
+        self.settings.set(key, value, &mut self.storage, &|m| {
             m.validate()?;
             m.validate_timing(tick_hz, timing)
         })

@@ -1077,7 +1077,7 @@ where
                         keys.get(..count).unwrap_or(&[]),
                         text.as_str(),
                         &mut self.storage,
-                        |m| {
+                        &|m| {
                             m.validate()?;
                             m.validate_timing(tick_hz, timing)
                         },

@@ -135,7 +135,7 @@ where
         records(&now, |key, value| {
             let mut text = Text::<24>::new();
             let _ = super::settings::write_number(&mut text, value);
-            match settings.set(key, text.as_str(), storage, |c| c.validate()) {
+            match settings.set(key, text.as_str(), storage, &|c| c.validate()) {
                 Ok(_) => true,
                 Err(e) => {
                     failed = Some(Refusal::new(&e));

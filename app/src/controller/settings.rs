@@ -768,7 +768,7 @@ impl<const N: usize> Settings<N> {
         key: &str,
         value: &str,
         storage: &mut S,
-        check: impl FnOnce(&MachineConfig<N>) -> Result<(), ConfigError>,
+        check: &dyn Fn(&MachineConfig<N>) -> Result<(), ConfigError>,
     ) -> Result<Key, SettingError> {
         let key = Key::parse(key, &self.machine).ok_or(SettingError::UnknownKey)?;
         self.set_all(&[key], value, storage, check)?;
@@ -786,7 +786,7 @@ impl<const N: usize> Settings<N> {
         keys: &[Key],
         value: &str,
         storage: &mut S,
-        check: impl FnOnce(&MachineConfig<N>) -> Result<(), ConfigError>,
+        check: &dyn Fn(&MachineConfig<N>) -> Result<(), ConfigError>,
     ) -> Result<(), SettingError> {
         let mut next = self.clone();
         for &key in keys {
@@ -940,12 +940,12 @@ pub(crate) mod tests {
         let mut storage = VecStorage::default();
         let mut s = Settings::new(machine());
         let ok = |m: &MachineConfig<2>| m.validate();
-        s.set("x.steps_per_mm", "100.5", &mut storage, ok).unwrap();
-        s.set("Y.MAX", "250", &mut storage, ok).unwrap();
-        s.set("soft_limits", "always", &mut storage, ok).unwrap();
-        s.set("keep_alive_ms", "2500", &mut storage, ok).unwrap();
-        s.set("link.ssid", "workshop", &mut storage, ok).unwrap();
-        s.set("link.password", "s3cret", &mut storage, ok).unwrap();
+        s.set("x.steps_per_mm", "100.5", &mut storage, &ok).unwrap();
+        s.set("Y.MAX", "250", &mut storage, &ok).unwrap();
+        s.set("soft_limits", "always", &mut storage, &ok).unwrap();
+        s.set("keep_alive_ms", "2500", &mut storage, &ok).unwrap();
+        s.set("link.ssid", "workshop", &mut storage, &ok).unwrap();
+        s.set("link.password", "s3cret", &mut storage, &ok).unwrap();
         assert_eq!(read(&s, "x.steps_per_mm"), "100.5");
         assert_eq!(read(&s, "link.password"), "<hidden>");
         let (back, report) = Settings::load(machine(), &mut storage);
@@ -975,24 +975,24 @@ pub(crate) mod tests {
         let mut s = Settings::new(machine());
         let ok = |m: &MachineConfig<2>| m.validate();
         assert_eq!(
-            s.set("z.max", "5", &mut storage, ok),
+            s.set("z.max", "5", &mut storage, &ok),
             Err(SettingError::UnknownKey)
         );
         assert_eq!(
-            s.set("x.max", "abc", &mut storage, ok),
+            s.set("x.max", "abc", &mut storage, &ok),
             Err(SettingError::BadValue)
         );
         assert_eq!(
-            s.set("x.max", "-5", &mut storage, ok),
+            s.set("x.max", "-5", &mut storage, &ok),
             Err(SettingError::Invalid(ConfigError::Travel(0)))
         );
         assert_eq!(
-            s.set("keep_alive_ms", "5", &mut storage, ok),
+            s.set("keep_alive_ms", "5", &mut storage, &ok),
             Err(SettingError::BadValue)
         );
         storage.fail = true;
         assert_eq!(
-            s.set("x.max", "150", &mut storage, ok),
+            s.set("x.max", "150", &mut storage, &ok),
             Err(SettingError::Storage(StoreError::Device))
         );
         assert!(storage.records.is_empty());
@@ -1014,8 +1014,8 @@ pub(crate) mod tests {
         let mut storage = VecStorage::default();
         let mut s = Settings::new(machine());
         let ok = |m: &MachineConfig<2>| m.validate();
-        s.set("y.max", "250", &mut storage, ok).unwrap();
-        s.set("link.password", "s3cret", &mut storage, ok).unwrap();
+        s.set("y.max", "250", &mut storage, &ok).unwrap();
+        s.set("link.password", "s3cret", &mut storage, &ok).unwrap();
         let mut line = String::new();
         s.write_line(
             Key::Axis {
@@ -1065,20 +1065,22 @@ pub(crate) mod tests {
             ),
             (1, false, false, "")
         );
-        s.set("status_mask", "3", &mut storage, ok).unwrap();
-        s.set("arc_tolerance", "0.01", &mut storage, ok).unwrap();
-        s.set("report_inches", "1", &mut storage, ok).unwrap();
-        s.set("laser_mode", "1", &mut storage, ok).unwrap();
-        s.set("startup_line0", "G54 G21", &mut storage, ok).unwrap();
-        s.set("startup_line1", "G0 X1 (move)", &mut storage, ok)
+        s.set("status_mask", "3", &mut storage, &ok).unwrap();
+        s.set("arc_tolerance", "0.01", &mut storage, &ok).unwrap();
+        s.set("report_inches", "1", &mut storage, &ok).unwrap();
+        s.set("laser_mode", "1", &mut storage, &ok).unwrap();
+        s.set("startup_line0", "G54 G21", &mut storage, &ok)
             .unwrap();
-        s.set("x.homing_pull_off", "2.5", &mut storage, ok).unwrap();
+        s.set("startup_line1", "G0 X1 (move)", &mut storage, &ok)
+            .unwrap();
+        s.set("x.homing_pull_off", "2.5", &mut storage, &ok)
+            .unwrap();
         assert_eq!(read(&s, "x.homing_seek"), "3000");
         assert_eq!(read(&s, "startup_line1"), "G0 X1 (move)");
         // Only an axis that homes has them.
         assert_eq!(Key::parse("y.homing_seek", s.machine()), None);
         assert_eq!(
-            s.set("y.homing_seek", "100", &mut storage, ok),
+            s.set("y.homing_seek", "100", &mut storage, &ok),
             Err(SettingError::UnknownKey)
         );
         // Refused values change nothing.
@@ -1089,17 +1091,17 @@ pub(crate) mod tests {
             ("arc_tolerance", "0"),
         ] {
             assert!(
-                s.set(key, value, &mut storage, ok).is_err(),
+                s.set(key, value, &mut storage, &ok).is_err(),
                 "{key}={value}"
             );
         }
         let long = "G".repeat(MAX_STARTUP_LINE_LEN + 1);
         assert_eq!(
-            s.set("startup_line0", &long, &mut storage, ok),
+            s.set("startup_line0", &long, &mut storage, &ok),
             Err(SettingError::BadValue)
         );
         let longest = "G".repeat(MAX_STARTUP_LINE_LEN);
-        s.set("startup_line1", &longest, &mut storage, ok).unwrap();
+        s.set("startup_line1", &longest, &mut storage, &ok).unwrap();
         let (back, report) = Settings::load(homing_machine(), &mut storage);
         assert_eq!(
             report,
@@ -1143,8 +1145,8 @@ pub(crate) mod tests {
         let ok = |m: &MachineConfig<2>| m.validate();
         // The locate rate first, then a seek rate below the default locate rate: stored in
         // that order, loaded in the order of the keys (seek first).
-        s.set("x.homing_locate", "50", &mut storage, ok).unwrap();
-        s.set("x.homing_seek", "100", &mut storage, ok).unwrap();
+        s.set("x.homing_locate", "50", &mut storage, &ok).unwrap();
+        s.set("x.homing_seek", "100", &mut storage, &ok).unwrap();
         let (back, report) = Settings::load(homing_machine(), &mut storage);
         assert_eq!(
             report,
@@ -1168,15 +1170,15 @@ pub(crate) mod tests {
             axis,
             field: AxisField::HomingSeek,
         });
-        s.set_all(&seek, "2000", &mut storage, ok).unwrap();
+        s.set_all(&seek, "2000", &mut storage, &ok).unwrap();
         assert_eq!(read(&s, "x.homing_seek"), "2000");
         assert_eq!(read(&s, "y.homing_seek"), "2000");
         // Above Y's rate only: neither changes.
-        s.set("y.max_rate", "1500", &mut storage, ok).unwrap_err();
-        s.set("y.homing_seek", "1000", &mut storage, ok).unwrap();
-        s.set("y.max_rate", "1500", &mut storage, ok).unwrap();
+        s.set("y.max_rate", "1500", &mut storage, &ok).unwrap_err();
+        s.set("y.homing_seek", "1000", &mut storage, &ok).unwrap();
+        s.set("y.max_rate", "1500", &mut storage, &ok).unwrap();
         assert_eq!(
-            s.set_all(&seek, "1800", &mut storage, ok),
+            s.set_all(&seek, "1800", &mut storage, &ok),
             Err(SettingError::Invalid(ConfigError::SeekRate(1)))
         );
         assert_eq!(read(&s, "x.homing_seek"), "2000");
