@@ -658,11 +658,12 @@ struct Pos {
 
 /// Call `f` with each entry of the root directory from `from` on, until it breaks or the
 /// directory ends (past its end mark, whose first byte is 0, every entry is free).
-fn walk<D, F>(d: &D, g: &Geometry, from: Pos, mut f: F) -> Result<(), FileError>
-where
-    D: BlockDevice,
-    F: FnMut(Pos, &[u8]) -> ControlFlow<()>,
-{
+fn walk<D: BlockDevice>(
+    d: &D,
+    g: &Geometry,
+    from: Pos,
+    f: &mut dyn FnMut(Pos, &[u8]) -> ControlFlow<()>,
+) -> Result<(), FileError> {
     let mut buf = [Block::new()];
     let mut pos = from;
     let mut hops = 0;
@@ -705,11 +706,12 @@ where
 }
 
 /// Change the directory entry at `p`.
-fn patch<D, F>(d: &D, g: &Geometry, p: Pos, f: F) -> Result<(), FileError>
-where
-    D: BlockDevice,
-    F: FnOnce(&mut [u8]),
-{
+fn patch<D: BlockDevice>(
+    d: &D,
+    g: &Geometry,
+    p: Pos,
+    f: &dyn Fn(&mut [u8]),
+) -> Result<(), FileError> {
     let mut buf = [Block::new()];
     let at = g.slot_block(p);
     read_block(d, &mut buf, at)?;
@@ -730,12 +732,12 @@ fn delete_slots<D: BlockDevice>(
 ) -> Result<(), FileError> {
     let mut left = count;
     let mut result = Ok(());
-    walk(d, g, from, |p, _| {
+    walk(d, g, from, &mut |p, _| {
         if left == 0 {
             return ControlFlow::Break(());
         }
         left -= 1;
-        result = patch(d, g, p, |slot| {
+        result = patch(d, g, p, &|slot| {
             if let Some(first) = slot.first_mut() {
                 *first = DELETED;
             }
@@ -755,7 +757,7 @@ fn delete_slots<D: BlockDevice>(
 fn add_entry<D: BlockDevice>(d: &D, g: &Geometry, raw: &[u8; SLOT]) -> Result<Pos, FileError> {
     let mut free = None;
     let mut last = g.root();
-    walk(d, g, g.root(), |p, slot| {
+    walk(d, g, g.root(), &mut |p, slot| {
         last = p;
         if matches!(slot.first(), Some(&(0 | DELETED))) {
             free = Some(p);
@@ -781,7 +783,7 @@ fn add_entry<D: BlockDevice>(d: &D, g: &Geometry, raw: &[u8; SLOT]) -> Result<Po
         }
         None => return Err(FileError::Full),
     };
-    patch(d, g, pos, |slot| slot.copy_from_slice(raw))?;
+    patch(d, g, pos, &|slot| slot.copy_from_slice(raw))?;
     Ok(pos)
 }
 
@@ -957,36 +959,33 @@ impl Entry {
 
 /// Call `f` with each short entry of the root directory from `from` on (after it, with
 /// `after`), with its long name.
-fn entries<D, F>(d: &D, g: &Geometry, from: Pos, after: bool, f: F) -> Result<(), FileError>
-where
-    D: BlockDevice,
-    F: FnMut(&Entry) -> ControlFlow<()>,
-{
-    scan_root(d, g, from, after, f, |_, _| {})
+fn entries<D: BlockDevice>(
+    d: &D,
+    g: &Geometry,
+    from: Pos,
+    after: bool,
+    f: &mut dyn FnMut(&Entry) -> ControlFlow<()>,
+) -> Result<(), FileError> {
+    scan_root(d, g, from, after, f, &mut |_, _| {})
 }
 
 /// [`entries`], and `orphans` with each run of long-name entries that belongs to no short
 /// entry (its first entry and how many), as a power cut or another implementation leaves
 /// them.
-fn scan_root<D, F, O>(
+fn scan_root<D: BlockDevice>(
     d: &D,
     g: &Geometry,
     from: Pos,
     after: bool,
-    mut f: F,
-    mut orphans: O,
-) -> Result<(), FileError>
-where
-    D: BlockDevice,
-    F: FnMut(&Entry) -> ControlFlow<()>,
-    O: FnMut(Pos, usize),
-{
+    f: &mut dyn FnMut(&Entry) -> ControlFlow<()>,
+    orphans: &mut dyn FnMut(Pos, usize),
+) -> Result<(), FileError> {
     let mut run: Option<LongRun> = None;
     // The long-name entries since the last other entry.
     let mut pending: Option<(Pos, usize)> = None;
     let mut skip = after;
     let mut stopped = false;
-    walk(d, g, from, |pos, raw| {
+    walk(d, g, from, &mut |pos, raw| {
         let first = raw.first().copied().unwrap_or(0);
         if first == 0 {
             return ControlFlow::Break(());
@@ -1047,8 +1046,8 @@ fn tidy<D: BlockDevice>(d: &D, g: &Geometry) -> Result<(), FileError> {
             g,
             g.root(),
             false,
-            |_| ControlFlow::Continue(()),
-            |p, n| {
+            &mut |_| ControlFlow::Continue(()),
+            &mut |p, n| {
                 if let Some(run) = runs.get_mut(count) {
                     *run = (p, n);
                 }
@@ -1084,7 +1083,7 @@ fn survey<D: BlockDevice>(
     sfn: Option<[u8; 11]>,
 ) -> Result<Survey, FileError> {
     let mut found = Survey::default();
-    entries(d, g, g.root(), false, |e| {
+    entries(d, g, g.root(), false, &mut |e| {
         if e.sfn == WRITING_SFN {
             found.writing = Some(*e);
         } else if e.sfn == REMOVING_SFN {
@@ -1104,7 +1103,7 @@ fn survey<D: BlockDevice>(
 fn discard<D: BlockDevice>(d: &D, g: &Geometry, t: &Entry) -> Result<(), FileError> {
     if g.is_cluster(t.cluster) {
         let mut owned = false;
-        entries(d, g, g.root(), false, |e| {
+        entries(d, g, g.root(), false, &mut |e| {
             owned = !e.is_temporary() && e.cluster == t.cluster;
             if owned {
                 ControlFlow::Break(())
@@ -1408,7 +1407,7 @@ impl<D: BlockDevice, T: TimeSource> FileStore for SdFileStore<D, T> {
             _ => (0, g.root(), false),
         };
         let mut found = None;
-        entries(&self.card, &g, from, after, |e| match e.listed() {
+        entries(&self.card, &g, from, after, &mut |e| match e.listed() {
             Some(name) if at == index => {
                 found = Some((FileInfo { name, size: e.size }, e.pos));
                 ControlFlow::Break(())
@@ -1461,7 +1460,7 @@ impl<D: BlockDevice, T: TimeSource> FileStore for SdFileStore<D, T> {
             discard(d, &g, &t)?;
         }
         // The commit: the file is no longer seen, its clusters are held by the entry.
-        patch(d, &g, file.pos, |slot| {
+        patch(d, &g, file.pos, &|slot| {
             if let Some(sfn) = slot.get_mut(..11) {
                 sfn.copy_from_slice(&REMOVING_SFN);
             }
@@ -1532,7 +1531,7 @@ impl<D: BlockDevice, T: TimeSource> FileStore for SdFileStore<D, T> {
         let mut written = self.put(&g, &mut next, bytes);
         if written.is_ok() && !w.anchored {
             // The first append: the entry takes the chain, for a cleanup to find.
-            written = patch(&self.card, &g, w.pos, |slot| {
+            written = patch(&self.card, &g, w.pos, &|slot| {
                 set_cluster(slot, g.fat32, next.head);
                 put32(slot, 28, next.len);
             });
@@ -1588,7 +1587,7 @@ impl<D: BlockDevice, T: TimeSource> FileStore for SdFileStore<D, T> {
         }
         // The entry takes the chain, the length and the time of writing.
         let stamp = fat_stamp(&self.time.get_timestamp());
-        patch(d, &g, w.pos, |slot| {
+        patch(d, &g, w.pos, &|slot| {
             set_cluster(slot, g.fat32, head);
             put32(slot, 28, len);
             if let Some(dst) = slot.get_mut(22..26) {
@@ -1614,7 +1613,7 @@ impl<D: BlockDevice, T: TimeSource> FileStore for SdFileStore<D, T> {
         match found.file {
             None => {
                 // The commit: the temporary takes the name.
-                patch(d, &g, new.pos, |slot| {
+                patch(d, &g, new.pos, &|slot| {
                     if let Some(dst) = slot.get_mut(..11) {
                         dst.copy_from_slice(&sfn);
                     }
@@ -1633,7 +1632,7 @@ impl<D: BlockDevice, T: TimeSource> FileStore for SdFileStore<D, T> {
                 // file listed under another long name keeps that long name.
                 let respell = old.sfn == sfn && old.long.is_none_or(|run| run.name() == Some(name));
                 // The commit: the file's entry takes the new data.
-                patch(d, &g, old.pos, |slot| {
+                patch(d, &g, old.pos, &|slot| {
                     set_cluster(slot, g.fat32, new.cluster);
                     put32(slot, 28, new.size);
                     if let Some(stamp) = slot.get_mut(22..26) {
@@ -2509,8 +2508,8 @@ mod tests {
             &g,
             g.root(),
             false,
-            |_| ControlFlow::Continue(()),
-            |_, _| runs += 1,
+            &mut |_| ControlFlow::Continue(()),
+            &mut |_, _| runs += 1,
         )
         .unwrap();
         runs
@@ -2714,7 +2713,7 @@ mod tests {
         // entry only.
         let g = Geometry::read(&card).unwrap();
         let mut second = None;
-        entries(&card, &g, g.root(), false, |e| {
+        entries(&card, &g, g.root(), false, &mut |e| {
             if e.long.and_then(|run| run.name()) == Some(name("second_long_name.gcode")) {
                 second = Some(e.pos);
             }
