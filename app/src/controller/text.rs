@@ -29,8 +29,9 @@ impl<const C: usize> Text<C> {
     }
 
     /// The text (empty if a non-ASCII byte slipped in).
+    #[inline(always)]
     pub(crate) fn as_str(&self) -> &str {
-        core::str::from_utf8(self.as_bytes()).unwrap_or("")
+        as_text(self.as_bytes())
     }
 
     pub(crate) fn as_bytes(&self) -> &[u8] {
@@ -81,9 +82,8 @@ impl<const C: usize> Text<C> {
 
     /// Append the exact digits of `d` (`1500.0`, `-3`, `0.25`).
     pub(crate) fn push_decimal(&mut self, d: Decimal) -> &mut Self {
-        let mut digits = [0u8; 48];
-        let n = d.encode(&mut digits).unwrap_or(0);
-        self.push_bytes(digits.get(..n).unwrap_or(&[]))
+        append_decimal(&mut self.buf, &mut self.len, d);
+        self
     }
 }
 
@@ -124,6 +124,20 @@ fn append_printable(buf: &mut [u8], len: &mut usize, bytes: &[u8]) {
         };
         *len += 1;
     }
+}
+
+/// `bytes` as text, empty if they are not UTF-8. One copy for every capacity of [`Text`].
+#[inline(never)]
+fn as_text(bytes: &[u8]) -> &str {
+    core::str::from_utf8(bytes).unwrap_or("")
+}
+
+/// Append the exact digits of `d` to the text `buf[..*len]`, as far as they fit.
+#[inline(never)]
+fn append_decimal(buf: &mut [u8], len: &mut usize, d: Decimal) {
+    let mut digits = [0u8; 48];
+    let n = d.encode(&mut digits).unwrap_or(0);
+    append_printable(buf, len, digits.get(..n).unwrap_or(&[]));
 }
 
 /// Append `n` in decimal to the text `buf[..*len]`, as far as it fits: `width` characters at
