@@ -20,9 +20,9 @@
 //!
 //! # Sizes
 //!
-//! `BUF` bytes of RAM hold one record while it is written or read: the 2-byte key, a 1-byte
-//! marker and the value, rounded up to the flash's word size. [`FlashRecordStorage::max_value_len`]
-//! is the largest value; a record must also fit in one erase page with its header. The region
+//! `BUF` bytes on the stack of each operation hold one record while it is written or read: the
+//! 2-byte key, a 1-byte marker and the value, rounded up to the flash's word size.
+//! [`FlashRecordStorage::max_value_len`] is the largest value; a record must also fit in one erase page with its header. The region
 //! needs at least two pages: one is always kept erased for copying live records forward.
 //!
 //! # Execution context
@@ -188,16 +188,18 @@ struct AlignedBuf<const N: usize>([u8; N]);
 /// The map of `sequential-storage`, keyed by `u16`, without RAM cache.
 type Map<F> = MapStorage<u16, Blocking<F>, Cache<Uncached, Uncached, Uncached, u16>>;
 
-/// Keyed records in a region of a NOR flash, with a `BUF`-byte record buffer.
+/// Keyed records in a region of a NOR flash, each operation with a `BUF`-byte record buffer on
+/// its stack.
 ///
 /// The default `BUF` of 288 bytes holds any value of [`Records`] ([`MAX_RECORD_LEN`] bytes)
 /// on flashes with words of up to 32 bytes.
 ///
-/// Stateless in RAM apart from the buffer: every operation reads what it needs from the flash,
-/// so a new instance over the same region (after a reset) sees exactly what was committed.
+/// Stateless in RAM: every operation reads what it needs from the flash, so a new instance
+/// over the same region (after a reset) sees exactly what was committed. (The buffer is not
+/// kept in the store: a board parks the store in a `static`, whose initial value would then
+/// take the buffer's bytes of flash.)
 pub struct FlashRecordStorage<F: NorFlash, const BUF: usize = 288> {
     map: Map<F>,
-    buf: AlignedBuf<BUF>,
 }
 
 impl<F: NorFlash, const BUF: usize> FlashRecordStorage<F, BUF> {
@@ -213,7 +215,6 @@ impl<F: NorFlash, const BUF: usize> FlashRecordStorage<F, BUF> {
         let config = MapConfig::try_new(region).map_err(|_| StorageError::BadRegion)?;
         Ok(Self {
             map: MapStorage::new(Blocking(flash), config, Cache::new_uncached()),
-            buf: AlignedBuf([0; BUF]),
         })
     }
 
@@ -253,7 +254,8 @@ impl<F: NorFlash, const BUF: usize> ErrorType for FlashRecordStorage<F, BUF> {
 
 impl<F: NorFlash, const BUF: usize> RecordStorage for FlashRecordStorage<F, BUF> {
     fn read(&mut self, key: u16, buf: &mut [u8]) -> Result<Option<usize>, Self::Error> {
-        let item = block_on(self.map.fetch_item::<Option<&[u8]>>(&mut self.buf.0, &key))?;
+        let mut record = AlignedBuf([0; BUF]);
+        let item = block_on(self.map.fetch_item::<Option<&[u8]>>(&mut record.0, &key))?;
         match item {
             None | Some(None) => Ok(None),
             Some(Some(value)) => {
@@ -271,22 +273,24 @@ impl<F: NorFlash, const BUF: usize> RecordStorage for FlashRecordStorage<F, BUF>
         if value.len() > Self::max_value_len() {
             return Err(StorageError::TooLarge);
         }
+        let mut record = AlignedBuf([0; BUF]);
         Ok(block_on(self.map.store_item(
-            &mut self.buf.0,
+            &mut record.0,
             &key,
             &Some(value),
         ))?)
     }
 
     fn remove(&mut self, key: u16) -> Result<(), Self::Error> {
-        let present = block_on(self.map.fetch_item::<Option<&[u8]>>(&mut self.buf.0, &key))?
+        let mut record = AlignedBuf([0; BUF]);
+        let present = block_on(self.map.fetch_item::<Option<&[u8]>>(&mut record.0, &key))?
             .flatten()
             .is_some();
         if !present {
             return Ok(());
         }
         Ok(block_on(self.map.store_item(
-            &mut self.buf.0,
+            &mut record.0,
             &key,
             &None::<&[u8]>,
         ))?)
