@@ -24,7 +24,8 @@
 //!
 //! # Names
 //!
-//! The store writes no long file names ([`FileStore::writes_long_names`] is `false`), so [`FileStore::create`] takes 8.3 names only ([`is_short_name`]): 1 to 8 characters, an
+//! The store writes no long file names ([`FileStore::writes_long_names`] is `false`), so
+//! [`FileStore::create`] takes 8.3 names only ([`is_short_name`]): 1 to 8 characters, an
 //! optional `.` and 1 to 3 more, of letters, digits and ``! # $ % & ' ( ) - @ ^ _ ` { } ~``;
 //! not a DOS device name (`CON`, `PRN`, `AUX`, `NUL`, `COM1`–`COM9`, `LPT1`–`LPT9`), not one of
 //! the store's own temporaries ([`WRITING`], [`REMOVING`]), and not the name of a directory,
@@ -114,13 +115,13 @@
 //!
 //! A failed transfer and a card that cannot be mounted are [`FileError::Device`]
 //! ([`SdFileStore::mount`] tells which: [`MountError`]); a full card or a full FAT16 root
-//! directory is [`FileError::Full`] (a FAT32 root directory grows by a cluster); names are checked before anything is written. A failed operation
-//! changes nothing that is seen, and a write in progress goes on as it was (when the card has
-//! lost what was appended, the write can only be abandoned: [`FileError::Device`] until
-//! then). Once a commit is done, the operation succeeds: a cleanup that fails after it is
-//! finished by the next mount, create, finish or removal. The store's own code does not panic
-//! on any card contents: a FAT chain that ends before its file's length is
-//! [`FileError::Device`].
+//! directory is [`FileError::Full`] (a FAT32 root directory grows by a cluster); names are
+//! checked before anything is written. A failed operation changes nothing that is seen, and a
+//! write in progress goes on as it was (when the card has lost what was appended, the write
+//! can only be abandoned: [`FileError::Device`] until then). Once a commit is done, the
+//! operation succeeds: a cleanup that fails after it is finished by the next mount, create,
+//! finish or removal. The store's own code does not panic on any card contents: a FAT chain
+//! that ends before its file's length is [`FileError::Device`].
 //!
 //! # Card changes
 //!
@@ -317,12 +318,17 @@ fn write_block<D: BlockDevice>(d: &D, buf: &[Block; 1], at: u32) -> Result<(), F
     d.write(buf, BlockIdx(at)).map_err(|_| FileError::Device)
 }
 
-/// `t` as a directory entry stores a time and a date (bytes 22..26 of an entry).
+/// `t` as a directory entry stores a time and a date (bytes 22..26 of an entry). Each field
+/// is kept to its bits, whatever a clock gives.
 fn fat_stamp(t: &Timestamp) -> [u8; 4] {
-    let time = (u16::from(t.hours) << 11) | (u16::from(t.minutes) << 5) | u16::from(t.seconds / 2);
-    let date = (u16::from(t.year_since_1970.saturating_sub(10)) << 9)
-        | (u16::from(t.zero_indexed_month + 1) << 5)
-        | u16::from(t.zero_indexed_day + 1);
+    #[inline(always)]
+    fn field(v: u8, bits: u32, at: u32) -> u16 {
+        (u16::from(v) & ((1 << bits) - 1)) << at
+    }
+    let time = field(t.hours, 5, 11) | field(t.minutes, 6, 5) | field(t.seconds / 2, 5, 0);
+    let date = field(t.year_since_1970.saturating_sub(10), 7, 9)
+        | field(t.zero_indexed_month.saturating_add(1), 4, 5)
+        | field(t.zero_indexed_day.saturating_add(1), 5, 0);
     let [t0, t1] = time.to_le_bytes();
     let [d0, d1] = date.to_le_bytes();
     [t0, t1, d0, d1]
@@ -1345,17 +1351,18 @@ impl<D: BlockDevice, T: TimeSource> SdFileStore<D, T> {
                         .filter(|&c| g.is_cluster(c))
                         .unwrap_or(0),
                 };
-                w.last = match (spare, w.last) {
-                    (0, 0) => {
-                        w.head = allocate(&self.card, g, 0)?;
-                        w.head
-                    }
-                    (0, last) => {
-                        let c = allocate(&self.card, g, last)?;
-                        fat_set(&self.card, g, last, c)?;
+                w.last = match spare {
+                    // The first free cluster after the chain's last (from the volume's start
+                    // for its first).
+                    0 => {
+                        let c = allocate(&self.card, g, w.last)?;
+                        match w.last {
+                            0 => w.head = c,
+                            last => fat_set(&self.card, g, last, c)?,
+                        }
                         c
                     }
-                    (c, _) => c,
+                    c => c,
                 };
             }
             let at = w.len % g.cluster_bytes();
@@ -1943,6 +1950,28 @@ mod tests {
 
     fn strs(list: &[(&str, u32)]) -> Vec<(String, u32)> {
         list.iter().map(|&(n, s)| (n.to_string(), s)).collect()
+    }
+
+    #[test]
+    fn stamps_keep_each_field_to_its_bits() {
+        // FAT's first day, 1980-01-01 00:00:00: date 0x0021, time 0.
+        assert_eq!(fat_stamp(&FixedTime::default().0), [0, 0, 0x21, 0]);
+        let stamp = |hours, minutes, seconds, month, day| {
+            fat_stamp(&Timestamp {
+                year_since_1970: 56,
+                zero_indexed_month: month,
+                zero_indexed_day: day,
+                hours,
+                minutes,
+                seconds,
+            })
+        };
+        // 2026-12-03 21:58:40.
+        assert_eq!(stamp(21, 58, 40, 11, 2), [0x54, 0xAF, 0x83, 0x5D]);
+        // Out-of-range fields do not spill into their neighbours, nor panic.
+        let wild = stamp(255, 255, 255, 255, 255);
+        assert_eq!(u16::from_le_bytes([wild[2], wild[3]]) >> 9, 46);
+        assert_eq!(u16::from_le_bytes([wild[0], wild[1]]) >> 11, 31);
     }
 
     #[test]

@@ -22,8 +22,9 @@
 //!
 //! `BUF` bytes on the stack of each operation hold one record while it is written or read: the
 //! 2-byte key, a 1-byte marker and the value, rounded up to the flash's word size.
-//! [`FlashRecordStorage::max_value_len`] is the largest value; a record must also fit in one erase page with its header. The region
-//! needs at least two pages: one is always kept erased for copying live records forward.
+//! [`FlashRecordStorage::max_value_len`] is the largest value; a record must also fit in one
+//! erase page with its header. The region needs at least two pages: one is always kept erased
+//! for copying live records forward.
 //!
 //! # Execution context
 //!
