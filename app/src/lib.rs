@@ -50,6 +50,7 @@
 #[cfg(test)]
 extern crate std;
 
+mod bytes;
 pub mod controller;
 pub mod error;
 pub mod firmware;

@@ -425,16 +425,15 @@ impl Input {
             .buf
             .get(self.start..self.start.saturating_add(n).min(self.end))
             .unwrap_or(&[]);
-        // The tail's last bytes, then the last of those taken (in a copy: a shift in place
-        // would be the image's only `memmove`).
+        // The tail's last bytes, then the last of those taken.
         let k = taken.len().min(FRAME_LEN);
-        let mut tail = [0; FRAME_LEN];
-        let (kept, new) = tail.split_at_mut(FRAME_LEN - k);
-        if let (Some(old), Some(last)) = (self.tail.get(k..), taken.get(taken.len() - k..)) {
-            kept.copy_from_slice(old);
-            new.copy_from_slice(last);
+        crate::bytes::shift_to_front(&mut self.tail, k, FRAME_LEN);
+        if let (Some(dst), Some(src)) = (
+            self.tail.get_mut(FRAME_LEN - k..),
+            taken.get(taken.len() - k..),
+        ) {
+            dst.copy_from_slice(src);
         }
-        self.tail = tail;
         self.since_event = self.since_event.saturating_add(taken.len());
         self.start += taken.len();
         if self.start >= self.end {
