@@ -577,7 +577,7 @@ where
         let device = |e: PeripheralError, what: &str, number: Option<u8>| {
             let mut r = Refusal::with(&e, what);
             if let Some(n) = number {
-                r.text.push(" ").push_number(n);
+                r.detail().push_number(n);
             }
             Done::Refused(r)
         };
@@ -655,8 +655,8 @@ where
             Effect::SelectTool(_) if config.extruders == 0 => Done::Ok,
             Effect::SelectTool(t) if t < config.extruders.max(1) => Done::Ok,
             Effect::SelectTool(t) => {
-                let mut r = Refusal::with(&CommandError::BadValue { letter: b'T' }, "T");
-                r.text.push_number(t);
+                let mut r = Refusal::new(&CommandError::BadValue { letter: b'T' });
+                r.detail().push("T").push_number(t);
                 Done::Refused(r)
             }
             Effect::Motors { enabled, axes } => match devices.set_axis_motors(enabled, axes) {

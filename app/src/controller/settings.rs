@@ -437,11 +437,10 @@ enum Loaded {
 /// (`80`, `0.013`), written as a decimal, not with the float formatting of `core`, which the
 /// firmware image then leaves out.
 pub(crate) fn write_number(out: &mut impl fmt::Write, v: f32) -> fmt::Result {
-    let mut digits = [0u8; 48];
-    let text = Decimal::from_f32_significant(v)
-        .and_then(|d| d.encode(&mut digits))
-        .and_then(|n| core::str::from_utf8(digits.get(..n)?).ok());
-    out.write_str(text.unwrap_or("?"))
+    match Decimal::from_f32_significant(v) {
+        Some(d) => super::text::write_decimal(out, d),
+        None => out.write_str("?"),
+    }
 }
 
 fn encode<'b>(value: &impl Serialize, buf: &'b mut [u8]) -> Option<&'b [u8]> {

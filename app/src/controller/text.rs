@@ -50,9 +50,7 @@ impl<const C: usize> Text<C> {
         self.len = bytes.len();
         true
     }
-}
 
-impl<const C: usize> Text<C> {
     /// Append `s`.
     pub(crate) fn push(&mut self, s: &str) -> &mut Self {
         self.push_bytes(s.as_bytes())
@@ -105,6 +103,13 @@ impl<const C: usize> fmt::Write for Text<C> {
 pub(crate) fn write_integer(out: &mut impl fmt::Write, n: i64) -> fmt::Result {
     let mut digits = Text::<20>::new();
     digits.push_number(n);
+    out.write_str(digits.as_str())
+}
+
+/// Write the exact digits of `d` to `out` (`1500.0`, `-3`, `0.25`).
+pub(crate) fn write_decimal(out: &mut impl fmt::Write, d: Decimal) -> fmt::Result {
+    let mut digits = Text::<48>::new();
+    digits.push_decimal(d);
     out.write_str(digits.as_str())
 }
 
@@ -212,7 +217,8 @@ impl Refusal {
         r
     }
 
-    /// A space after the text, and the text, for the caller to write its detail in.
+    /// The text with a space after it, for the caller to write its detail (or the next part
+    /// of it) in.
     pub(crate) fn detail(&mut self) -> &mut Text<REFUSAL_TEXT> {
         self.text.push(" ")
     }
@@ -275,7 +281,7 @@ pub(crate) fn job_refusal(e: &JobError) -> Refusal {
     match *e {
         JobError::Line { line, error } => {
             let mut r = Refusal::numbered(e, line, 4);
-            r.text.push(" ").push(error.name());
+            r.detail().push(error.name());
             r
         }
         JobError::Syntax { line } => Refusal::numbered(e, line, 4),
@@ -289,7 +295,7 @@ pub(crate) fn store_refusal(e: &StoreError) -> Refusal {
     match *e {
         StoreError::OutOfOrder { expected, got } => {
             let mut r = Refusal::numbered(&StoreRefusal(*e), got, 4);
-            r.text.push(" expected ").push_padded(expected, 4);
+            r.detail().push("expected ").push_padded(expected, 4);
             r
         }
         _ => Refusal::new(&StoreRefusal(*e)),
