@@ -1225,7 +1225,8 @@ where
     fn report_parser_state<W: Write>(&mut self, out: &mut W) {
         let mut text = Text::<96>::new();
         let m = self.kernel.modal_report();
-        let spindle = match self.devices.spindle_state() {
+        let spindle = self.devices.spindle_state();
+        let spindle_mode = match spindle {
             Some((Rotation::Clockwise, _)) => 3,
             Some((Rotation::CounterClockwise, _)) => 4,
             None => 5,
@@ -1241,10 +1242,10 @@ where
         text.push(" G").push_number(if m.inches { 20 } else { 21 });
         text.push(" G")
             .push_number(if m.absolute { 90 } else { 91 });
-        text.push(" G94 M").push_number(spindle);
+        text.push(" G94 M").push_number(spindle_mode);
         text.push(" M9 T0 F").push_number(m.feed_mm_min as u32);
         text.push(" S")
-            .push_number(self.devices.spindle_state().map_or(0, |(_, rpm)| rpm));
+            .push_number(spindle.map_or(0, |(_, rpm)| rpm));
         say(out, &Message::ParserState(text.as_str()));
     }
 }

@@ -649,6 +649,23 @@ fn unnumbered_lines_run_without_numbering_checks() {
 }
 
 #[test]
+fn a_probe_contact_is_echoed_at_its_machine_position_negative_ones_too() {
+    let mut b = Bench::new();
+    b.take();
+    let probe = forja_motion::ProbeReport {
+        machine_nm: [-1_500_000, -500_000, 20_000_000],
+        tripped: true,
+    };
+    b.ctl.core.report_probe(&probe, &mut b.link);
+    b.collect();
+    assert_eq!(
+        b.take(),
+        ["echo:Probe: contact at X:-1.500 Y:-0.500 Z:20.000"],
+        "(before, euclidean division wrote -1.5 mm as -2.500)"
+    );
+}
+
+#[test]
 fn refused_commands_get_a_fault_line_and_ok_and_change_nothing() {
     let mut b = Bench::new();
     b.take();
