@@ -28,6 +28,7 @@
 //! | [`flash`] | sectors 1–2 as a `NorFlash`, one record store shared by settings and program | — (thread: may stall for a sector erase) |
 //! | [`watchdog`] | the IWDG, 1 s | — (fed by the board's periodic task) |
 //! | [`fault`] | panic and `HardFault` handlers: reset at once | — |
+//! | [`memory`] | the EABI's memory helpers, one implementation per kind | — (called by compiled code) |
 //!
 //! ## What a board provides
 //!
@@ -48,6 +49,7 @@
 pub mod fault;
 pub mod flash;
 pub mod limits;
+pub mod memory;
 pub mod timer;
 pub mod uart;
 pub mod watchdog;
