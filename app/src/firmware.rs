@@ -111,8 +111,7 @@ where
         peripherals,
     } = parts;
     let (loaded, report) = Settings::load(machine, &mut settings);
-    let (kernel, steps) =
-        forja_motion::split(queue, loaded.machine().clone(), tick_hz, config.timing)?;
+    let (kernel, steps) = forja_motion::split(queue, *loaded.machine(), tick_hz, config.timing)?;
     let controller =
         Controller::with_settings(kernel, program, peripherals, config, loaded, settings);
     Ok((

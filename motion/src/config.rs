@@ -154,7 +154,7 @@ pub enum SoftLimits {
 }
 
 /// The whole machine: `N` axes and the settings of the kernel.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct MachineConfig<const N: usize> {
     /// The axes, in step-output order: axis `i` drives stepper `i`.
     #[serde(with = "array_serde")]

@@ -38,7 +38,7 @@ impl<const N: usize, const B: usize> Estimate<N, B> {
     /// A dry run from where `kernel` stands now: its position, modal state and configuration.
     pub fn new<const Q: usize>(kernel: &Kernel<'_, N, B, Q>) -> Self {
         Self {
-            config: kernel.config().clone(),
+            config: *kernel.config(),
             coords: *kernel.coordinates(),
             interp: kernel.interpreter(),
             steps: kernel.commanded_steps(),
@@ -122,7 +122,7 @@ impl<const N: usize, const B: usize> Estimate<N, B> {
             Action::SetLimits(change) => {
                 // As the kernel takes it: refused (and changing nothing) when the
                 // configuration it makes is not valid.
-                let mut config = self.config.clone();
+                let mut config = self.config;
                 let mut limits = self.planner.limits();
                 change.apply(&mut config, &mut limits);
                 if config.validate().is_ok() {

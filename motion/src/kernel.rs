@@ -1113,7 +1113,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
 
     /// Change steps per unit (`M92`), keeping the machine where it is.
     fn set_steps_per_mm(&mut self, values: &[Option<f32>; N]) -> Result<(), CommandError> {
-        let mut c = self.config.clone();
+        let mut c = self.config;
         for (a, v) in c.axes.iter_mut().zip(values.iter()) {
             if let Some(v) = v {
                 a.steps_per_mm = *v;
@@ -1159,7 +1159,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
         if !self.is_idle() || self.homing.is_some() {
             return Ok(Reply::Busy);
         }
-        let mut c = self.config.clone();
+        let mut c = self.config;
         let change = [
             LimitChange::AxisAccel(core::array::from_fn(|i| Some(machine.axes[i].accel_mm_s2))),
             LimitChange::AxisRate(core::array::from_fn(|i| {
@@ -1202,7 +1202,7 @@ impl<'q, const N: usize, const B: usize, const Q: usize> Kernel<'q, N, B, Q> {
     /// ([`MachineConfig::validate_timing`]) is refused, naming the axis. An `M203` rate below an
     /// axis's homing speeds lowers them to it (Marlin's planner caps homing moves the same way).
     fn set_limits(&mut self, change: &LimitChange<N>) -> Result<(), CommandError> {
-        let mut c = self.config.clone();
+        let mut c = self.config;
         let mut limits = self.planner.limits();
         change.apply(&mut c, &mut limits);
         c.validate()

@@ -84,7 +84,7 @@ impl<const N: usize> Preview<N> {
         interp.pos = start_nm;
         Self {
             interp,
-            config: config.clone(),
+            config: *config,
             coords: Coordinates::ZERO,
         }
     }

@@ -642,7 +642,7 @@ fn a_ramp_beyond_the_step_clocks_range_is_timed_exactly() {
     config.axes[2] = AxisConfig::linear(b'Z', 400.0, 120.0, 0.1, 100.0);
     let mut q = StepQueue::<3, 256>::new();
     let hz = 168_000_000;
-    let mut s = sim(&mut q, config.clone(), hz);
+    let mut s = sim(&mut q, config, hz);
     s.wiring.machine.set_tracing(true);
     s.send("G1 Z50 F120").expect("ok");
     assert!(s.run_until_idle(700 * u64::from(hz)));
@@ -746,7 +746,7 @@ fn the_queue_runs_down_to_half_its_lead_between_top_ups() {
 fn a_diagonal_steps_both_axes_together() {
     let config = machine();
     let mut q = StepQueue::<3, 256>::new();
-    let mut s = sim(&mut q, config.clone(), HZ);
+    let mut s = sim(&mut q, config, HZ);
     s.wiring.machine.set_tracing(true);
     s.send("G1 X60 Y60 F3000").expect("ok");
     assert!(s.run_until_idle(10 * u64::from(HZ)));

@@ -110,7 +110,7 @@ fn flow_scales_the_extruder_motor_and_not_the_reported_position() {
 fn settings_are_taken_while_moving_and_apply_to_the_moves_after_them() {
     let config = machine();
     let mut q = StepQueue::<3, 256>::new();
-    let mut s = sim(&mut q, config.clone(), HZ);
+    let mut s = sim(&mut q, config, HZ);
     s.send("G1 X100 F6000").expect("ok");
     // Taken at once, the move before them still running.
     for line in [
@@ -148,7 +148,7 @@ fn settings_are_taken_while_moving_and_apply_to_the_moves_after_them() {
 fn m203_is_in_mm_per_s_rapids_move_at_it_and_the_override_scales_them() {
     let config = printer();
     let mut q = StepQueue::<4, 256>::new();
-    let mut s = sim(&mut q, config.clone(), HZ);
+    let mut s = sim(&mut q, config, HZ);
     s.send("M203 X20").expect("ok");
     assert_eq!(s.kernel.config().axes[0].max_rate_mm_min, 1200.0);
     assert_eq!(s.kernel.planner_settings().max_rate_mm_s[0], 20.0);
@@ -170,7 +170,7 @@ fn m203_is_in_mm_per_s_rapids_move_at_it_and_the_override_scales_them() {
 fn m204_caps_printing_retracting_and_travel_moves() {
     let config = printer();
     let mut q = StepQueue::<4, 256>::new();
-    let mut s = sim(&mut q, config.clone(), HZ);
+    let mut s = sim(&mut q, config, HZ);
     s.send("M204 P500 R250 T1000").expect("ok");
     assert_eq!(
         s.kernel.planner_settings().path,
@@ -200,7 +200,7 @@ fn m204_caps_printing_retracting_and_travel_moves() {
 fn m205_sets_the_junction_deviation_and_the_slowest_feeds() {
     let config = printer();
     let mut q = StepQueue::<4, 256>::new();
-    let mut s = sim(&mut q, config.clone(), HZ);
+    let mut s = sim(&mut q, config, HZ);
     // PrusaSlicer's start: jerks (left out) and the slowest feeds.
     assert_eq!(exec(&mut s, "M205 X8.00 Y8.00 Z0.40 E4.50"), Ok(Reply::Ok));
     assert_eq!(exec(&mut s, "M205 S0 T0"), Ok(Reply::Ok));
@@ -221,7 +221,7 @@ fn a_bad_setting_is_refused_by_its_letter_and_changes_nothing() {
     let mut q = StepQueue::<4, 256>::new();
     let mut s = sim(&mut q, printer(), HZ);
     let before = s.kernel.planner_settings();
-    let config = s.kernel.config().clone();
+    let config = *s.kernel.config();
     for (line, error) in [
         ("M201 X500 Y0", CommandError::BadValue { letter: b'Y' }),
         ("M201 A500", CommandError::UnknownAxis { letter: b'A' }),

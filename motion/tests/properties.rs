@@ -47,7 +47,7 @@ fn run(moves: &[Move], tick_hz: u32, jd: f32) -> (f64, f64) {
     config.junction_deviation_mm = jd;
     let spm: Vec<f32> = config.axes.iter().map(|a| a.steps_per_mm).collect();
     let mut q = StepQueue::<3, 256>::new();
-    let mut s = sim(&mut q, config.clone(), tick_hz);
+    let mut s = sim(&mut q, config, tick_hz);
     // Per-axis step deltas of every move that steps, to find block boundaries.
     let mut deltas: Vec<[i32; 3]> = Vec::new();
     let mut at = [0i32; 3];

@@ -464,7 +464,7 @@ where
 
         // Go to the resumed line's start in machine coordinates (a fresh modal state: mm,
         // absolute, no offsets), then take the program's modal state.
-        let config = self.kernel.config().clone();
+        let config = *self.kernel.config();
         self.kernel.reset_modal_state();
         self.kernel.set_line_tag(u32::from(record.done + 1));
         let z = config.axis_index(b'Z');
@@ -508,7 +508,7 @@ where
     /// The program's modal state after lines `1..=done`, from the power-on state at the
     /// position the machine has now ([`Replay`]), without moving.
     fn replay(&mut self, done: u16) -> Result<Replay<N>, Refusal> {
-        let config = self.kernel.config().clone();
+        let config = *self.kernel.config();
         let mut replay = Replay::new(&self.kernel);
         let mut buf = [0u8; MAX_LINE_LEN];
         for index in 1..=done {

@@ -853,7 +853,7 @@ where
     ) -> Self {
         // Nothing is stored: the stored limits and coordinates `with_settings` applies are the
         // kernel's own.
-        let settings = Settings::new(kernel.config().clone());
+        let settings = Settings::new(*kernel.config());
         Controller::with_settings(kernel, program, peripherals, config, settings, NoStorage)
     }
 }
@@ -878,7 +878,7 @@ where
     ) -> Self {
         // The stored path limits (`M204`, `M205 S T`): the kernel was built from the
         // machine configuration alone, and is idle.
-        let machine = kernel.config().clone();
+        let machine = *kernel.config();
         let _ = kernel.set_planner_settings(&machine, settings.path_limits());
         let coords = grbl::load_coordinates(&mut storage, kernel.coordinates());
         kernel.set_coordinates(coords);

@@ -91,19 +91,8 @@ where
         }
         let done = match number {
             500 => self.store_planner_settings(),
-            501 => {
-                let machine = self.settings.machine().clone();
-                let path = self.settings.path_limits();
-                self.give_planner_settings(&machine, path, "Stored settings retrieved")
-            }
-            502 => {
-                let machine = self.settings.defaults().clone();
-                self.give_planner_settings(
-                    &machine,
-                    PathLimits::NONE,
-                    "Hardcoded default settings loaded",
-                )
-            }
+            501 => self.give_planner_settings(false, "Stored settings retrieved"),
+            502 => self.give_planner_settings(true, "Hardcoded default settings loaded"),
             _ => {
                 self.report_planner_settings(out);
                 Ok(Some(""))
@@ -149,14 +138,18 @@ where
         }
     }
 
-    /// `M501`, `M502`: the planner settings of `machine` and `path` to the kernel; `None` while
-    /// the machine is not idle.
+    /// `M501`, `M502`: the stored planner settings, or the defaults (no path limits), to the
+    /// kernel; `None` while the machine is not idle.
     fn give_planner_settings(
         &mut self,
-        machine: &forja_motion::MachineConfig<N>,
-        path: PathLimits,
+        defaults: bool,
         message: &'static str,
     ) -> Result<Option<&'static str>, Refusal> {
+        let (machine, path) = if defaults {
+            (self.settings.defaults(), PathLimits::NONE)
+        } else {
+            (self.settings.machine(), self.settings.path_limits())
+        };
         match self.kernel.set_planner_settings(machine, path) {
             Ok(KernelReply::Busy) => Ok(None),
             Ok(_) => Ok(Some(message)),

@@ -388,7 +388,7 @@ pub struct LoadReport {
 }
 
 /// The settings: the machine configuration and the link's settings.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Copy)]
 pub struct Settings<const N: usize> {
     machine: MachineConfig<N>,
     /// The board's configuration before any stored value (`M502`).
@@ -464,7 +464,7 @@ impl<const N: usize> Settings<N> {
     /// grbl's defaults (`$10=1`, `$13=0`, `$32=0`, no startup lines).
     pub fn new(machine: MachineConfig<N>) -> Self {
         Self {
-            defaults: machine.clone(),
+            defaults: machine,
             path: PathLimits::NONE,
             machine,
             keep_alive_ms: DEFAULT_KEEP_ALIVE_MS,
@@ -544,7 +544,7 @@ impl<const N: usize> Settings<N> {
         let Some(value) = value else {
             return Loaded::Unreadable;
         };
-        let mut next = self.clone();
+        let mut next = *self;
         if next.apply(key, value).is_ok() && next.machine.validate().is_ok() {
             *self = next;
             Loaded::Applied
@@ -749,7 +749,7 @@ impl<const N: usize> Settings<N> {
                 .remove(key.record(&self.machine))
                 .map_err(|e| SettingError::Storage(store_error(e.kind())))?;
         }
-        self.machine = self.defaults.clone();
+        self.machine = self.defaults;
         self.path = PathLimits::NONE;
         self.status_mask = 1;
         self.report_inches = false;
@@ -787,7 +787,7 @@ impl<const N: usize> Settings<N> {
         storage: &mut S,
         check: &dyn Fn(&MachineConfig<N>) -> Result<(), ConfigError>,
     ) -> Result<(), SettingError> {
-        let mut next = self.clone();
+        let mut next = *self;
         for &key in keys {
             if !key.applies_to(&self.machine) {
                 return Err(SettingError::UnknownKey);
@@ -1163,7 +1163,7 @@ pub(crate) mod tests {
         let mut storage = VecStorage::default();
         let mut m = homing_machine();
         m.axes[1] = m.axes[1].with_homing(m.axes[0].homing.unwrap());
-        let mut s = Settings::new(m.clone());
+        let mut s = Settings::new(m);
         let ok = |m: &MachineConfig<2>| m.validate();
         let seek = [0, 1].map(|axis| Key::Axis {
             axis,

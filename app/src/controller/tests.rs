@@ -365,7 +365,7 @@ impl<P: ProgramStore> Bench<P> {
     ) -> Self {
         let queue: &'static mut StepQueue<3, 256> = Box::leak(Box::new(StepQueue::new()));
         let timing = StepTiming::CONSERVATIVE;
-        let (kernel, isr) = split::<3, 32, 256>(queue, config.clone(), TICK_HZ, timing).unwrap();
+        let (kernel, isr) = split::<3, 32, 256>(queue, config, TICK_HZ, timing).unwrap();
         let mut wiring = Wiring::new(isr, &config, TICK_HZ, timing);
         wiring.add_switch(0, -800, true);
         wiring.add_switch(1, -800, true);
