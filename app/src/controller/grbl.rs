@@ -926,9 +926,15 @@ where
 
     /// The settings under grbl's numbers, in grbl's order (`$24`, `$25`, `$27` only when an
     /// axis homes).
-    fn grbl_settings(&self) -> impl Iterator<Item = (u16, GrblSetting)> {
-        let homes = self.homing_mask() != 0;
-        let globals = [
+    fn grbl_settings(&self) -> impl Iterator<Item = (u16, GrblSetting)> + '_ {
+        (0..).map_while(|index| self.grbl_setting(index))
+    }
+
+    /// The `index`-th of [`Self::grbl_settings`], `None` past the last. (One function that
+    /// both `$$` and `$<n>=` call: an iterator of chained ranges would be inlined into each.)
+    #[inline(never)]
+    fn grbl_setting(&self, index: usize) -> Option<(u16, GrblSetting)> {
+        const GLOBALS: [(u16, GrblSetting); 11] = [
             (10, GrblSetting::Stored(Key::StatusMask)),
             (11, GrblSetting::Stored(Key::JunctionDeviation)),
             (12, GrblSetting::Stored(Key::ArcTolerance)),
@@ -941,22 +947,46 @@ where
             (27, GrblSetting::Homing(AxisField::HomingPullOff)),
             (32, GrblSetting::Stored(Key::LaserMode)),
         ];
-        let axis = |base: u16, field: Option<AxisField>| {
-            (0..N.min(10)).map(move |axis| {
-                let setting = match field {
-                    Some(field) => GrblSetting::Stored(Key::Axis { axis, field }),
-                    None => GrblSetting::Travel(axis),
-                };
-                (base + axis as u16, setting)
-            })
+        let homes = self.homing_mask() != 0;
+        let mut left = index;
+        for &(number, setting) in &GLOBALS {
+            if !homes && matches!(setting, GrblSetting::Homing(_)) {
+                continue;
+            }
+            if left == 0 {
+                return Some((number, setting));
+            }
+            left -= 1;
+        }
+        // Then `$100`+, `$110`+, `$120`+ and `$130`+, one per axis (ten at most).
+        let axes = N.min(10);
+        let (group, axis) = (left.checked_div(axes)?, left.checked_rem(axes)?);
+        let (base, setting) = match group {
+            0 => (
+                100,
+                GrblSetting::Stored(Key::Axis {
+                    axis,
+                    field: AxisField::StepsPerMm,
+                }),
+            ),
+            1 => (
+                110,
+                GrblSetting::Stored(Key::Axis {
+                    axis,
+                    field: AxisField::MaxRate,
+                }),
+            ),
+            2 => (
+                120,
+                GrblSetting::Stored(Key::Axis {
+                    axis,
+                    field: AxisField::Accel,
+                }),
+            ),
+            3 => (130, GrblSetting::Travel(axis)),
+            _ => return None,
         };
-        globals
-            .into_iter()
-            .filter(move |(_, s)| homes || !matches!(s, GrblSetting::Homing(_)))
-            .chain(axis(100, Some(AxisField::StepsPerMm)))
-            .chain(axis(110, Some(AxisField::MaxRate)))
-            .chain(axis(120, Some(AxisField::Accel)))
-            .chain(axis(130, None))
+        Some((base + axis as u16, setting))
     }
 
     /// The keys of `field` of every axis that homes.
@@ -1121,7 +1151,7 @@ where
 
     /// The stored machine's planner settings to the kernel (at rest).
     fn give_kernel_settings(&mut self) -> Result<(), Error> {
-        let machine = self.settings.machine().clone();
+        let machine = *self.settings.machine();
         let path = self.settings.path_limits();
         match self.kernel.set_planner_settings(&machine, path) {
             Ok(_) => Ok(()),

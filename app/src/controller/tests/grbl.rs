@@ -903,6 +903,30 @@ fn more_settings_are_mapped_persisted_and_refused_with_grbls_numbers() {
 }
 
 #[test]
+fn dollar_dollar_lists_every_setting_once_in_grbl_order() {
+    let numbers = |out: &[String]| -> Vec<u16> {
+        out.iter()
+            .filter_map(|l| l.strip_prefix('$')?.split_once('=')?.0.parse().ok())
+            .collect()
+    };
+    let mut b = Bench::new();
+    b.take();
+    let out = b.ask("$$");
+    assert_eq!(out.last().map(String::as_str), Some("ok"));
+    let axes = |base: u16| (0..3).map(move |a| base + a);
+    let mut expected = std::vec![10, 11, 12, 13, 20, 21, 22, 24, 25, 27, 32];
+    expected.extend(axes(100).chain(axes(110)).chain(axes(120)).chain(axes(130)));
+    assert_eq!(numbers(&out), expected, "{out:?}");
+    // Every one of them can be set to the value it reports (`$22` and the travel included).
+    for line in out.iter().filter(|l| l.starts_with('$')) {
+        assert_eq!(b.ask(line), ["ok"], "{line}");
+    }
+    assert_eq!(b.ask("$$"), out);
+    assert_eq!(b.ask("$133=1"), ["error:3"]);
+    assert_eq!(b.ask("$23=1"), ["error:3"]);
+}
+
+#[test]
 fn a_machine_without_homing_reports_22_as_0_and_has_no_homing_settings() {
     let mut config = machine();
     for a in &mut config.axes {
