@@ -29,7 +29,6 @@ impl<const C: usize> Text<C> {
     }
 
     /// The text (empty if a non-ASCII byte slipped in).
-    #[inline(always)]
     pub(crate) fn as_str(&self) -> &str {
         as_text(self.as_bytes())
     }
