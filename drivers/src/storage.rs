@@ -29,7 +29,8 @@
 //! the next sequence number. When that was the last spare page, the oldest live page is
 //! collected into it first: its records that are still their key's value are copied over, then
 //! it is retired and erased, and so becomes the spare page. A write that still does not fit
-//! after as many collections as there are pages reports [`StorageError::Full`].
+//! once each of the other pages was collected reports [`StorageError::Full`] (a collection
+//! never merges pages, so another round would free nothing): on two pages, after one erase.
 //!
 //! # Power loss
 //!
@@ -570,7 +571,9 @@ impl<F: NorFlash> FlashRecordStorage<F> {
                     return self.append(at, key, tag, value);
                 }
             }
-            if collections == self.pages {
+            // A collection moves one page's live records into a fresh page and never merges
+            // pages, so once each of the others was collected a further one frees nothing.
+            if collections + 1 == self.pages {
                 return Err(StorageError::Full);
             }
             // The next spare page in the ring after the newest.
@@ -882,6 +885,34 @@ mod tests {
         s.erase_all().unwrap();
         assert_eq!(get(&mut s, 1), Ok(None));
         s.write(failed, b"fits now").unwrap();
+    }
+
+    #[test]
+    fn a_full_two_page_store_says_so_after_one_collection() {
+        type Two = RamNorFlash<512, 4, 256>;
+        let mut s = FlashRecordStorage::<Two>::new(Two::new(), 0..512).unwrap();
+        s.write(1, b"precious").unwrap();
+        let mut key = 100;
+        let e = loop {
+            match s.write(key, &[key as u8; 40]) {
+                Ok(()) => key += 1,
+                Err(e) => break e,
+            }
+        };
+        assert_eq!(e, StorageError::Full);
+        // Another write that does not fit: one collection, one erase, and the same answer.
+        let erased = s.flash_mut().pages_erased();
+        assert_eq!(s.write(key, &[0; 40]), Err(StorageError::Full));
+        assert_eq!(s.flash_mut().pages_erased() - erased, 1);
+        let mut buf = [0u8; 64];
+        assert_eq!(s.read(1, &mut buf), Ok(Some(8)));
+        assert_eq!(&buf[..8], b"precious");
+        for k in 100..key {
+            assert_eq!(s.read(k, &mut buf), Ok(Some(40)), "key {k}");
+            assert_eq!(buf[..40], [k as u8; 40]);
+        }
+        // A smaller value still fits in what is left.
+        s.write(1, b"ok").unwrap();
     }
 
     /// The value of round `i` of the power-cut sweep: lengths vary so that records straddle
