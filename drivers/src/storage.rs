@@ -110,7 +110,8 @@ pub enum StorageError {
         needed: usize,
     },
     /// The flash region is not a whole number of erase pages, has fewer than two, lies outside
-    /// the device, or the flash's word is larger than 32 bytes. Code 235.
+    /// the device, or the flash's word is larger than 32 bytes or its page not a multiple of 64
+    /// bytes. Code 235.
     BadRegion,
     /// An internal inconsistency of the storage layer, or a store used by another user at the
     /// same time ([`SharedStore`](crate::shared_store::SharedStore)). Code 236.

@@ -33,7 +33,7 @@ pub const PLANNER_BLOCKS: usize = 32;
 /// Events of the step queue (a power of two).
 pub const QUEUE_EVENTS: usize = 256;
 
-/// Lines the stored program takes at most: a line is a record of at most 56 bytes, so 200
+/// Lines the stored program takes at most: a line is a record of at most 48 bytes, so 200
 /// take under half of the program store's seven live sectors.
 pub const PROGRAM_LINES: u16 = 200;
 

@@ -25,8 +25,9 @@
 //! The settings (record keys `0x0100…0x02FF`) and the program (`0x1000…`) live in the same
 //! region, shared through the drivers' [`StoreSlot`]: both handles belong to the controller's
 //! context. The store's one free page is its spare for reclaiming space, so settings and
-//! program together must fit in one 16 KiB page: a program line is a record of at most 56
-//! bytes, which bounds the lines a board's program store may take (200 on the boards here).
+//! program together must fit in one 16 KiB page: a program line is a record of at most 48
+//! bytes (an 8-byte header and the line's 39 bytes, to a whole word), which bounds the lines a
+//! board's program store may take (200 on the boards here).
 //!
 //! # QEMU
 //!
