@@ -206,8 +206,16 @@ impl Header {
 /// A live page: its sequence number above its index, so that ordering these orders the log.
 type Live = u64;
 
+fn live_order(seq: u32, page: u32) -> Live {
+    (u64::from(seq) << 32) | u64::from(page)
+}
+
 fn live_page(order: Live) -> u32 {
     order as u32
+}
+
+fn live_sequence(order: Live) -> u32 {
+    (order >> 32) as u32
 }
 
 /// The live pages, as [`FlashRecordStorage::survey`] found them.
@@ -335,7 +343,7 @@ impl<F: NorFlash> FlashRecordStorage<F> {
         let mut next = None;
         for page in 0..self.pages {
             if let Some(seq) = self.sequence(page)? {
-                let order = (u64::from(seq) << 32) | u64::from(page);
+                let order = live_order(seq, page);
                 if after.is_none_or(|a| order > a) && next.is_none_or(|n| order < n) {
                     next = Some(order);
                 }
@@ -344,19 +352,21 @@ impl<F: NorFlash> FlashRecordStorage<F> {
         Ok(next)
     }
 
-    /// How many pages are live, and which are the oldest and the newest.
+    /// How many pages are live, and which are the oldest and the newest: one read of each
+    /// page's header.
     fn survey(&mut self) -> Result<Survey, StorageError> {
         let mut survey = Survey {
             count: 0,
             oldest: None,
             newest: None,
         };
-        let mut after = None;
-        while let Some(order) = self.next_live(after)? {
-            survey.count += 1;
-            survey.oldest = survey.oldest.or(Some(order));
-            survey.newest = Some(order);
-            after = Some(order);
+        for page in 0..self.pages {
+            if let Some(seq) = self.sequence(page)? {
+                let order = live_order(seq, page);
+                survey.count += 1;
+                survey.oldest = Some(survey.oldest.map_or(order, |o| o.min(order)));
+                survey.newest = Some(survey.newest.map_or(order, |n| n.max(order)));
+            }
         }
         Ok(survey)
     }
@@ -390,12 +400,13 @@ impl<F: NorFlash> FlashRecordStorage<F> {
             tag: (first >> 16) as u16,
             crc,
         };
-        Ok((at + Self::size(header) <= page + Self::PAGE).then_some(header))
+        Ok((at + Self::size(header.len()) <= page + Self::PAGE).then_some(header))
     }
 
-    /// Bytes of a record: its header and its value, each to a whole number of words.
-    fn size(header: Header) -> u32 {
-        (Self::HEADER + round_up(header.len(), Self::WORD)) as u32
+    /// Bytes of a record of a `len`-byte value: its header and its value, each to a whole
+    /// number of words.
+    fn size(len: usize) -> u32 {
+        (Self::HEADER + round_up(len, Self::WORD)) as u32
     }
 
     /// The bytes of the value of the record at `at`, a chunk at a time: `visit` gets each
@@ -442,7 +453,7 @@ impl<F: NorFlash> FlashRecordStorage<F> {
                 if header.key == key && self.intact(at, header)? {
                     found = Some((at, header));
                 }
-                at += Self::size(header);
+                at += Self::size(header.len());
             }
         }
         Ok(found)
@@ -455,7 +466,7 @@ impl<F: NorFlash> FlashRecordStorage<F> {
         let mut last = None;
         while let Some(header) = self.header(page, at)? {
             last = Some((at, header));
-            at += Self::size(header);
+            at += Self::size(header.len());
         }
         if let Some((last_at, header)) = last
             && !self.intact(last_at, header)?
@@ -524,7 +535,7 @@ impl<F: NorFlash> FlashRecordStorage<F> {
         let mut at = source + Self::FIRST as u32;
         let mut next = target + Self::FIRST as u32;
         while let Some(header) = self.header(source, at)? {
-            let size = Self::size(header);
+            let size = Self::size(header.len());
             // A removed key's last record can go: the oldest page holds nothing older.
             if !header.removed() && self.latest(header.key)?.map(|(a, _)| a) == Some(at) {
                 if next + size > target + Self::PAGE {
@@ -554,7 +565,7 @@ impl<F: NorFlash> FlashRecordStorage<F> {
         if value.len() > Self::max_value_len() {
             return Err(StorageError::TooLarge);
         }
-        let size = (Self::HEADER + round_up(value.len(), Self::WORD)) as u32;
+        let size = Self::size(value.len());
         let mut collections = 0;
         loop {
             let live = self.survey()?;
@@ -588,9 +599,7 @@ impl<F: NorFlash> FlashRecordStorage<F> {
                 }
             }
             let spare = spare.ok_or(StorageError::Internal)?;
-            let seq = live
-                .newest
-                .map_or(0, |n| ((n >> 32) as u32).wrapping_add(1));
+            let seq = live.newest.map_or(0, |n| live_sequence(n).wrapping_add(1));
             self.open(spare, seq)?;
             if live.count + 1 == self.pages
                 && let Some(oldest) = live.oldest
