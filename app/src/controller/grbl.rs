@@ -961,30 +961,16 @@ where
         // Then `$100`+, `$110`+, `$120`+ and `$130`+, one per axis (ten at most).
         let axes = N.min(10);
         let (group, axis) = (left.checked_div(axes)?, left.checked_rem(axes)?);
-        let (base, setting) = match group {
-            0 => (
-                100,
-                GrblSetting::Stored(Key::Axis {
-                    axis,
-                    field: AxisField::StepsPerMm,
-                }),
-            ),
-            1 => (
-                110,
-                GrblSetting::Stored(Key::Axis {
-                    axis,
-                    field: AxisField::MaxRate,
-                }),
-            ),
-            2 => (
-                120,
-                GrblSetting::Stored(Key::Axis {
-                    axis,
-                    field: AxisField::Accel,
-                }),
-            ),
-            3 => (130, GrblSetting::Travel(axis)),
-            _ => return None,
+        const AXES: [(u16, Option<AxisField>); 4] = [
+            (100, Some(AxisField::StepsPerMm)),
+            (110, Some(AxisField::MaxRate)),
+            (120, Some(AxisField::Accel)),
+            (130, None),
+        ];
+        let &(base, field) = AXES.get(group)?;
+        let setting = match field {
+            Some(field) => GrblSetting::Stored(Key::Axis { axis, field }),
+            None => GrblSetting::Travel(axis),
         };
         Some((base + axis as u16, setting))
     }
